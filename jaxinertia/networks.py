@@ -1,0 +1,235 @@
+"""The paper's two networks (Flax linen) and loading of the authors' released weights.
+
+TorqueModel: per joint an MLP 4 -> hidden -> embed (ReLU between), the N embeddings
+concatenated, then a head MLP (ReLU) to N normalised torques.
+
+AttentionModel: per joint an MLP of the same shape (its own parameters), the embedding
+concatenated with the joint's one-hot index, a scorer MLP to one score per joint, and a
+softmax over the joints.
+
+Linen is used (not nnx) because parameters are then a plain pytree: ten released model
+pairs stack into one pytree and ``jax.vmap`` evaluates all of them in one call.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Sequence
+from pathlib import Path
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = [
+    "AttentionModel",
+    "JointEmbedding",
+    "TorqueModel",
+    "WeightsError",
+    "attention_params_from_torch",
+    "load_released_pair",
+    "load_state_dict",
+    "stack_params",
+    "torque_params_from_torch",
+]
+
+
+class JointEmbedding(nn.Module):
+    """4 -> hidden -> embed MLP for one joint's state."""
+
+    hidden: int = 12
+    embed: int = 12
+
+    @nn.compact
+    def __call__(self, x):
+        x = nn.relu(nn.Dense(self.hidden, name="hidden")(x))
+        return nn.Dense(self.embed, name="embed")(x)
+
+
+class TorqueModel(nn.Module):
+    """(..., N, 4) features -> (..., N) normalised joint torques (times tau_scale = N m)."""
+
+    n_joints: int = 4
+    hidden: int = 12
+    embed: int = 12
+    head: Sequence[int] = (64, 64)
+
+    @nn.compact
+    def __call__(self, features):
+        h = [
+            JointEmbedding(self.hidden, self.embed, name=f"joint{j}")(features[..., j, :])
+            for j in range(self.n_joints)
+        ]
+        x = jnp.concatenate(h, axis=-1)
+        for i, width in enumerate(self.head):
+            x = nn.relu(nn.Dense(width, name=f"head{i}")(x))
+        return nn.Dense(self.n_joints, name="out")(x)
+
+
+class AttentionModel(nn.Module):
+    """(..., N, 4) features -> (..., N) joint weights, positive, summing to one per sample."""
+
+    n_joints: int = 4
+    hidden: int = 12
+    embed: int = 12
+    scorer: Sequence[int] = (32,)
+
+    def scores(self, features):
+        h = jnp.stack(
+            [
+                JointEmbedding(self.hidden, self.embed, name=f"joint{j}")(features[..., j, :])
+                for j in range(self.n_joints)
+            ],
+            axis=-2,
+        )
+        onehot = jnp.broadcast_to(
+            jnp.eye(self.n_joints, dtype=h.dtype), h.shape[:-1] + (self.n_joints,)
+        )
+        x = jnp.concatenate([h, onehot], axis=-1)
+        for i, width in enumerate(self.scorer):
+            x = nn.relu(nn.Dense(width, name=f"scorer{i}")(x))
+        return nn.Dense(1, name="score")(x)[..., 0]
+
+    @nn.compact
+    def __call__(self, features):
+        return jax.nn.softmax(self.scores(features), axis=-1)
+
+
+class WeightsError(ValueError):
+    """A weight file that is unreadable or does not match the architecture."""
+
+
+def load_state_dict(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Reads a state dict from ``.npz`` or a PyTorch ``.pt`` (without importing torch)."""
+    path = Path(path)
+    if path.suffix == ".pt":
+        from jaxinertia.torch_state_dict import StateDictError
+        from jaxinertia.torch_state_dict import load_state_dict as load_pt
+
+        try:
+            return load_pt(path)
+        except StateDictError as e:
+            raise WeightsError(str(e)) from e
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: np.asarray(z[k]) for k in z.files}
+    except (OSError, ValueError) as e:
+        raise WeightsError(f"{path}: cannot read weights ({e})") from e
+
+
+def _dense(sd, prefix, path, shape_in=None, shape_out=None):
+    try:
+        w, b = sd[f"{prefix}.weight"], sd[f"{prefix}.bias"]
+    except KeyError as e:
+        raise WeightsError(f"{path}: missing tensor {e.args[0]!r}") from None
+    if w.ndim != 2 or b.shape != (w.shape[0],):
+        raise WeightsError(f"{path}: {prefix}: bad shapes weight {w.shape}, bias {b.shape}")
+    if (shape_in is not None and w.shape[1] != shape_in) or (
+        shape_out is not None and w.shape[0] != shape_out
+    ):
+        raise WeightsError(
+            f"{path}: {prefix}.weight has shape {w.shape}, expected ({shape_out}, {shape_in})"
+        )
+    for name, a in (("weight", w), ("bias", b)):
+        if not np.all(np.isfinite(a)):
+            raise WeightsError(f"{path}: {prefix}.{name} holds non-finite values")
+    # PyTorch Linear stores (out, in) and computes x W^T + b; Dense's kernel is (in, out).
+    return {"kernel": jnp.asarray(w.T), "bias": jnp.asarray(b)}
+
+
+def _joint_prefixes(sd, pattern):
+    idx = sorted({int(m.group(1)) for k in sd if (m := re.match(pattern, k))})
+    if not idx or idx != list(range(1, len(idx) + 1)):
+        raise WeightsError(f"joint modules {idx} are not numbered 1..N")
+    return idx
+
+
+def torque_params_from_torch(sd: dict, path: str = "<state dict>") -> tuple[TorqueModel, dict]:
+    """The authors' ``TorqueModel`` state dict (``j{1..N}.{0,2}``, ``tau.{0,2,4}``) -> Flax."""
+    try:
+        joints = _joint_prefixes(sd, r"j(\d+)\.0\.weight$")
+    except WeightsError as e:
+        raise WeightsError(f"{path}: {e}") from None
+    n = len(joints)
+    params = {}
+    for j in joints:
+        params[f"joint{j - 1}"] = {
+            "hidden": _dense(sd, f"j{j}.0", path, shape_in=4),
+            "embed": _dense(sd, f"j{j}.2", path),
+        }
+    heads = sorted(int(m.group(1)) for k in sd if (m := re.match(r"tau\.(\d+)\.weight$", k)))
+    if len(heads) < 1:
+        raise WeightsError(f"{path}: missing tensor 'tau.0.weight'")
+    for i, h in enumerate(heads[:-1]):
+        params[f"head{i}"] = _dense(sd, f"tau.{h}", path)
+    params["out"] = _dense(sd, f"tau.{heads[-1]}", path, shape_out=n)
+    hidden = params["joint0"]["hidden"]["kernel"].shape[1]
+    embed = params["joint0"]["embed"]["kernel"].shape[1]
+    head = tuple(params[f"head{i}"]["kernel"].shape[1] for i in range(len(heads) - 1))
+    model = TorqueModel(n_joints=n, hidden=hidden, embed=embed, head=head)
+    _check_against_init(model, {"params": params}, n, path)
+    return model, {"params": params}
+
+
+def attention_params_from_torch(
+    sd: dict, path: str = "<state dict>"
+) -> tuple[AttentionModel, dict]:
+    """The authors' attention state dict (``joint{j}_feature.{0,2}``, ``scorer.{0,2}``) -> Flax."""
+    try:
+        joints = _joint_prefixes(sd, r"joint(\d+)_feature\.0\.weight$")
+    except WeightsError as e:
+        raise WeightsError(f"{path}: {e}") from None
+    n = len(joints)
+    params = {}
+    for j in joints:
+        params[f"joint{j - 1}"] = {
+            "hidden": _dense(sd, f"joint{j}_feature.0", path, shape_in=4),
+            "embed": _dense(sd, f"joint{j}_feature.2", path),
+        }
+    layers = sorted(int(m.group(1)) for k in sd if (m := re.match(r"scorer\.(\d+)\.weight$", k)))
+    if len(layers) < 1:
+        raise WeightsError(f"{path}: missing tensor 'scorer.0.weight'")
+    for i, h in enumerate(layers[:-1]):
+        params[f"scorer{i}"] = _dense(sd, f"scorer.{h}", path)
+    params["score"] = _dense(sd, f"scorer.{layers[-1]}", path, shape_out=1)
+    hidden = params["joint0"]["hidden"]["kernel"].shape[1]
+    embed = params["joint0"]["embed"]["kernel"].shape[1]
+    scorer = tuple(params[f"scorer{i}"]["kernel"].shape[1] for i in range(len(layers) - 1))
+    model = AttentionModel(n_joints=n, hidden=hidden, embed=embed, scorer=scorer)
+    _check_against_init(model, {"params": params}, n, path)
+    return model, {"params": params}
+
+
+def _check_against_init(model, variables, n, path):
+    """Every tensor must have exactly the shape the architecture initialises."""
+    ref = jax.eval_shape(model.init, jax.random.key(0), jnp.zeros((1, n, 4), jnp.float32))
+    ref_shapes = jax.tree_util.tree_map(lambda a: a.shape, ref)
+    got_shapes = jax.tree_util.tree_map(lambda a: a.shape, variables)
+    if ref_shapes != got_shapes:
+        raise WeightsError(f"{path}: tensors do not fit {model}: {got_shapes} vs {ref_shapes}")
+
+
+def load_released_pair(weights_dir: str | os.PathLike, index: int, *, prefer: str = "npz"):
+    """One released model pair ``dict_torque_{index}`` / ``dict_attn_{index}``.
+
+    Looks for ``.npz`` (or ``.pt`` with ``prefer="pt"``) and falls back to the other.
+    Returns ``(torque_model, torque_vars, attention_model, attention_vars)``.
+    """
+    weights_dir = Path(weights_dir)
+    out = []
+    for stem, convert in (("dict_torque", torque_params_from_torch),
+                          ("dict_attn", attention_params_from_torch)):
+        exts = (".npz", ".pt") if prefer == "npz" else (".pt", ".npz")
+        cands = [weights_dir / f"{stem}_{index}{e}" for e in exts]
+        path = next((c for c in cands if c.exists()), None)
+        if path is None:
+            raise WeightsError(f"{cands[0]}: no such file (nor {cands[1].name})")
+        out.extend(convert(load_state_dict(path), str(path)))
+    return tuple(out)
+
+
+def stack_params(variables: Sequence[dict]) -> dict:
+    """Stacks K parameter pytrees of one architecture along a new leading axis (for vmap)."""
+    return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *variables)
