@@ -1,0 +1,35 @@
+"""Shared fixtures. Identification is tested in float64 (the library's choice)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import jaxinertia  # noqa: F401  (applies the XLA:CPU settings before JAX starts)
+import jax
+import pytest
+
+jax.config.update("jax_enable_x64", True)
+
+from jaxinertia.lbipe import default_lbipe_dir  # noqa: E402
+
+ASSETS = Path(__file__).parent / "assets"
+
+HOW_TO_GET_LBIPE = (
+    "the real OpenMANIPULATOR-X data (lbipe) is not at {path}. Put the shared/lbipe folder "
+    "beside the repository (../shared/lbipe) or point JAXINERTIA_LBIPE_DIR at it; the data, "
+    "weights and golden files come from the project's shared/ folder (the authors' "
+    "ChirikjianLab/lbipe repository plus golden outputs)."
+)
+
+
+@pytest.fixture(scope="session")
+def lbipe_dir() -> Path:
+    """The shared lbipe folder; skipped with instructions when absent, failing under CI."""
+    path = default_lbipe_dir()
+    if not (path / "data").is_dir():
+        msg = HOW_TO_GET_LBIPE.format(path=path)
+        if os.environ.get("CI"):
+            pytest.fail("CI is set and " + msg)
+        pytest.skip(msg)
+    return path
