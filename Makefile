@@ -28,7 +28,7 @@ demo: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check jaxinertia tests experiments
-	$(BIN)/ruff format --check jaxinertia tests experiments
+
 
 bench: $(STAMP)
 	$(BIN)/python experiments/bench_lbipe.py

@@ -57,11 +57,14 @@ class LbipeFormatError(ValueError):
 
 
 def default_lbipe_dir() -> Path:
-    """``$JAXINERTIA_LBIPE_DIR`` or ``../shared/lbipe`` next to the repository."""
+    """``$JAXINERTIA_LBIPE_DIR``, else ``../shared/lbipe`` beside the repository (or beside
+    the working directory, for an installed, non-editable package)."""
     env = os.environ.get("JAXINERTIA_LBIPE_DIR")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parent.parent.parent / "shared" / "lbipe"
+    repo = Path(__file__).resolve().parent.parent.parent / "shared" / "lbipe"
+    cwd = Path.cwd().parent / "shared" / "lbipe"
+    return repo if repo.is_dir() or not cwd.is_dir() else cwd
 
 
 @dataclass(frozen=True)

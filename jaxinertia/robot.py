@@ -195,9 +195,8 @@ def from_mujoco(
         inertia_o[owner] += I_c + mb * (c @ c * np.eye(3) - np.outer(c, c))
     com = np.divide(first_moment, mass[:, None], out=np.zeros_like(first_moment),
                     where=mass[:, None] > 0)
-    inertia = inertia_o - mass[:, None, None] * (
-        np.einsum("ni,ni->n", com, com)[:, None, None] * np.eye(3) - np.einsum("ni,nj->nij", com, com)
-    )
+    cc = np.einsum("ni,ni->n", com, com)[:, None, None] * np.eye(3)
+    inertia = inertia_o - mass[:, None, None] * (cc - np.einsum("ni,nj->nij", com, com))
 
     # End-effector frame.
     if ee_site is None and ee_body is None and m.nsite > 0:

@@ -105,8 +105,11 @@ def test_batched_sets_equal_one_by_one_and_gather_path():
         idx = sets[b]
         ref = _lstsq(A[idx].reshape(-1, 4), y[idx].reshape(-1), w[idx].reshape(-1))
         np.testing.assert_allclose(res.x[b], ref, rtol=1e-10, atol=1e-12)
-    batched = wls_batched(jnp.asarray(A[sets].reshape(B, -1, 4)), jnp.asarray(y[sets].reshape(B, -1)),
-                          jnp.asarray(w[sets].reshape(B, -1)))
+    batched = wls_batched(
+        jnp.asarray(A[sets].reshape(B, -1, 4)),
+        jnp.asarray(y[sets].reshape(B, -1)),
+        jnp.asarray(w[sets].reshape(B, -1)),
+    )
     np.testing.assert_allclose(batched.x, res.x, rtol=1e-10)
     # The gather path (used for very large sets x samples) gives the same statistics.
     import jaxinertia.identification as ident

@@ -28,7 +28,7 @@ OBJECTS = ["cube", "white"]
 
 
 @pytest.fixture(scope="module")
-def benchmark(lbipe_dir):
+def lbipe_run(lbipe_dir):
     return run_lbipe_benchmark(lbipe_dir)
 
 
@@ -92,9 +92,9 @@ def test_pt_and_npz_give_identical_parameters(lbipe_dir):
                 assert x.dtype == y.dtype and np.array_equal(x, y)
 
 
-def test_table_one_and_three_equal_reference_metrics(lbipe_dir, benchmark):
+def test_table_one_and_three_equal_reference_metrics(lbipe_dir, lbipe_run):
     ref = json.loads((lbipe_dir / "golden" / "reference_metrics.json").read_text())
-    got = benchmark["metrics"]
+    got = lbipe_run["metrics"]
     assert set(got) == set(ref)
     for name, r in ref.items():
         assert set(got[name]) == set(r)
@@ -105,7 +105,7 @@ def test_table_one_and_three_equal_reference_metrics(lbipe_dir, benchmark):
         np.testing.assert_allclose(got[name]["mean_attention_weight"],
                                    r["mean_attention_weight"], rtol=1e-3)
         assert got[name]["L_max_m"] == pytest.approx(r["L_max_m"], rel=1e-6)
-    for name, d in benchmark["diagnostics"].items():
+    for name, d in lbipe_run["diagnostics"].items():
         for method in ("T", "T-A"):
             assert d[method]["rank_deficient"] == 0, (name, method)
             assert d[method]["n_solves"] == 10 * 1000

@@ -1,0 +1,58 @@
+"""Figures (matplotlib, headless Agg backend)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["plot_lbipe_estimates"]
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_lbipe_estimates(res: dict, path: str | os.PathLike) -> Path:
+    """Per object: the distribution of mass estimates and of COM errors over every model
+    pair and set, T beside T-A, with the truth marked. ``res`` from ``run_lbipe_benchmark``.
+    """
+    plt = _pyplot()
+    inputs, est = res["inputs"], res["estimates"]
+    n = len(inputs.names)
+    fig, axes = plt.subplots(2, n, figsize=(4.2 * n, 6.4), squeeze=False)
+    colors = {"T": "tab:orange", "T-A": "tab:blue"}
+    for o, (name, ds) in enumerate(zip(inputs.names, inputs.datasets)):
+        m_true, p_true = ds.mass, ds.com
+        for key, r in (("T", est.T), ("T-A", est.TA)):
+            x = np.asarray(r.x[o]).reshape(-1, 4)
+            x = x[np.all(np.isfinite(x), axis=-1)]
+            m = x[:, 0]
+            com_err = np.linalg.norm(x[:, 1:] / x[:, :1] - p_true, axis=-1)
+            kw = dict(bins=60, histtype="step", lw=1.5, color=colors[key])
+            axes[0, o].hist(m * 1e3, label=f"{key}: MAE {np.mean(np.abs(m - m_true)) * 1e3:.1f} g",
+                            **kw)
+            axes[1, o].hist(com_err * 1e3, label=f"{key}: MAE {np.mean(com_err) * 1e3:.1f} mm",
+                            **kw)
+        axes[0, o].axvline(m_true * 1e3, color="k", ls="--", lw=1, label="true")
+        axes[0, o].set(title=f"{name} ({m_true * 1e3:.1f} g)", xlabel="estimated mass [g]",
+                       ylabel="sets x models")
+        axes[1, o].set(xlabel="COM error [mm]", ylabel="sets x models")
+        for ax in axes[:, o]:
+            ax.legend(fontsize=8)
+            ax.grid(alpha=0.3)
+    fig.suptitle("Released lbipe models on the real OpenMANIPULATOR-X data "
+                 f"({est.T.x.shape[1]} model pairs x {est.T.x.shape[2]} sets of "
+                 f"{inputs.sets[0].shape[1]})")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
