@@ -5,9 +5,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import jaxinertia  # noqa: F401  (applies the XLA:CPU settings before JAX starts)
 import jax
 import pytest
+
+import jaxinertia  # noqa: F401  (applies the XLA:CPU settings before JAX starts)
 
 jax.config.update("jax_enable_x64", True)
 
