@@ -58,6 +58,14 @@ def forward_kinematics(robot: Robot, q: jnp.ndarray) -> Poses:
     Args:
       q: (N,) joint angles [rad].
     """
+    q = jnp.asarray(q)
+    # Static check (shapes are known under jit/vmap/grad): JAX clamps out-of-range indices,
+    # so a too-short q would otherwise silently reuse its last angle for the missing joints.
+    if q.shape != (robot.n_joints,):
+        raise ValueError(
+            f"q has shape {q.shape}; {robot.name!r} needs ({robot.n_joints},) joint angles "
+            "(one configuration; vmap for batches)"
+        )
     rots, poss = [], []
     for i in range(robot.n_joints):
         # Body i at q: its rest pose in the parent, then a rotation about the joint axis

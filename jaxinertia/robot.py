@@ -295,7 +295,14 @@ def load_robot(
 
 
 def data_path(name: str) -> Path:
-    """Path of a resource shipped with the package (the repository's ``data/`` folder)."""
+    """Path of a resource shipped with the package (the repository's ``data/`` folder).
+
+    A source checkout (editable install) reads ``data/`` directly; a wheel ships the same
+    files as the resource package ``jaxinertia._data``.
+    """
+    local = Path(__file__).resolve().parent.parent / "data" / name
+    if local.exists():
+        return local
     return Path(str(importlib.resources.files("jaxinertia._data").joinpath(name)))
 
 
