@@ -88,7 +88,8 @@ def test_frictionless_pd_trajectory_matches_mujoco_euler(arm):
     model.opt.integrator = mujoco.mjtIntegrator.mjINT_EULER
     model.opt.timestep = dt = 1e-3
     # The chain itself only: no joint-limit or contact constraints.
-    model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_LIMIT | mujoco.mjtDisableBit.mjDSBL_CONTACT
+    off = mujoco.mjtDisableBit
+    model.opt.disableflags |= off.mjDSBL_LIMIT | off.mjDSBL_CONTACT
     data = mujoco.MjData(model)
     rng = np.random.default_rng(4)
     q0 = rng.uniform(robot.q_min, robot.q_max)
