@@ -1,0 +1,1 @@
+"""Simulated OpenMANIPULATOR-X on DYNAMIXEL XM430-W350-T servos (pure JAX)."""

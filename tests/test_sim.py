@@ -1,0 +1,95 @@
+"""The simulated arm: true sticking, the sampling protocol, and statics of a sample."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxinertia.kinematics import ee_pose, gravity_torques
+from jaxinertia.robot import open_manipulator_x
+from jaxinertia.sim.friction import FrictionParams, friction_bound, solve_box_friction
+from jaxinertia.sim.servo import RAD_PER_TICK, ServoParams
+from jaxinertia.sim.simulator import SimParams, SimState, attach_payload, hold, move_and_settle
+from jaxinertia.statics import load_regressor
+
+DEG = np.pi / 180
+GOAL = jnp.array([10.0, -30.0, 30.0, 0.0]) * DEG
+PAYLOAD_M = 0.1
+R_EE_TAG = jnp.asarray(np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]))
+P_EE_TAG = jnp.array([0.01, 0.0, 0.023])
+COM_TAG = jnp.array([0.012, -0.004, -0.02])
+
+
+@pytest.fixture(scope="module")
+def params():
+    robot = open_manipulator_x().replace(armature=jnp.full(4, 0.01))
+    com_ee = R_EE_TAG @ COM_TAG + P_EE_TAG
+    return SimParams(attach_payload(robot, PAYLOAD_M, com_ee), ServoParams.xm430_w350(),
+                     FrictionParams.create())
+
+
+@pytest.fixture(scope="module")
+def rests(params):
+    @jax.jit
+    def approach(direction):
+        pre = GOAL - direction * 3 * DEG
+        s = SimState.at_rest(pre)
+        s, ok1, _ = move_and_settle(params, s, pre, pre)
+        s, ok2, _ = move_and_settle(params, s, pre, GOAL)
+        s_after, ticks = hold(params, s, GOAL, 10.0)
+        return s, ok1 & ok2, ticks
+
+    return {d: approach(jnp.full(4, float(d))) for d in (1, -1)}
+
+
+def test_box_friction_sticks_exactly_below_the_bound_and_slides_above():
+    W = jnp.array([[2.0, 0.3], [0.3, 1.0]])
+    f, v = solve_box_friction(W, jnp.array([0.1, -0.05]), jnp.array([1.0, 1.0]))
+    np.testing.assert_allclose(v, 0.0, atol=1e-12)  # enough friction: both stick
+    f, v = solve_box_friction(W, jnp.array([4.0, 0.0]), jnp.array([0.5, 10.0]))
+    assert float(v[0]) > 0 and abs(float(f[0]) + 0.5) < 1e-12  # slides against the bound
+    assert abs(float(v[1])) < 1e-12  # the other joint held
+    fp = FrictionParams.create(coulomb=0.03, static=0.05, load_coefficient=0.3)
+    b = friction_bound(fp, jnp.zeros(4), jnp.array([0.0, 1.0, 0.0, 0.0]),
+                       jnp.array([0.0, 0.0, 1.0, 0.0]))
+    np.testing.assert_allclose(b, [0.05, 0.03, 0.35, 0.05], atol=1e-12)
+
+
+def test_both_directions_rest_apart_within_the_stiction_band_and_never_creep(params, rests):
+    k_tick = float(ServoParams.xm430_w350().p_gain[0] / 128 / 885 * 12 / (12 / 2.3) * 4.1 / 2.3)
+    e = {}
+    for d, (s, ok, ticks) in rests.items():
+        assert bool(ok), f"direction {d} did not come to rest"
+        # Neither moves by a tick over a further 10 s.
+        assert np.all(np.asarray(ticks) == np.asarray(ticks)[0]), f"direction {d} crept"
+        e[d] = np.asarray((GOAL - s.q) / RAD_PER_TICK)
+        # At rest: servo torque + friction = -gravity (statics), with |friction| <= bound.
+        tau_g = np.asarray(gravity_torques(params.robot, s.q))
+        np.testing.assert_allclose(np.asarray(s.servo.torque + s.friction), -tau_g, atol=1e-9)
+        bound = np.asarray(friction_bound(params.friction, s.q, 0 * s.q, s.servo.torque))
+        assert np.all(np.abs(np.asarray(s.friction)) <= bound + 1e-12)
+    sep = e[1] - e[-1]
+    # The heavily loaded joint 2 rests clearly apart (the lightly loaded ones may share a
+    # tick: the servo's torque comes in steps of ~29 N mm per tick) ...
+    assert abs(sep[1]) >= 3, sep
+    # ... and no further apart than the band: (F+ + F-) / k, plus one tick of rounding
+    # on each side.
+    s_p, s_m = rests[1][0], rests[-1][0]
+    band = (np.asarray(friction_bound(params.friction, s_p.q, 0 * s_p.q, s_p.servo.torque))
+            + np.asarray(friction_bound(params.friction, s_m.q, 0 * s_m.q, s_m.servo.torque)))
+    assert np.all(np.abs(sep) <= band / k_tick + 2), (sep, band / k_tick)
+
+
+def test_a_sample_satisfies_tau_minus_tau_g_equals_A_x(params, rests):
+    bare = open_manipulator_x()
+    for s, _, _ in rests.values():
+        tau = gravity_torques(params.robot, s.q)  # load torque of arm + object at rest
+        tau_g = gravity_torques(bare, s.q)
+        R_ee, p_ee = ee_pose(bare, s.q)
+        A = load_regressor(bare, s.q, R_ee @ R_EE_TAG, R_ee @ P_EE_TAG + p_ee)
+        x = jnp.concatenate([jnp.array([PAYLOAD_M]), PAYLOAD_M * COM_TAG])
+        np.testing.assert_allclose(tau - tau_g, A @ x, atol=1e-12)
+        # And the servo actually carries it: -(servo + friction) is that same torque.
+        np.testing.assert_allclose(-(s.servo.torque + s.friction), tau, atol=1e-9)
