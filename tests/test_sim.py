@@ -93,3 +93,37 @@ def test_a_sample_satisfies_tau_minus_tau_g_equals_A_x(params, rests):
         np.testing.assert_allclose(tau - tau_g, A @ x, atol=1e-12)
         # And the servo actually carries it: -(servo + friction) is that same torque.
         np.testing.assert_allclose(-(s.servo.torque + s.friction), tau, atol=1e-9)
+
+
+def test_simulated_samples_follow_the_lbipe_conventions():
+    from jaxinertia.features import LBIPE_FEATURES
+    from jaxinertia.sim.sampling import HeldObject, simulate_samples
+
+    robot = open_manipulator_x().replace(armature=jnp.full(4, 0.01))
+    params = SimParams(robot, ServoParams.xm430_w350(), FrictionParams.create())
+    obj = HeldObject(jnp.asarray(0.0881), COM_TAG, R_EE_TAG, P_EE_TAG, jnp.eye(3) * 2e-5)
+    rng = np.random.default_rng(0)
+    S = 48
+    q_d = jnp.asarray(rng.uniform(np.asarray(LBIPE_FEATURES.q_min),
+                                  np.asarray(LBIPE_FEATURES.q_max), (S, 4)))
+    direction = jnp.asarray(rng.choice([-1.0, 1.0], (S, 4)))
+    s = jax.jit(lambda a, b, k: simulate_samples(params, obj, a, b, k))(q_d, direction,
+                                                                     jax.random.key(0))
+    assert bool(jnp.all(s.at_rest))
+    # Present position in whole ticks, current in 2.69 mA steps (times k_t).
+    ticks = np.asarray(s.q) / RAD_PER_TICK
+    np.testing.assert_allclose(ticks, np.round(ticks), atol=1e-9)
+    lsb = 2.69e-3 * float(params.servo.torque_constant[0])
+    steps = np.asarray(s.current_tau) / lsb
+    np.testing.assert_allclose(steps, np.round(steps), atol=1e-6)
+    # tau - tau_g = A x exactly, with the foundation's A at the recorded q.
+    np.testing.assert_allclose(s.tau - s.tau_g, jnp.einsum("snk,k->sn", s.A, obj.x), atol=1e-12)
+    # The servo holds +tau (lbipe convention) up to friction and tick rounding of q.
+    hold_err = np.asarray(s.servo_tau + s.friction_tau - s.tau)
+    assert np.max(np.abs(hold_err)) < 0.01, np.max(np.abs(hold_err))
+    # tau rises with q_d - q as on the real arm (k > 0 per joint, ~16 N m/rad at P = 800).
+    qe = np.asarray(s.q_d - s.q)
+    for j in range(4):
+        X = np.column_stack([qe[:, j], -np.asarray(direction[:, j]), np.ones(S)])
+        k, f, _ = np.linalg.lstsq(X, np.asarray(s.tau[:, j]), rcond=None)[0]
+        assert 10 < k < 25 and f > 0, (j, k, f)

@@ -1,0 +1,113 @@
+"""Samples as the paper takes them, from the simulated arm, vmapped over many samples.
+
+Each sample: the arm rests at the pre-position ``q_d - s * delta`` (so that every joint
+approaches its goal from its direction ``s``), moves to ``q_d`` with the servo's profile,
+and is recorded once at rest. The record has the lbipe fields, computed as on the real arm
+from what the servo reports (``q`` in integer ticks, the current in 2.69 mA steps with
+noise), plus the tag pose and the simulator's true state for diagnostics.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from jaxinertia.kinematics import gravity_torques
+from jaxinertia.robot import Robot
+from jaxinertia.sim.servo import CURRENT_LSB_A, RAD_PER_TICK, present_ticks
+from jaxinertia.sim.simulator import SimParams, SimState, attach_payload, move_and_settle
+from jaxinertia.statics import load_regressor, tag_pose
+
+__all__ = ["HeldObject", "Samples", "simulate_samples"]
+
+
+@struct.dataclass
+class HeldObject:
+    """A rigid object held with an AprilTag frame fixed in the end-effector frame."""
+
+    mass: jnp.ndarray  # [kg]
+    com_tag: jnp.ndarray  # (3,) COM in the tag frame [m]
+    R_ee_tag: jnp.ndarray  # (3, 3) tag orientation in the end-effector frame
+    p_ee_tag: jnp.ndarray  # (3,) tag origin in the end-effector frame [m]
+    inertia: jnp.ndarray  # (3, 3) about the COM, tag axes [kg m^2]
+
+    @property
+    def x(self) -> jnp.ndarray:
+        """The identification target ``[m, m * p_tag]``."""
+        return jnp.concatenate([self.mass[None], self.mass * self.com_tag])
+
+    def com_ee(self) -> jnp.ndarray:
+        return self.R_ee_tag @ self.com_tag + self.p_ee_tag
+
+
+class Samples(NamedTuple):
+    """Leading axis S. Angles [rad], torques [N m]."""
+
+    q_d: jnp.ndarray  # (S, N) commanded goal (continuous, as recorded on the real arm)
+    q: jnp.ndarray  # (S, N) Present Position (integer ticks, in rad)
+    current_tau: jnp.ndarray  # (S, N) torque from Present Current (k_t * I, quantised)
+    direction: jnp.ndarray  # (S, N) +1 / -1
+    tau: jnp.ndarray  # (S, N) load torque of arm + object at q (statics)
+    tau_g: jnp.ndarray  # (S, N) load torque of the bare arm at q
+    A: jnp.ndarray  # (S, N, 4) load regressor at q and the tag pose
+    R_base_tag: jnp.ndarray  # (S, 3, 3)
+    p_base_tag: jnp.ndarray  # (S, 3)
+    at_rest: jnp.ndarray  # (S,) False: timed out (never silently used)
+    settle_time: jnp.ndarray  # (S,) [s]
+    q_true: jnp.ndarray  # (S, N) simulator state at the sample
+    servo_tau: jnp.ndarray  # (S, N) true motor output torque
+    friction_tau: jnp.ndarray  # (S, N) true friction torque
+
+
+def _one_sample(params: SimParams, bare: Robot, obj: HeldObject, q_d, direction, delta, key):
+    pre = q_d - direction * delta
+    state = SimState.at_rest(pre)
+    state, ok1, _ = move_and_settle(params, state, pre, pre)
+    state, ok2, t = move_and_settle(params, state, pre, q_d)
+    q = present_ticks(state.q) * RAD_PER_TICK
+    noise = jax.random.normal(key, q.shape) * params.servo.current_noise
+    current = jnp.round((state.servo.current + noise) / CURRENT_LSB_A) * CURRENT_LSB_A
+    R_bt, p_bt = tag_pose(bare, q, obj.R_ee_tag, obj.p_ee_tag)
+    A = load_regressor(bare, q, R_bt, p_bt)
+    tau_g = gravity_torques(bare, q)
+    return Samples(
+        q_d=q_d, q=q, current_tau=params.servo.torque_constant * current,
+        direction=direction, tau=tau_g + A @ obj.x, tau_g=tau_g, A=A, R_base_tag=R_bt,
+        p_base_tag=p_bt, at_rest=ok1 & ok2, settle_time=t, q_true=state.q,
+        servo_tau=state.servo.torque, friction_tau=state.friction,
+    )
+
+
+def simulate_samples(
+    params: SimParams,
+    obj: HeldObject,
+    q_d: jnp.ndarray,
+    direction: jnp.ndarray,
+    key: jax.Array,
+    *,
+    delta: float = 3.0 * jnp.pi / 180.0,
+) -> Samples:
+    """Simulates S samples (vmapped): goals ``q_d`` and directions (S, N).
+
+    ``params.robot`` is the bare arm in the lbipe convention; the object is attached here.
+
+    Sign convention. In the real data the recorded torque (``tau``, the torque gravity
+    exerts on the joints with gravity [-9.81, 0, 0] in the base frame) rises with the
+    discrepancy ``q_d - q`` and with the servo's current (correlations 0.8-0.9 on joints
+    1, 3, 4: ``tau ~ k (q_d - q) - s f``). A servo at rest pushes *against* the load, so
+    the physical gravity on the real arm is the opposite of that convention's vector.
+    The simulated arm therefore feels ``-robot.gravity``; every recorded field (tau,
+    tau_g, A) uses the convention, so ``tau - tau_g = A x`` holds as in the real data and
+    the servo's holding torque equals ``+tau`` at rest.
+    """
+    bare = params.robot
+    R_ee = obj.R_ee_tag
+    inertia_ee = R_ee @ obj.inertia @ R_ee.T
+    physical = bare.with_gravity(-bare.gravity)
+    loaded = params.replace(robot=attach_payload(physical, obj.mass, obj.com_ee(), inertia_ee))
+    keys = jax.random.split(key, q_d.shape[0])
+    return jax.vmap(_one_sample, (None, None, None, 0, 0, None, 0))(
+        loaded, bare, obj, q_d, direction, delta, keys)
