@@ -65,6 +65,76 @@ def cmd_lbipe_benchmark(args) -> int:
     return 0
 
 
+def cmd_simulate(args) -> int:
+    _enable_x64()
+    import jax
+    import numpy as np
+
+    from jaxinertia import __version__
+    from jaxinertia.datasets import save_lbipe, save_native
+    from jaxinertia.sim import scenarios as sc
+    from jaxinertia.sim.run import default_sim_params, run_plan
+
+    if args.scenario == "continuous":
+        print("jaxinertia simulate: error: the continuous scenario is not implemented yet "
+              "(issue 3)", file=sys.stderr)
+        return 2
+    params = default_sim_params()
+    if args.scenario == "test":
+        names = args.objects or list(sc.OBJECTS)
+        unknown = [n for n in names if n not in sc.OBJECTS]
+        if unknown:
+            print(f"jaxinertia simulate: error: unknown test object(s) {unknown}; known: "
+                  f"{list(sc.OBJECTS)}", file=sys.stderr)
+            return 2
+        jobs = [(n, sc.lbipe_object(n), sc.random_plan(args.n or 1000, args.seed + i))
+                for i, n in enumerate(names)]
+        split = "test"
+    else:
+        jobs = []
+        for i, m in enumerate(sc.TRAINING_LOADS_KG):
+            plan = (sc.planning_plan() if args.scenario == "planning"
+                    else sc.random_plan(args.n or 1000, args.seed + i))
+            if args.n and args.scenario == "planning":
+                plan = tuple(a[: args.n] for a in plan)
+            jobs.append((f"{round(m * 1000)}g", sc.training_object(m), plan))
+        split = "train"
+    key = jax.random.key(args.seed)
+    results = {}
+    for i, (name, obj, (q_d, d)) in enumerate(jobs):
+        r = run_plan(params, obj, q_d, d, jax.random.fold_in(key, i), desc=name)
+        bad = int(np.sum(~r["at_rest"]))
+        if bad:
+            print(f"{name}: {bad} of {len(q_d)} samples timed out (flagged: at_rest = False)")
+        results[name] = (obj, r)
+    out = args.out
+    if args.format == "lbipe":
+        for name, (obj, r) in results.items():
+            keep = r["at_rest"]
+            path = save_lbipe(out, split, name, {k: v[keep] for k, v in r.items()},
+                              np.asarray(obj.x))
+            print(f"wrote {path} ({int(keep.sum())} samples)")
+        return 0
+    names = list(results)
+    fields = {k: np.concatenate([results[n][1][k] for n in names])
+              for k in results[names[0]][1]}
+    fields["object_id"] = np.concatenate(
+        [np.full(len(results[n][1]["q"]), i) for i, n in enumerate(names)])
+    fields["x"] = np.stack([np.asarray(results[n][0].x) for n in names])
+    meta = {
+        "version": __version__, "scenario": args.scenario, "seed": args.seed,
+        "objects": names, "robot": params.robot.name,
+        "simulator": {"dt": params.dt, "armature": np.asarray(params.robot.armature).tolist(),
+                      "servo": {k: np.asarray(v).tolist()
+                                for k, v in params.servo.__dict__.items()},
+                      "friction": {k: np.asarray(v).tolist()
+                                   for k, v in params.friction.__dict__.items()}},
+    }
+    path = save_native(out, fields, meta)
+    print(f"wrote {path} ({len(fields['q'])} samples)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from jaxinertia.lbipe import default_lbipe_dir
 
@@ -90,6 +160,22 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bounding-box diagonal of an object without a built-in one")
     b.add_argument("--plot", type=Path, help="write a PNG of the per-set estimates here")
     b.set_defaults(func=cmd_lbipe_benchmark)
+
+    s = sub.add_parser(
+        "simulate",
+        help="generate samples from the simulated OpenMANIPULATOR-X",
+        description="planning: the 10 deg grid x 16 direction patterns x training loads; "
+        "random: N random goals per training load; test: N per test object.",
+    )
+    s.add_argument("--scenario", required=True,
+                   choices=["planning", "random", "test", "continuous"])
+    s.add_argument("--out", required=True, type=Path,
+                   help="native: an .npz file; lbipe: a directory for data_<split>_<obj>.npz")
+    s.add_argument("--format", choices=["native", "lbipe"], default="native")
+    s.add_argument("--n", type=int, help="samples per object (random/test; caps planning)")
+    s.add_argument("--objects", nargs="+", help="test objects (default: all four)")
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(func=cmd_simulate)
     return p
 
 
