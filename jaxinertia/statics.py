@@ -222,3 +222,26 @@ def fit_tag_pose(robot: Robot, q: jnp.ndarray, A: jnp.ndarray, *, iterations: in
         np.asarray(err.max(axis=0)),
         np.asarray(err.mean(axis=0)),
     )
+
+
+def robot_with_gravity_parameters(
+    robot: Robot, theta_base: np.ndarray, base: BaseParameters
+) -> Robot:
+    """The robot whose link masses and first moments reproduce identified base parameters.
+
+    Of all link parameters ``theta`` with ``base.from_full(theta) == theta_base``, takes the
+    one closest to the robot's own (minimum-norm correction), so unidentifiable parts keep
+    their nominal values. Raises ``ValueError`` if a link mass would not stay positive.
+    """
+    theta0 = np.asarray(link_gravity_parameters(robot), np.float64)
+    n = theta0.size
+    C = np.zeros((base.independent.size, n))
+    C[:, base.independent] = np.eye(base.independent.size)
+    if base.dependent.size:
+        C[:, base.dependent] = base.K
+    delta, *_ = np.linalg.lstsq(C, np.asarray(theta_base) - C @ theta0, rcond=None)
+    theta = (theta0 + delta).reshape(-1, 4)
+    if np.any(theta[:, 0] <= 0):
+        raise ValueError(f"identified gravity parameters imply link masses {theta[:, 0]}")
+    return robot.replace(mass=jnp.asarray(theta[:, 0], robot.mass.dtype),
+                         com=jnp.asarray(theta[:, 1:] / theta[:, :1], robot.com.dtype))

@@ -23,8 +23,12 @@ DEFAULT_ARMATURE = 0.01
 
 
 def default_sim_params() -> SimParams:
-    """The simulated OpenMANIPULATOR-X with datasheet servos and default friction."""
-    robot = open_manipulator_x().replace(armature=jnp.full(4, DEFAULT_ARMATURE))
+    """The simulated OpenMANIPULATOR-X: link gravity calibrated to the real arm
+    (``data/open_manipulator_x_sim.json``), datasheet servos, default friction."""
+    from jaxinertia.sim.calibration import apply_calibration, load_calibration
+
+    robot = apply_calibration(open_manipulator_x(), load_calibration())
+    robot = robot.replace(armature=jnp.full(4, DEFAULT_ARMATURE))
     return SimParams(robot, ServoParams.xm430_w350(), FrictionParams.create())
 
 
