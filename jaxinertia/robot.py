@@ -119,7 +119,7 @@ def from_mujoco(
     ee_site: str | None = None,
     ee_body: str | None = None,
     name: str | None = None,
-    dtype=jnp.float64,
+    dtype=None,
 ) -> Robot:
     """Builds a :class:`Robot` from a compiled ``mujoco.MjModel``.
 
@@ -220,6 +220,10 @@ def from_mujoco(
     if owner < 0:
         raise RobotDescriptionError(f"{name or 'model'}: the end-effector is not on a moving body")
 
+    if dtype is None:  # float64 when JAX allows it (jax_enable_x64), else float32
+        import jax
+
+        dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
     a = lambda x: jnp.asarray(x, dtype=dtype)  # noqa: E731
     return Robot(
         body_pos=a(body_pos),
@@ -281,7 +285,7 @@ def load_robot(
     ee_site: str | None = None,
     ee_body: str | None = None,
     gravity=None,
-    dtype=jnp.float64,
+    dtype=None,
 ) -> Robot:
     """Loads a serial arm from an MJCF (``.xml``) or URDF (``.urdf``) file.
 
@@ -306,6 +310,6 @@ def data_path(name: str) -> Path:
     return Path(str(importlib.resources.files("jaxinertia._data").joinpath(name)))
 
 
-def open_manipulator_x(*, dtype=jnp.float64) -> Robot:
+def open_manipulator_x(*, dtype=None) -> Robot:
     """The embedded OpenMANIPULATOR-X, mounted as in the paper (gravity [-9.81, 0, 0] in base)."""
     return load_robot(data_path(OPEN_MANIPULATOR_X_XML), ee_site="end_effector", dtype=dtype)
