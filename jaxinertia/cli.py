@@ -135,6 +135,68 @@ def cmd_simulate(args) -> int:
     return 0
 
 
+def cmd_calibrate(args) -> int:
+    _enable_x64()
+    import json
+
+    import numpy as np
+
+    from jaxinertia.lbipe import LbipeFormatError
+    from jaxinertia.plots import plot_calibration
+    from jaxinertia.robot import data_path
+    from jaxinertia.sim.calibration import (
+        SIM_CALIBRATION_FILE,
+        baseline_statistics,
+        calibrate_servo_friction,
+        fit_link_gravity,
+        params_to_dict,
+    )
+    from jaxinertia.sim.run import default_sim_params
+
+    try:
+        params = default_sim_params()
+        robot, gravity_info = fit_link_gravity(params.robot, args.lbipe_dir)
+        params = params.replace(robot=robot)
+        params, info = calibrate_servo_friction(params, args.lbipe_dir,
+                                                iterations=args.iterations, seed=args.seed,
+                                                progress=True)
+    except LbipeFormatError as e:
+        print(f"jaxinertia calibrate: error: {e}", file=sys.stderr)
+        return 2
+    out = args.out or data_path(SIM_CALIBRATION_FILE)
+    payload = {"robot": "open_manipulator_x", "link_gravity": gravity_info,
+               "servo_friction": params_to_dict(params),
+               "fit": {"iterations": args.iterations, "seed": args.seed, "real": info["real"],
+                       "final_sim": info["history"][-1]["sim"]}}
+    Path(out).write_text(json.dumps(payload, indent=2) + "\n")
+    print(f"wrote {out}")
+    report = args.report
+    report.mkdir(parents=True, exist_ok=True)
+    real = {k: np.concatenate([getattr(d, k) for _, _, d in info["plans"]])
+            for k in ("q_d", "q", "direction", "tau", "current_tau")}
+    sim = {k: v[info["sim_samples"]["at_rest"]] for k, v in info["sim_samples"].items()}
+    png = plot_calibration(real, sim, report / "calibration.png")
+    st_r = baseline_statistics(*(real[k] for k in ("q_d", "q", "direction", "tau",
+                                                    "current_tau")))
+    st_s = baseline_statistics(*(sim[k] for k in ("q_d", "q", "direction", "tau",
+                                                   "current_tau")))
+    rows = [("k [N m/rad]", "k", 1, 1), ("f0 [N mm]", "f0", 1e3, 0), ("mu", "mu", 1, 2),
+            ("PE MAE [N mm]", "pe_mae", 1e3, 0), ("current gain", "gain", 1, 2),
+            ("current MAE [N mm]", "current_mae", 1e3, 0), ("max |tau| [N m]", "tau_max", 1, 3)]
+    lines = ["# Simulator calibration", "", f"Real data: {args.lbipe_dir}; "
+             f"{args.iterations} iterations; parameters in `{out}`.", "",
+             "| statistic | joint | real | simulated | ratio |", "| --- | --- | --- | --- | --- |"]
+    for label, key, scale, nd in rows:
+        for j in range(len(st_r[key])):
+            r, s_ = st_r[key][j] * scale, st_s[key][j] * scale
+            ratio = f"{s_ / r:.2f}" if abs(r) > 1e-12 else "-"
+            lines.append(f"| {label} | {j + 1} | {r:.{nd}f} | {s_:.{nd}f} | {ratio} |")
+    lines += ["", f"![calibration]({png.name})", ""]
+    (report / "report.md").write_text("\n".join(lines))
+    print(f"wrote {report / 'report.md'} and {png}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from jaxinertia.lbipe import default_lbipe_dir
 
@@ -176,6 +238,20 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--objects", nargs="+", help="test objects (default: all four)")
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=cmd_simulate)
+
+    c = sub.add_parser(
+        "calibrate",
+        help="fit the simulator's link gravity, servo and friction to real samples",
+        description="Fits link gravity to the real tau_g, then servo gain, torque constant "
+        "and friction so that the simulated real plan reproduces the real baseline fits.",
+    )
+    c.add_argument("--lbipe-dir", type=Path, default=default_lbipe_dir())
+    c.add_argument("--iterations", type=int, default=6)
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--out", type=Path,
+                   help="parameter file (default: the package's data/open_manipulator_x_sim.json)")
+    c.add_argument("--report", type=Path, default=Path("runs/calibration"))
+    c.set_defaults(func=cmd_calibrate)
     return p
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_lbipe_estimates"]
+__all__ = ["plot_calibration", "plot_lbipe_estimates"]
 
 
 def _pyplot():
@@ -54,5 +54,42 @@ def plot_lbipe_estimates(res: dict, path: str | os.PathLike) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_calibration(real: dict, sim: dict, path: str | os.PathLike) -> Path:
+    """Per joint: q_d - q against tau by direction, real beside simulated, and the
+    residual histograms of the position-error baseline fit on each."""
+    plt = _pyplot()
+    n = real["q"].shape[1]
+    fig, axes = plt.subplots(3, n, figsize=(3.6 * n, 9.6), squeeze=False)
+    for col, (label, d) in enumerate((("real", real), ("simulated", sim))):
+        qe_ticks = (d["q_d"] - d["q"]) / (2 * np.pi / 4096)
+        for j in range(n):
+            ax = axes[col, j]
+            for s, c in ((1.0, "tab:red"), (-1.0, "tab:blue")):
+                m = d["direction"][:, j] == s
+                ax.scatter(qe_ticks[m, j], d["tau"][m, j], s=3, alpha=0.4, color=c,
+                           label=f"s = {s:+.0f}")
+            ax.set(title=f"{label}: joint {j + 1}", xlabel="q_d - q [ticks]", ylabel="tau [N m]")
+            ax.grid(alpha=0.3)
+            if j == 0:
+                ax.legend(fontsize=8, markerscale=3)
+    for j in range(n):
+        ax = axes[2, j]
+        for label, d, c in (("real", real, "k"), ("simulated", sim, "tab:green")):
+            qe = d["q_d"][:, j] - d["q"][:, j]
+            X = np.column_stack([qe, -d["direction"][:, j], np.ones(len(qe))])
+            coef, *_ = np.linalg.lstsq(X, d["tau"][:, j], rcond=None)
+            r = (X @ coef - d["tau"][:, j]) * 1e3
+            ax.hist(r, bins=50, histtype="step", color=c, lw=1.5,
+                    label=f"{label}: MAE {np.mean(np.abs(r)):.0f}")
+        ax.set(title=f"PE-fit residual, joint {j + 1}", xlabel="[N mm]")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

@@ -51,3 +51,134 @@ def apply_calibration(robot: Robot, calibration: dict) -> Robot:
     g = calibration["link_gravity"]
     return robot.replace(mass=jnp.asarray(g["link_mass"], robot.mass.dtype),
                          com=jnp.asarray(g["link_com"], robot.com.dtype))
+
+
+# ---- servo and friction: match the real data's baseline statistics ------------------
+
+
+def baseline_statistics(q_d, q, direction, tau, current_tau) -> dict[str, np.ndarray]:
+    """Per-joint descriptive fits of a sample set (the issue's acceptance statistics).
+
+    PE: ``tau ~ k (q_d - q) - s f + c``; load friction: ``tau ~ k qe - s (f0 + mu |tau|) + c``;
+    current: ``tau ~ a current_tau - s f + c``. MAE in N m; max |tau| in N m.
+    """
+    qe = np.asarray(q_d) - np.asarray(q)
+    s = np.asarray(direction)
+    tau = np.asarray(tau)
+    cur = np.asarray(current_tau)
+    out = {k: [] for k in ("k", "f", "pe_mae", "f0", "mu", "gain", "current_mae", "tau_max")}
+    for j in range(qe.shape[1]):
+        one = np.ones(len(qe))
+        X = np.column_stack([qe[:, j], -s[:, j], one])
+        c, *_ = np.linalg.lstsq(X, tau[:, j], rcond=None)
+        out["k"].append(c[0])
+        out["f"].append(c[1])
+        out["pe_mae"].append(np.mean(np.abs(X @ c - tau[:, j])))
+        X = np.column_stack([qe[:, j], -s[:, j], -s[:, j] * np.abs(tau[:, j]), one])
+        c, *_ = np.linalg.lstsq(X, tau[:, j], rcond=None)
+        out["f0"].append(c[1])
+        out["mu"].append(c[2])
+        X = np.column_stack([cur[:, j], -s[:, j], one])
+        c, *_ = np.linalg.lstsq(X, tau[:, j], rcond=None)
+        out["gain"].append(c[0])
+        out["current_mae"].append(np.mean(np.abs(X @ c - tau[:, j])))
+        out["tau_max"].append(np.max(np.abs(tau[:, j])))
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def real_plan(robot: Robot, lbipe_dir) -> list[tuple[str, object, np.ndarray, np.ndarray]]:
+    """The real files' objects (mass, COM and a fitted tag pose), goals and directions."""
+    from jaxinertia.sim.sampling import HeldObject
+    from jaxinertia.statics import fit_tag_pose
+
+    layout = find_layout(lbipe_dir)
+    plans = []
+    for name, path in layout.test_files.items():
+        d = load_test_file(path, name)
+        fit = fit_tag_pose(robot, jnp.asarray(d.q), jnp.asarray(d.A))
+        side = 0.04
+        obj = HeldObject(jnp.asarray(d.mass), jnp.asarray(d.com), jnp.asarray(fit.R_ee_tag),
+                         jnp.asarray(fit.p_ee_tag), jnp.eye(3) * d.mass * side**2 / 6)
+        plans.append((name, obj, d))
+    return plans
+
+
+def simulate_real_plan(params, plans, key, *, progress: bool = False) -> dict[str, np.ndarray]:
+    """Simulates every real file's goals/directions/object; returns the stacked fields."""
+    import jax
+
+    from jaxinertia.sim.run import run_plan
+
+    parts = [run_plan(params, obj, d.q_d, d.direction, jax.random.fold_in(key, i),
+                      desc=name, progress=progress)
+             for i, (name, obj, d) in enumerate(plans)]
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def calibrate_servo_friction(params, lbipe_dir, *, iterations: int = 6, seed: int = 0,
+                             log=print, progress: bool = False):
+    """Fixed-point fit of per-joint servo gain, torque constant and friction parameters so
+    that the simulated real plan reproduces the real baseline statistics (k, f0, mu,
+    current gain, PE MAE). Returns ``(params, history)``."""
+    import jax
+
+    plans = real_plan(params.robot, lbipe_dir)
+    real = baseline_statistics(
+        np.concatenate([d.q_d for _, _, d in plans]), np.concatenate([d.q for _, _, d in plans]),
+        np.concatenate([d.direction for _, _, d in plans]),
+        np.concatenate([d.tau for _, _, d in plans]),
+        np.concatenate([d.current_tau for _, _, d in plans]))
+    history = []
+    key = jax.random.key(seed)
+    fr = params.friction  # start the per-sample friction spread where the real data sit
+    params = params.replace(friction=fr.replace(jitter=jnp.where(fr.jitter > 0, fr.jitter, 0.3)))
+    for it in range(iterations + 1):
+        # The same random numbers every iteration: the updates see parameter changes only.
+        sim = simulate_real_plan(params, plans, key, progress=progress)
+        ok = sim["at_rest"]
+        st = baseline_statistics(*(sim[k][ok] for k in ("q_d", "q", "direction", "tau",
+                                                          "current_tau")))
+        history.append({"iteration": it, "sim": {k: v.tolist() for k, v in st.items()},
+                        "at_rest": float(np.mean(ok))})
+        log(f"iteration {it}: k {np.round(st['k'], 1)} (real {np.round(real['k'], 1)}), "
+            f"mu {np.round(st['mu'], 2)} ({np.round(real['mu'], 2)}), "
+            f"PE MAE {np.round(st['pe_mae'] * 1e3)} ({np.round(real['pe_mae'] * 1e3)}) N mm")
+        if it == iterations:
+            break
+        sv, fr = params.servo, params.friction
+        kt = sv.torque_constant * np.clip(real["gain"] / st["gain"], 0.8, 1.25)
+        p_gain = sv.p_gain * np.clip(real["k"] / st["k"], 0.7, 1.4) ** 0.8 * (
+            sv.torque_constant / kt)
+        static = np.maximum(fr.static + 0.8 * (real["f0"] - st["f0"]), 0.005)
+        mu = np.maximum(fr.load_coefficient + 0.8 * (real["mu"] - st["mu"]), 0.0)
+        jitter = np.clip(fr.jitter * np.clip((real["pe_mae"] / st["pe_mae"]) ** 2, 0.5, 2.0),
+                         0.02, 1.5)
+        params = params.replace(
+            servo=sv.replace(torque_constant=jnp.asarray(kt), p_gain=jnp.asarray(p_gain)),
+            friction=fr.replace(static=jnp.asarray(static), coulomb=jnp.asarray(0.6 * static),
+                                load_coefficient=jnp.asarray(mu), jitter=jnp.asarray(jitter)))
+    return params, {"real": {k: v.tolist() for k, v in real.items()}, "history": history,
+                    "sim_samples": sim, "plans": plans}
+
+
+def params_to_dict(params) -> dict:
+    return {
+        "dt": params.dt,
+        "armature": np.asarray(params.robot.armature).tolist(),
+        "servo": {k: np.asarray(v).tolist() for k, v in params.servo.__dict__.items()},
+        "friction": {k: np.asarray(v).tolist() for k, v in params.friction.__dict__.items()},
+    }
+
+
+def apply_servo_friction(params, calibration: dict):
+    """Sets the servo, friction and armature values of a calibration file, where present."""
+    from jaxinertia.sim.friction import FrictionParams
+    from jaxinertia.sim.servo import ServoParams
+
+    c = calibration.get("servo_friction")
+    if not c:
+        return params
+    n = params.robot.n_joints
+    robot = params.robot.replace(armature=jnp.asarray(c["armature"]))
+    return params.replace(robot=robot, servo=ServoParams.xm430_w350(n, **c["servo"]),
+                          friction=FrictionParams.create(n, **c["friction"]))

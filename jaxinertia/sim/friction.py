@@ -40,12 +40,13 @@ class FrictionParams:
     ripple_amplitude: jnp.ndarray  # a [N m]
     ripple_frequency: jnp.ndarray  # n [1/rad]
     ripple_phase: jnp.ndarray  # phi [rad]
+    jitter: jnp.ndarray  # relative std of a per-sample scale on f_c, f_s (log-normal) [-]
 
     @classmethod
     def create(cls, n_joints: int = 4, **values) -> FrictionParams:
         base = dict(coulomb=0.03, static=0.05, stribeck_velocity=0.02, viscous=0.01,
                     load_coefficient=0.3, ripple_amplitude=0.0, ripple_frequency=1.0,
-                    ripple_phase=0.0)
+                    ripple_phase=0.0, jitter=0.0)
         base.update(values)
         return cls(**{k: jnp.broadcast_to(jnp.asarray(v, jnp.float64), (n_joints,))
                       for k, v in base.items()})
@@ -57,7 +58,8 @@ def friction_bound(
     """The friction torque bound F (N,) [N m] at velocity qd and transmitted load."""
     stribeck = params.coulomb + (params.static - params.coulomb) * jnp.exp(
         -((qd / params.stribeck_velocity) ** 2))
-    ripple = params.ripple_amplitude * jnp.cos(params.ripple_frequency * q + params.ripple_phase)
+    ripple = params.ripple_amplitude * jnp.cos(
+        params.ripple_frequency * q + params.ripple_phase)
     return jnp.maximum(stribeck + params.load_coefficient * jnp.abs(tau_load) + ripple, 0.0)
 
 

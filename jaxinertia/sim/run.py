@@ -23,13 +23,20 @@ DEFAULT_ARMATURE = 0.01
 
 
 def default_sim_params() -> SimParams:
-    """The simulated OpenMANIPULATOR-X: link gravity calibrated to the real arm
-    (``data/open_manipulator_x_sim.json``), datasheet servos, default friction."""
-    from jaxinertia.sim.calibration import apply_calibration, load_calibration
+    """The simulated OpenMANIPULATOR-X as calibrated to the real arm
+    (``data/open_manipulator_x_sim.json``: link gravity, servo and friction), falling back
+    to datasheet servos and default friction where the file has no servo calibration."""
+    from jaxinertia.sim.calibration import (
+        apply_calibration,
+        apply_servo_friction,
+        load_calibration,
+    )
 
-    robot = apply_calibration(open_manipulator_x(), load_calibration())
+    calibration = load_calibration()
+    robot = apply_calibration(open_manipulator_x(), calibration)
     robot = robot.replace(armature=jnp.full(4, DEFAULT_ARMATURE))
-    return SimParams(robot, ServoParams.xm430_w350(), FrictionParams.create())
+    params = SimParams(robot, ServoParams.xm430_w350(), FrictionParams.create())
+    return apply_servo_friction(params, calibration)
 
 
 def run_plan(params: SimParams, obj: HeldObject, q_d: np.ndarray, direction: np.ndarray,

@@ -17,7 +17,12 @@ from flax import struct
 
 from jaxinertia.kinematics import gravity_torques
 from jaxinertia.robot import Robot
-from jaxinertia.sim.servo import CURRENT_LSB_A, RAD_PER_TICK, present_ticks
+from jaxinertia.sim.servo import (
+    CURRENT_LSB_A,
+    NOMINAL_TORQUE_CONSTANT,
+    RAD_PER_TICK,
+    present_ticks,
+)
 from jaxinertia.sim.simulator import SimParams, SimState, attach_payload, move_and_settle
 from jaxinertia.statics import load_regressor, tag_pose
 
@@ -48,7 +53,7 @@ class Samples(NamedTuple):
 
     q_d: jnp.ndarray  # (S, N) commanded goal (continuous, as recorded on the real arm)
     q: jnp.ndarray  # (S, N) Present Position (integer ticks, in rad)
-    current_tau: jnp.ndarray  # (S, N) torque from Present Current (k_t * I, quantised)
+    current_tau: jnp.ndarray  # (S, N) torque from Present Current (datasheet k_t * I)
     direction: jnp.ndarray  # (S, N) +1 / -1
     tau: jnp.ndarray  # (S, N) load torque of arm + object at q (statics)
     tau_g: jnp.ndarray  # (S, N) load torque of the bare arm at q
@@ -63,6 +68,12 @@ class Samples(NamedTuple):
 
 
 def _one_sample(params: SimParams, bare: Robot, obj: HeldObject, q_d, direction, delta, key):
+    key_f, key = jax.random.split(key)
+    # Friction varies from sample to sample (temperature, lubricant, gear mesh).
+    scale = jnp.exp(params.friction.jitter * jax.random.normal(key_f, q_d.shape))
+    fr = params.friction
+    params = params.replace(friction=fr.replace(coulomb=fr.coulomb * scale,
+                                                static=fr.static * scale))
     pre = q_d - direction * delta
     state = SimState.at_rest(pre)
     state, ok1, _ = move_and_settle(params, state, pre, pre)
@@ -74,7 +85,7 @@ def _one_sample(params: SimParams, bare: Robot, obj: HeldObject, q_d, direction,
     A = load_regressor(bare, q, R_bt, p_bt)
     tau_g = gravity_torques(bare, q)
     return Samples(
-        q_d=q_d, q=q, current_tau=params.servo.torque_constant * current,
+        q_d=q_d, q=q, current_tau=NOMINAL_TORQUE_CONSTANT * current,
         direction=direction, tau=tau_g + A @ obj.x, tau_g=tau_g, A=A, R_base_tag=R_bt,
         p_base_tag=p_bt, at_rest=ok1 & ok2, settle_time=t, q_true=state.q,
         servo_tau=state.servo.torque, friction_tau=state.friction,
