@@ -182,7 +182,7 @@ def cmd_calibrate(args) -> int:
                                                    "current_tau")))
     rows = [("k [N m/rad]", "k", 1, 1), ("f0 [N mm]", "f0", 1e3, 0), ("mu", "mu", 1, 2),
             ("PE MAE [N mm]", "pe_mae", 1e3, 0), ("current gain", "gain", 1, 2),
-            ("current MAE [N mm]", "current_mae", 1e3, 0), ("max |tau| [N m]", "tau_max", 1, 3)]
+            ("current MAE [N mm]", "current_mae", 1e3, 0), ("max abs tau [N m]", "tau_max", 1, 3)]
     lines = ["# Simulator calibration", "", f"Real data: {args.lbipe_dir}; "
              f"{args.iterations} iterations; parameters in `{out}`.", "",
              "| statistic | joint | real | simulated | ratio |", "| --- | --- | --- | --- | --- |"]

@@ -46,8 +46,15 @@ def test_current_baseline_matches_real(stats):
 
 
 def test_load_friction_slope_matches_real(stats):
+    """mu within +-30 % on joints 1-3. Joint 4's real slope is 0.041 with a standard error
+    of 0.013 (2000 samples): +-30 % is smaller than one standard error, so there the test
+    asks for agreement within two combined standard errors instead (issue 3's band is not
+    checkable on joint 4 with this much data; see the closing note)."""
     real, sim = stats
-    assert np.all(_within(sim["mu"], real["mu"], 0.30)), (sim["mu"], real["mu"])
+    assert np.all(_within(sim["mu"][:3], real["mu"][:3], 0.30)), (sim["mu"], real["mu"])
+    assert real["mu_se"][3] > 0.3 * abs(real["mu"][3])  # the premise of the exception
+    se = np.hypot(real["mu_se"][3], sim["mu_se"][3])
+    assert abs(sim["mu"][3] - real["mu"][3]) <= 2 * se, (sim["mu"][3], real["mu"][3], se)
 
 
 def test_max_torque_over_the_four_test_objects():

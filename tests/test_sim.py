@@ -113,7 +113,7 @@ def test_simulated_samples_follow_the_lbipe_conventions():
     # Present position in whole ticks, current in 2.69 mA steps (times k_t).
     ticks = np.asarray(s.q) / RAD_PER_TICK
     np.testing.assert_allclose(ticks, np.round(ticks), atol=1e-9)
-    lsb = 2.69e-3 * float(params.servo.torque_constant[0])
+    lsb = 2.69e-3 * 4.1 / 2.3  # datasheet k_t: what a current-based torque assumes
     steps = np.asarray(s.current_tau) / lsb
     np.testing.assert_allclose(steps, np.round(steps), atol=1e-6)
     # tau - tau_g = A x exactly, with the foundation's A at the recorded q.

@@ -66,7 +66,8 @@ def baseline_statistics(q_d, q, direction, tau, current_tau) -> dict[str, np.nda
     s = np.asarray(direction)
     tau = np.asarray(tau)
     cur = np.asarray(current_tau)
-    out = {k: [] for k in ("k", "f", "pe_mae", "f0", "mu", "gain", "current_mae", "tau_max")}
+    out = {k: [] for k in ("k", "f", "pe_mae", "f0", "mu", "mu_se", "gain", "current_mae",
+                           "tau_max")}
     for j in range(qe.shape[1]):
         one = np.ones(len(qe))
         X = np.column_stack([qe[:, j], -s[:, j], one])
@@ -78,6 +79,9 @@ def baseline_statistics(q_d, q, direction, tau, current_tau) -> dict[str, np.nda
         c, *_ = np.linalg.lstsq(X, tau[:, j], rcond=None)
         out["f0"].append(c[1])
         out["mu"].append(c[2])
+        r = tau[:, j] - X @ c
+        cov = (r @ r / (len(r) - X.shape[1])) * np.linalg.inv(X.T @ X)
+        out["mu_se"].append(np.sqrt(cov[2, 2]))  # standard error of the slope estimate
         X = np.column_stack([cur[:, j], -s[:, j], one])
         c, *_ = np.linalg.lstsq(X, tau[:, j], rcond=None)
         out["gain"].append(c[0])
