@@ -48,7 +48,7 @@ class FrictionParams:
                     load_coefficient=0.3, ripple_amplitude=0.0, ripple_frequency=1.0,
                     ripple_phase=0.0, jitter=0.0)
         base.update(values)
-        return cls(**{k: jnp.broadcast_to(jnp.asarray(v, jnp.float64), (n_joints,))
+        return cls(**{k: jnp.broadcast_to(jnp.asarray(v, jnp.result_type(float)), (n_joints,))
                       for k, v in base.items()})
 
 
