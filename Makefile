@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 RUNS := runs
 
-.PHONY: all venv test demo lint bench clean
+.PHONY: all venv test demo lint bench bench-sim clean
 
 all: test
 
@@ -32,6 +32,9 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python experiments/bench_lbipe.py
+
+bench-sim: $(STAMP)
+	$(BIN)/python experiments/bench_sim.py --batches 256 1024 4096
 
 clean:
 	rm -rf $(VENV) $(RUNS) .pytest_cache .ruff_cache

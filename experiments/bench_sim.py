@@ -63,7 +63,8 @@ def main() -> None:
     print(f"device: {dev.device_kind} ({dev.platform}), jax {jax.__version__}, {args.dtype}")
     model = compile_mujoco(data_path("open_manipulator_x.xml"))
     model.opt.integrator = mujoco.mjtIntegrator.mjINT_EULER
-    model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
+    # The bare chain: no contacts, no joint-limit constraints (as the JAX paths).
+    model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
     mx = mjx.put_model(model)
     robot = open_manipulator_x().astype(dtype)
     sim = default_sim_params()
