@@ -79,7 +79,7 @@ def cmd_simulate(args) -> int:
         print("jaxinertia simulate: error: the continuous scenario is not implemented yet "
               "(issue 3)", file=sys.stderr)
         return 2
-    params = default_sim_params()
+    params = default_sim_params(args.calibration)
     if args.scenario == "test":
         names = args.objects or list(sc.OBJECTS)
         unknown = [n for n in names if n not in sc.OBJECTS]
@@ -154,12 +154,12 @@ def cmd_calibrate(args) -> int:
     from jaxinertia.sim.run import default_sim_params
 
     try:
-        params = default_sim_params()
+        params = default_sim_params(args.start)
         robot, gravity_info = fit_link_gravity(params.robot, args.lbipe_dir)
         params = params.replace(robot=robot)
         params, info = calibrate_servo_friction(params, args.lbipe_dir,
                                                 iterations=args.iterations, seed=args.seed,
-                                                progress=True)
+                                                kinetic_ratio=args.kinetic_ratio, progress=True)
     except LbipeFormatError as e:
         print(f"jaxinertia calibrate: error: {e}", file=sys.stderr)
         return 2
@@ -237,6 +237,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--n", type=int, help="samples per object (random/test; caps planning)")
     s.add_argument("--objects", nargs="+", help="test objects (default: all four)")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--calibration", type=Path,
+                   help="simulator parameter file (default: the shipped calibration)")
     s.set_defaults(func=cmd_simulate)
 
     c = sub.add_parser(
@@ -251,6 +253,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", type=Path,
                    help="parameter file (default: the package's data/open_manipulator_x_sim.json)")
     c.add_argument("--report", type=Path, default=Path("runs/calibration"))
+    c.add_argument("--start", type=Path, help="parameter file to start from (default: shipped)")
+    c.add_argument("--kinetic-ratio", type=float, default=0.6,
+                   help="Coulomb (sliding) friction as a fraction of breakaway (default 0.6)")
     c.set_defaults(func=cmd_calibrate)
     return p
 

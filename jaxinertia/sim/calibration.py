@@ -120,10 +120,11 @@ def simulate_real_plan(params, plans, key, *, progress: bool = False) -> dict[st
 
 
 def calibrate_servo_friction(params, lbipe_dir, *, iterations: int = 6, seed: int = 0,
-                             log=print, progress: bool = False):
+                             kinetic_ratio: float = 0.6, log=print, progress: bool = False):
     """Fixed-point fit of per-joint servo gain, torque constant and friction parameters so
     that the simulated real plan reproduces the real baseline statistics (k, f0, mu,
-    current gain, PE MAE). Returns ``(params, history)``."""
+    current gain, PE MAE). Kinetic (Coulomb) friction is ``kinetic_ratio`` times the
+    breakaway level. Returns ``(params, history)``."""
     import jax
 
     plans = real_plan(params.robot, lbipe_dir)
@@ -159,7 +160,8 @@ def calibrate_servo_friction(params, lbipe_dir, *, iterations: int = 6, seed: in
                          0.02, 1.5)
         params = params.replace(
             servo=sv.replace(torque_constant=jnp.asarray(kt), p_gain=jnp.asarray(p_gain)),
-            friction=fr.replace(static=jnp.asarray(static), coulomb=jnp.asarray(0.6 * static),
+            friction=fr.replace(static=jnp.asarray(static),
+                                coulomb=jnp.asarray(kinetic_ratio * static),
                                 load_coefficient=jnp.asarray(mu), jitter=jnp.asarray(jitter)))
     return params, {"real": {k: v.tolist() for k, v in real.items()}, "history": history,
                     "sim_samples": sim, "plans": plans}

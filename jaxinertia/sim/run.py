@@ -22,7 +22,7 @@ _simulate = jax.jit(simulate_samples, static_argnames=("delta",))
 DEFAULT_ARMATURE = 0.01
 
 
-def default_sim_params() -> SimParams:
+def default_sim_params(calibration_file=None) -> SimParams:
     """The simulated OpenMANIPULATOR-X as calibrated to the real arm
     (``data/open_manipulator_x_sim.json``: link gravity, servo and friction), falling back
     to datasheet servos and default friction where the file has no servo calibration."""
@@ -32,7 +32,7 @@ def default_sim_params() -> SimParams:
         load_calibration,
     )
 
-    calibration = load_calibration()
+    calibration = load_calibration(calibration_file)
     robot = apply_calibration(open_manipulator_x(), calibration)
     robot = robot.replace(armature=jnp.full(4, DEFAULT_ARMATURE))
     params = SimParams(robot, ServoParams.xm430_w350(), FrictionParams.create())
