@@ -159,7 +159,8 @@ def cmd_calibrate(args) -> int:
         params = params.replace(robot=robot)
         params, info = calibrate_servo_friction(params, args.lbipe_dir,
                                                 iterations=args.iterations, seed=args.seed,
-                                                kinetic_ratio=args.kinetic_ratio, progress=True)
+                                                kinetic_ratio=args.kinetic_ratio,
+                                                fit_offset=args.fit_offset, progress=True)
     except LbipeFormatError as e:
         print(f"jaxinertia calibrate: error: {e}", file=sys.stderr)
         return 2
@@ -180,7 +181,8 @@ def cmd_calibrate(args) -> int:
                                                     "current_tau")))
     st_s = baseline_statistics(*(sim[k] for k in ("q_d", "q", "direction", "tau",
                                                    "current_tau")))
-    rows = [("k [N m/rad]", "k", 1, 1), ("f0 [N mm]", "f0", 1e3, 0), ("mu", "mu", 1, 2),
+    rows = [("k [N m/rad]", "k", 1, 1), ("c [N mm]", "c", 1e3, 0), ("f0 [N mm]", "f0", 1e3, 0),
+            ("mu", "mu", 1, 2),
             ("PE MAE [N mm]", "pe_mae", 1e3, 0), ("current gain", "gain", 1, 2),
             ("current MAE [N mm]", "current_mae", 1e3, 0), ("max abs tau [N m]", "tau_max", 1, 3)]
     lines = ["# Simulator calibration", "", f"Real data: {args.lbipe_dir}; "
@@ -256,6 +258,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--start", type=Path, help="parameter file to start from (default: shipped)")
     c.add_argument("--kinetic-ratio", type=float, default=0.6,
                    help="Coulomb (sliding) friction as a fraction of breakaway (default 0.6)")
+    c.add_argument("--fit-offset", action="store_true",
+                   help="also fit a constant joint torque to the PE intercepts (experimental)")
     c.set_defaults(func=cmd_calibrate)
     return p
 

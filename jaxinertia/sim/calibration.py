@@ -66,14 +66,15 @@ def baseline_statistics(q_d, q, direction, tau, current_tau) -> dict[str, np.nda
     s = np.asarray(direction)
     tau = np.asarray(tau)
     cur = np.asarray(current_tau)
-    out = {k: [] for k in ("k", "f", "pe_mae", "f0", "mu", "mu_se", "gain", "current_mae",
-                           "tau_max")}
+    out = {k: [] for k in ("k", "f", "c", "pe_mae", "f0", "mu", "mu_se", "gain",
+                           "current_mae", "tau_max")}
     for j in range(qe.shape[1]):
         one = np.ones(len(qe))
         X = np.column_stack([qe[:, j], -s[:, j], one])
         c, *_ = np.linalg.lstsq(X, tau[:, j], rcond=None)
         out["k"].append(c[0])
         out["f"].append(c[1])
+        out["c"].append(c[2])
         out["pe_mae"].append(np.mean(np.abs(X @ c - tau[:, j])))
         X = np.column_stack([qe[:, j], -s[:, j], -s[:, j] * np.abs(tau[:, j]), one])
         c, *_ = np.linalg.lstsq(X, tau[:, j], rcond=None)
@@ -120,11 +121,13 @@ def simulate_real_plan(params, plans, key, *, progress: bool = False) -> dict[st
 
 
 def calibrate_servo_friction(params, lbipe_dir, *, iterations: int = 6, seed: int = 0,
-                             kinetic_ratio: float = 0.6, log=print, progress: bool = False):
+                             kinetic_ratio: float = 0.6, fit_offset: bool = False, log=print,
+                             progress: bool = False):
     """Fixed-point fit of per-joint servo gain, torque constant and friction parameters so
     that the simulated real plan reproduces the real baseline statistics (k, f0, mu,
     current gain, PE MAE). Kinetic (Coulomb) friction is ``kinetic_ratio`` times the
-    breakaway level. Returns ``(params, history)``."""
+    breakaway level. ``fit_offset`` also fits a constant joint torque to the PE intercepts
+    (experimental: it does not converge on joint 2 yet). Returns ``(params, history)``."""
     import jax
 
     plans = real_plan(params.robot, lbipe_dir)
@@ -158,7 +161,12 @@ def calibrate_servo_friction(params, lbipe_dir, *, iterations: int = 6, seed: in
         mu = np.maximum(fr.load_coefficient + 0.8 * (real["mu"] - st["mu"]), 0.0)
         jitter = np.clip(fr.jitter * np.clip((real["pe_mae"] / st["pe_mae"]) ** 2, 0.5, 2.0),
                          0.02, 1.5)
+        offset = params.torque_offset
+        if fit_offset:  # experimental: on joint 2 (tau always < 0) c and k are collinear
+            offset = jnp.asarray((0.0 if offset is None else np.asarray(offset))
+                                 + 0.8 * (real["c"] - st["c"]))
         params = params.replace(
+            torque_offset=offset,
             servo=sv.replace(torque_constant=jnp.asarray(kt), p_gain=jnp.asarray(p_gain)),
             friction=fr.replace(static=jnp.asarray(static),
                                 coulomb=jnp.asarray(kinetic_ratio * static),
@@ -171,6 +179,8 @@ def params_to_dict(params) -> dict:
     return {
         "dt": params.dt,
         "armature": np.asarray(params.robot.armature).tolist(),
+        "torque_offset": (None if params.torque_offset is None
+                          else np.asarray(params.torque_offset).tolist()),
         "servo": {k: np.asarray(v).tolist() for k, v in params.servo.__dict__.items()},
         "friction": {k: np.asarray(v).tolist() for k, v in params.friction.__dict__.items()},
     }
@@ -186,5 +196,7 @@ def apply_servo_friction(params, calibration: dict):
         return params
     n = params.robot.n_joints
     robot = params.robot.replace(armature=jnp.asarray(c["armature"]))
+    offset = c.get("torque_offset")
     return params.replace(robot=robot, servo=ServoParams.xm430_w350(n, **c["servo"]),
-                          friction=FrictionParams.create(n, **c["friction"]))
+                          friction=FrictionParams.create(n, **c["friction"]),
+                          torque_offset=None if offset is None else jnp.asarray(offset))

@@ -40,6 +40,8 @@ class SimParams:
     timeout: float = struct.field(pytree_node=False, default=6.0)  # per move [s]
     profile_velocity: float = struct.field(pytree_node=False, default=0.5)  # [rad/s]
     profile_acceleration: float = struct.field(pytree_node=False, default=2.0)  # [rad/s^2]
+    #: (N,) constant joint torque besides the servo (cables, springs) [N m]; None = 0.
+    torque_offset: jnp.ndarray | None = None
 
 
 @struct.dataclass
@@ -85,7 +87,8 @@ def step(params: SimParams, state: SimState, goal: jnp.ndarray) -> SimState:
     servo = servo_step(params.servo, state.servo, goal, state.q, state.qd)
     damping = robot.damping + params.friction.viscous
     M = mass_matrix(robot, state.q) + dt * jnp.diag(damping)
-    rhs = servo.torque - damping * state.qd - bias_forces(robot, state.q, state.qd)
+    offset = 0.0 if params.torque_offset is None else params.torque_offset
+    rhs = servo.torque + offset - damping * state.qd - bias_forces(robot, state.q, state.qd)
     v_free = state.qd + dt * cholesky_solve(M, rhs)
     n = state.q.shape[0]
     W = dt * cholesky_solve(jnp.broadcast_to(M, (n, n, n)), jnp.eye(n, dtype=M.dtype))
