@@ -19,6 +19,16 @@ def _pyplot():
     return plt
 
 
+def _save(plt, fig, path: str | os.PathLike, dpi: int) -> Path:
+    """Lays out, writes (creating the folder) and closes a figure."""
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
 def plot_lbipe_estimates(res: dict, path: str | os.PathLike) -> Path:
     """Per object: the distribution of mass estimates and of COM errors over every model
     pair and set, T beside T-A, with the truth marked. ``res`` from ``run_lbipe_benchmark``.
@@ -50,12 +60,7 @@ def plot_lbipe_estimates(res: dict, path: str | os.PathLike) -> Path:
     fig.suptitle("Released lbipe models on the real OpenMANIPULATOR-X data "
                  f"({est.T.x.shape[1]} model pairs x {est.T.x.shape[2]} sets of "
                  f"{inputs.sets[0].shape[1]})")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path, dpi=120)
 
 
 def plot_calibration(real: dict, sim: dict, path: str | os.PathLike) -> Path:
@@ -87,9 +92,4 @@ def plot_calibration(real: dict, sim: dict, path: str | os.PathLike) -> Path:
                     label=f"{label}: MAE {np.mean(np.abs(r)):.0f}")
         ax.set(title=f"PE-fit residual, joint {j + 1}", xlabel="[N mm]")
         ax.legend(fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path, dpi=110)
