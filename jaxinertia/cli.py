@@ -67,69 +67,38 @@ def cmd_lbipe_benchmark(args) -> int:
 
 def cmd_simulate(args) -> int:
     _enable_x64()
-    import jax
     import numpy as np
 
     from jaxinertia import __version__
     from jaxinertia.datasets import save_lbipe, save_native
-    from jaxinertia.sim import scenarios as sc
-    from jaxinertia.sim.run import default_sim_params, run_plan
+    from jaxinertia.sim.run import default_sim_params, native_fields, simulate_scenario
 
     if args.scenario == "continuous":
         print("jaxinertia simulate: error: the continuous scenario is not implemented yet "
               "(issue 3)", file=sys.stderr)
         return 2
     params = default_sim_params(args.calibration)
-    if args.scenario == "test":
-        names = args.objects or list(sc.OBJECTS)
-        unknown = [n for n in names if n not in sc.OBJECTS]
-        if unknown:
-            print(f"jaxinertia simulate: error: unknown test object(s) {unknown}; known: "
-                  f"{list(sc.OBJECTS)}", file=sys.stderr)
-            return 2
-        jobs = [(n, sc.lbipe_object(n), sc.random_plan(args.n or 1000, args.seed + i))
-                for i, n in enumerate(names)]
-        split = "test"
-    else:
-        jobs = []
-        for i, m in enumerate(sc.TRAINING_LOADS_KG):
-            plan = (sc.planning_plan() if args.scenario == "planning"
-                    else sc.random_plan(args.n or 1000, args.seed + i))
-            if args.n and args.scenario == "planning":
-                plan = tuple(a[: args.n] for a in plan)
-            jobs.append((f"{round(m * 1000)}g", sc.training_object(m), plan))
-        split = "train"
-    key = jax.random.key(args.seed)
-    results = {}
-    for i, (name, obj, (q_d, d)) in enumerate(jobs):
-        r = run_plan(params, obj, q_d, d, jax.random.fold_in(key, i), desc=name)
+    try:
+        results = simulate_scenario(params, args.scenario, n=args.n, objects=args.objects,
+                                    seed=args.seed)
+    except ValueError as e:
+        print(f"jaxinertia simulate: error: {e}", file=sys.stderr)
+        return 2
+    for name, (_, r) in results.items():
         bad = int(np.sum(~r["at_rest"]))
         if bad:
-            print(f"{name}: {bad} of {len(q_d)} samples timed out (flagged: at_rest = False)")
-        results[name] = (obj, r)
+            print(f"{name}: {bad} of {len(r['q'])} samples timed out (flagged: at_rest = False)")
     out = args.out
     if args.format == "lbipe":
+        split = "test" if args.scenario == "test" else "train"
         for name, (obj, r) in results.items():
             keep = r["at_rest"]
             path = save_lbipe(out, split, name, {k: v[keep] for k, v in r.items()},
                               np.asarray(obj.x))
             print(f"wrote {path} ({int(keep.sum())} samples)")
         return 0
-    names = list(results)
-    fields = {k: np.concatenate([results[n][1][k] for n in names])
-              for k in results[names[0]][1]}
-    fields["object_id"] = np.concatenate(
-        [np.full(len(results[n][1]["q"]), i) for i, n in enumerate(names)])
-    fields["x"] = np.stack([np.asarray(results[n][0].x) for n in names])
-    meta = {
-        "version": __version__, "scenario": args.scenario, "seed": args.seed,
-        "objects": names, "robot": params.robot.name,
-        "simulator": {"dt": params.dt, "armature": np.asarray(params.robot.armature).tolist(),
-                      "servo": {k: np.asarray(v).tolist()
-                                for k, v in params.servo.__dict__.items()},
-                      "friction": {k: np.asarray(v).tolist()
-                                   for k, v in params.friction.__dict__.items()}},
-    }
+    fields, meta = native_fields(results, params, scenario=args.scenario, seed=args.seed,
+                                 version=__version__)
     path = save_native(out, fields, meta)
     print(f"wrote {path} ({len(fields['q'])} samples)")
     return 0
@@ -261,6 +230,14 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--fit-offset", action="store_true",
                    help="also fit a constant joint torque to the PE intercepts (experimental)")
     c.set_defaults(func=cmd_calibrate)
+
+    # Hardware (DYNAMIXEL bus, virtual robot, collection) and camera commands live with
+    # their packages; each module adds its own subcommands.
+    from jaxinertia.hardware import commands as hardware_commands
+    from jaxinertia.vision import commands as vision_commands
+
+    hardware_commands.register(sub)
+    vision_commands.register(sub)
     return p
 
 

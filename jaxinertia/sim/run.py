@@ -13,7 +13,7 @@ from jaxinertia.sim.sampling import HeldObject, simulate_samples
 from jaxinertia.sim.servo import ServoParams
 from jaxinertia.sim.simulator import SimParams
 
-__all__ = ["default_sim_params", "run_plan"]
+__all__ = ["default_sim_params", "native_fields", "run_plan", "simulate_scenario"]
 
 #: One compiled program per (parameters structure, chunk size); objects are arguments.
 _simulate = jax.jit(simulate_samples, static_argnames=("delta",))
@@ -60,3 +60,59 @@ def run_plan(params: SimParams, obj: HeldObject, q_d: np.ndarray, direction: np.
                 out.setdefault(k, []).append(np.asarray(v)[:n])
             bar.update(n)
     return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def simulate_scenario(params: SimParams, scenario: str, *, n: int | None = None,
+                      objects: list[str] | None = None, seed: int = 0,
+                      progress: bool = True) -> dict[str, tuple[HeldObject, dict]]:
+    """Runs a scenario; returns ``{object name: (object, fields)}``.
+
+    planning: the 10 deg grid x 16 direction patterns per training load (``n`` caps it);
+    random: ``n`` (default 1000) random goals and directions per training load;
+    test: ``n`` (default 1000) per test object (``objects``: default all four).
+    """
+    from jaxinertia.sim import scenarios as sc
+
+    if scenario == "test":
+        names = objects or list(sc.OBJECTS)
+        unknown = [o for o in names if o not in sc.OBJECTS]
+        if unknown:
+            raise ValueError(f"unknown test object(s) {unknown}; known: {list(sc.OBJECTS)}")
+        jobs = [(o, sc.lbipe_object(o), sc.random_plan(n or 1000, seed + i))
+                for i, o in enumerate(names)]
+    elif scenario in ("planning", "random"):
+        jobs = []
+        for i, m in enumerate(sc.TRAINING_LOADS_KG):
+            if scenario == "planning":
+                plan = sc.planning_plan()
+                if n:
+                    plan = tuple(a[:n] for a in plan)
+            else:
+                plan = sc.random_plan(n or 1000, seed + i)
+            jobs.append((f"{round(m * 1000)}g", sc.training_object(m), plan))
+    else:
+        raise ValueError(f"unknown scenario {scenario!r}")
+    key = jax.random.key(seed)
+    return {name: (obj, run_plan(params, obj, q_d, d, jax.random.fold_in(key, i), desc=name,
+                                 progress=progress))
+            for i, (name, obj, (q_d, d)) in enumerate(jobs)}
+
+
+def native_fields(results: dict[str, tuple[HeldObject, dict]], params: SimParams, *,
+                  scenario: str, seed: int, version: str) -> tuple[dict, dict]:
+    """Concatenates per-object results into native-format fields and metadata."""
+    names = list(results)
+    fields = {k: np.concatenate([results[n][1][k] for n in names]) for k in results[names[0]][1]}
+    fields["object_id"] = np.concatenate(
+        [np.full(len(results[n][1]["q"]), i) for i, n in enumerate(names)])
+    fields["x"] = np.stack([np.asarray(results[n][0].x) for n in names])
+    meta = {
+        "version": version, "scenario": scenario, "seed": seed, "source": "simulator",
+        "objects": names, "robot": params.robot.name,
+        "simulator": {"dt": params.dt, "armature": np.asarray(params.robot.armature).tolist(),
+                      "servo": {k: np.asarray(v).tolist()
+                                for k, v in params.servo.__dict__.items()},
+                      "friction": {k: np.asarray(v).tolist()
+                                   for k, v in params.friction.__dict__.items()}},
+    }
+    return fields, meta

@@ -1,0 +1,119 @@
+"""Trained models on disk: an orbax checkpoint plus a JSON sidecar.
+
+A model folder holds ``checkpoint/`` (orbax: the K stacked torque and attention model
+parameters) and ``config.json`` (architecture, feature normalisation, baselines, training
+hyperparameters, seeds, the robot, the simulator calibration and the training data's
+SHA-256). Everything needed to use the models is in the folder.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxinertia.baselines import Baselines
+from jaxinertia.estimation import ModelPair
+from jaxinertia.features import FeatureConfig
+from jaxinertia.networks import AttentionModel, TorqueModel
+
+__all__ = ["CheckpointError", "file_sha256", "load_models", "save_models"]
+
+CONFIG = "config.json"
+FORMAT = "jaxinertia-models"
+FORMAT_VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """A model folder that is missing, unreadable, or made for another robot."""
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _arch(model) -> dict:
+    return {k: list(v) if isinstance(v, tuple) else v
+            for k, v in model.__dict__.items() if k in model.__dataclass_fields__
+            and k not in ("parent", "name")}
+
+
+def save_models(directory: str | os.PathLike, pair: ModelPair, baselines: Baselines,
+                features: FeatureConfig, *, robot: str, extra: dict | None = None) -> Path:
+    """Writes ``directory/checkpoint`` (orbax) and ``directory/config.json``."""
+    import orbax.checkpoint as ocp
+
+    directory = Path(directory).absolute()
+    directory.mkdir(parents=True, exist_ok=True)
+    ckpt = directory / "checkpoint"
+    state = {"torque": jax.device_get(pair.torque_vars),
+             "attention": jax.device_get(pair.attention_vars)}
+    with ocp.StandardCheckpointer() as saver:
+        saver.save(ckpt, state, force=True)
+    config = {
+        "format": FORMAT, "format_version": FORMAT_VERSION, "robot": robot,
+        "n_models": pair.n_models,
+        "torque_model": _arch(pair.torque_model),
+        "attention_model": _arch(pair.attention_model),
+        "features": features.to_dict(),
+        "baselines": baselines.to_dict(),
+        **(extra or {}),
+    }
+    (directory / CONFIG).write_text(json.dumps(config, indent=2) + "\n")
+    return directory
+
+
+def load_models(directory: str | os.PathLike, *, robot: str | None = None):
+    """Reads a model folder -> (ModelPair, Baselines, FeatureConfig, config dict).
+
+    ``robot``: the robot the caller's samples come from; another robot is an error.
+    """
+    import orbax.checkpoint as ocp
+
+    directory = Path(directory).absolute()
+    cfg_path = directory / CONFIG
+    if not cfg_path.is_file():
+        raise CheckpointError(f"{directory}: no {CONFIG}: not a jaxinertia model folder "
+                              "(make one with `jaxinertia train`)")
+    try:
+        config = json.loads(cfg_path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise CheckpointError(f"{cfg_path}: unreadable ({e})") from e
+    if config.get("format") != FORMAT:
+        raise CheckpointError(f"{cfg_path}: not a jaxinertia model config")
+    if robot is not None and config.get("robot") != robot:
+        raise CheckpointError(f"{directory}: models trained for robot {config.get('robot')!r}, "
+                              f"the samples come from {robot!r}")
+    tm = TorqueModel(**{k: tuple(v) if isinstance(v, list) else v
+                        for k, v in config["torque_model"].items()})
+    am = AttentionModel(**{k: tuple(v) if isinstance(v, list) else v
+                           for k, v in config["attention_model"].items()})
+    features = FeatureConfig.from_dict(config["features"])
+    K = int(config["n_models"])
+    example = jnp.zeros((1, tm.n_joints, 4), jnp.float32)
+
+    def abstract(model):
+        shapes = jax.eval_shape(lambda k: model.init(k, example), jax.random.key(0))
+        return jax.tree_util.tree_map(
+            lambda s: jax.ShapeDtypeStruct((K,) + s.shape, s.dtype), shapes)
+
+    target = {"torque": abstract(tm), "attention": abstract(am)}
+    try:
+        with ocp.StandardCheckpointer() as loader:
+            state = loader.restore(directory / "checkpoint", target)
+    except Exception as e:  # orbax raises many types for missing or mismatched files
+        raise CheckpointError(f"{directory / 'checkpoint'}: cannot restore the models "
+                              f"({type(e).__name__}: {str(e).splitlines()[0][:200]})") from e
+    pair = ModelPair(torque_vars=state["torque"], attention_vars=state["attention"],
+                     tau_scale=jnp.asarray(np.asarray(features.tau_scale), jnp.float32),
+                     torque_model=tm, attention_model=am)
+    return pair, Baselines.from_dict(config["baselines"]), features, config

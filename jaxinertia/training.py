@@ -1,0 +1,339 @@
+"""Training the torque and attention models (paper Sec. III-B, III-D; Sec. IV details).
+
+Both trainings are jit-compiled per epoch (a ``lax.scan`` over the minibatches) and run K
+model pairs with different seeds in parallel under ``vmap``: K small MLPs make one wider
+program instead of K sequential runs. Keys are explicit; the same seed gives the same models.
+
+Torque model: MSE between the predicted and the true normalised joint torques (tau divided
+by ``tau_scale``, the training set's max |tau| per joint), Adam, batch 256, 300 epochs,
+lr 3e-4.
+
+Attention model: trained *through* the weighted least squares. A training item is a set of
+64 samples of one object; the frozen torque model gives ``tau_hat``, the attention model the
+weights, the WLS ``x = [m, m p]``; the loss is ``w_m (m_hat - m)^2 + w_com |p_hat - p|^2``
+(SI units: kg, m) with ``p_hat = x[1:] / m`` from the *true* mass (the paper's training
+trick); sets of the empty gripper carry no COM loss. Adam, batch 32, 30 epochs, lr 1e-4.
+
+Both keep the epoch with the lowest validation loss, per model (held-out samples; the
+attention model's validation sets are drawn from them).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from tqdm.auto import tqdm
+
+from jaxinertia.features import FeatureConfig, featurize
+from jaxinertia.identification import solve_normal
+from jaxinertia.networks import AttentionModel, TorqueModel
+
+__all__ = [
+    "SampleSet",
+    "TrainConfig",
+    "attention_loss",
+    "draw_sets",
+    "feature_config_from",
+    "train_attention_models",
+    "train_torque_models",
+]
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Hyperparameters; the defaults are the paper's (the number of attention training
+    sets is not given there: we draw ``attention_sets`` per training object, as many as the
+    test protocol's repeats)."""
+
+    n_models: int = 10
+    seed: int = 0
+    torque_epochs: int = 300
+    torque_batch: int = 256
+    torque_lr: float = 3e-4
+    attention_epochs: int = 30
+    attention_batch: int = 32
+    attention_lr: float = 1e-4
+    set_size: int = 64
+    attention_sets: int = 1000
+    attention_val_sets: int = 200
+    w_mass: float = 1.0
+    w_com: float = 0.3
+    val_fraction: float = 0.1
+
+    def replace(self, **kw) -> TrainConfig:
+        return dataclasses.replace(self, **kw)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+class SampleSet(NamedTuple):
+    """Samples of known objects as the trainer needs them (S samples, N joints, SI)."""
+
+    q_d: np.ndarray  # (S, N)
+    q: np.ndarray  # (S, N)
+    direction: np.ndarray  # (S, N)
+    current_tau: np.ndarray  # (S, N)
+    tau: np.ndarray  # (S, N) true joint torque
+    tau_g: np.ndarray  # (S, N)
+    A: np.ndarray  # (S, N, 4)
+    object_id: np.ndarray  # (S,) index into x
+    x: np.ndarray  # (O, 4) [m, m p] of each object
+
+    def take(self, idx: np.ndarray) -> SampleSet:
+        return self._replace(**{k: getattr(self, k)[idx] for k in self._fields if k != "x"})
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.q.shape[0])
+
+
+def feature_config_from(data: SampleSet) -> FeatureConfig:
+    """Min-max bounds of q and the scales of q_d - q and tau (max |.|) from training data."""
+    qe = np.abs(data.q_d - data.q)
+    q_min, q_max = data.q.min(axis=0), data.q.max(axis=0)
+    pad = np.maximum(1e-3, 1e-6 * (q_max - q_min))
+    return FeatureConfig.create(q_min - pad, q_max + pad, np.maximum(qe.max(axis=0), 1e-4),
+                                np.maximum(np.abs(data.tau).max(axis=0), 1e-4))
+
+
+def split_validation(data: SampleSet, fraction: float, seed: int) -> tuple[SampleSet, SampleSet]:
+    """Random held-out split, stratified by object."""
+    rng = np.random.default_rng(seed)
+    val = []
+    for o in np.unique(data.object_id):
+        idx = np.flatnonzero(data.object_id == o)
+        val.append(rng.choice(idx, int(round(fraction * len(idx))), replace=False))
+    val = np.sort(np.concatenate(val))
+    train = np.setdiff1d(np.arange(data.n_samples), val)
+    return data.take(train), data.take(val)
+
+
+def draw_sets(object_id: np.ndarray, per_object: int, set_size: int, seed: int) -> np.ndarray:
+    """(per_object * O, set_size) index sets, each of one object's samples (without
+    replacement within a set; with replacement only if the object has too few samples)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for o in np.unique(object_id):
+        idx = np.flatnonzero(object_id == o)
+        replace = len(idx) < set_size
+        out += [rng.choice(idx, set_size, replace=replace) for _ in range(per_object)]
+    return np.stack(out)
+
+
+def _features(fc: FeatureConfig, d: SampleSet) -> jnp.ndarray:
+    return featurize(fc, jnp.asarray(d.q), jnp.asarray(d.q_d), jnp.asarray(d.direction)).astype(
+        jnp.float32)
+
+
+def _init_stacked(model, keys, example):
+    return jax.vmap(lambda k: model.init(k, example))(keys)
+
+
+def _keep_best(best, new, improved):
+    return jax.tree_util.tree_map(
+        lambda b, n: jnp.where(improved.reshape((-1,) + (1,) * (n.ndim - 1)), n, b), best, new)
+
+
+def _run_epochs(epoch_fn, state, n_epochs, key, desc, progress, on_epoch=None):
+    """Calls the jitted ``epoch_fn`` n_epochs times with a progress bar; returns the state
+    and the (n_epochs, 2, K) history of training and validation losses."""
+    history = []
+    with tqdm(total=n_epochs, desc=desc, unit="epoch", disable=not progress) as bar:
+        for e in range(n_epochs):
+            state, train_loss, val_loss = epoch_fn(state, jax.random.fold_in(key, e))
+            history.append((np.asarray(train_loss), np.asarray(val_loss)))
+            bar.set_postfix(val=f"{float(np.min(history[-1][1])):.3g}")
+            bar.update()
+            if on_epoch is not None:
+                on_epoch(e, history[-1])
+    return state, np.asarray(history)
+
+
+class TrainedTorque(NamedTuple):
+    model: TorqueModel
+    variables: dict  # stacked (K, ...) best-validation parameters
+    history: np.ndarray  # (epochs, 2, K) train / validation MSE
+    best_epoch: np.ndarray  # (K,)
+
+
+def train_torque_models(
+    cfg: TrainConfig,
+    fc: FeatureConfig,
+    train: SampleSet,
+    val: SampleSet,
+    key: jax.Array,
+    *,
+    model: TorqueModel | None = None,
+    progress: bool = True,
+) -> TrainedTorque:
+    """K torque models (``cfg.n_models``) trained in parallel, best epoch by validation."""
+    model = model or TorqueModel(n_joints=train.q.shape[1])
+    X, Xv = _features(fc, train), _features(fc, val)
+    scale = jnp.asarray(fc.tau_scale, jnp.float32)
+    Y = jnp.asarray(train.tau, jnp.float32) / scale
+    Yv = jnp.asarray(val.tau, jnp.float32) / scale
+    S = X.shape[0]
+    batch = min(cfg.torque_batch, S)
+    steps = S // batch
+    tx = optax.adam(cfg.torque_lr)
+    K = cfg.n_models
+    k_init, k_epochs = jax.random.split(key)
+    params = _init_stacked(model, jax.random.split(k_init, K), X[:1])
+    opt = jax.vmap(tx.init)(params)
+
+    def mse(p, x, y):
+        return jnp.mean((model.apply(p, x) - y) ** 2)
+
+    @jax.jit
+    def epoch(state, key, X, Y, Xv, Yv):
+        params, opt, best, best_loss, best_epoch, e = state
+
+        def one_model(p, o, k):
+            perm = jax.random.permutation(k, S)[: steps * batch].reshape(steps, batch)
+
+            def step(carry, idx):
+                p, o = carry
+                loss, g = jax.value_and_grad(mse)(p, X[idx], Y[idx])
+                upd, o = tx.update(g, o, p)
+                return (optax.apply_updates(p, upd), o), loss
+
+            (p, o), losses = jax.lax.scan(step, (p, o), perm)
+            return p, o, jnp.mean(losses)
+
+        params, opt, train_loss = jax.vmap(one_model)(params, opt, jax.random.split(key, K))
+        val_loss = jax.vmap(mse, (0, None, None))(params, Xv, Yv)
+        improved = val_loss < best_loss
+        best = _keep_best(best, params, improved)
+        best_loss = jnp.where(improved, val_loss, best_loss)
+        best_epoch = jnp.where(improved, e, best_epoch)
+        return (params, opt, best, best_loss, best_epoch, e + 1), train_loss, val_loss
+
+    state = (params, opt, params, jnp.full(K, jnp.inf, jnp.float32), jnp.zeros(K, jnp.int32),
+             jnp.int32(0))
+    state, hist = _run_epochs(lambda s, k: epoch(s, k, X, Y, Xv, Yv), state, cfg.torque_epochs,
+                              k_epochs, "torque model", progress)
+    return TrainedTorque(model, state[2], hist, np.asarray(state[4]))
+
+
+def attention_loss(weights, A, y, x_true, *, w_mass: float, w_com: float):
+    """The paper's attention loss for B sets of M samples.
+
+    Args:
+      weights: (B, M, N) attention weights; A: (B, M, N, 4); y: (B, M, N) ``tau_hat - tau_g``;
+      x_true: (B, 4) true ``[m, m p]``.
+    Returns the scalar loss and the (B,) per-set mass and COM errors (NaN for singular sets).
+    """
+    dtype = A.dtype
+    w = weights.astype(dtype)
+    G = jnp.einsum("bmnp,bmn,bmnq->bpq", A, w, A)
+    b = jnp.einsum("bmnp,bmn,bmn->bp", A, w, y)
+    c = jnp.einsum("bmn,bmn,bmn->b", y, w, y)
+    res = solve_normal(G, b, c)
+    m = x_true[:, 0]
+    loaded = m > 0
+    m_safe = jnp.where(loaded, m, 1.0)
+    ok = ~res.rank_deficient
+    x = jnp.where(ok[:, None], res.x, 0.0)
+    e_m = x[:, 0] - m
+    e_p = jnp.linalg.norm((x[:, 1:] - x_true[:, 1:]) / m_safe[:, None], axis=-1)
+    n_ok = jnp.maximum(jnp.sum(ok), 1)
+    n_com = jnp.maximum(jnp.sum(ok & loaded), 1)
+    L_m = jnp.sum(jnp.where(ok, e_m**2, 0.0)) / n_ok
+    L_com = jnp.sum(jnp.where(ok & loaded, e_p**2, 0.0)) / n_com
+    return w_mass * L_m + w_com * L_com, (jnp.where(ok, e_m, jnp.nan),
+                                          jnp.where(ok & loaded, e_p, jnp.nan))
+
+
+class TrainedAttention(NamedTuple):
+    model: AttentionModel
+    variables: dict  # stacked (K, ...)
+    history: np.ndarray  # (epochs, 2, K)
+    best_epoch: np.ndarray  # (K,)
+
+
+def torque_predictions(model, variables, fc: FeatureConfig, data: SampleSet) -> jnp.ndarray:
+    """(K, S, N) torques [N m] of K stacked torque models."""
+    X = _features(fc, data)
+    scale = jnp.asarray(fc.tau_scale, jnp.float32)
+    return jax.jit(jax.vmap(lambda v: model.apply(v, X) * scale))(variables)
+
+
+def train_attention_models(
+    cfg: TrainConfig,
+    fc: FeatureConfig,
+    torque: TrainedTorque,
+    train: SampleSet,
+    val: SampleSet,
+    key: jax.Array,
+    *,
+    model: AttentionModel | None = None,
+    progress: bool = True,
+) -> TrainedAttention:
+    """K attention models, model k trained through the WLS on torque model k's outputs."""
+    model = model or AttentionModel(n_joints=train.q.shape[1])
+    K = cfg.n_models
+    dtype = jnp.result_type(float)
+    sets = jnp.asarray(draw_sets(train.object_id, cfg.attention_sets, cfg.set_size, cfg.seed))
+    vsets = jnp.asarray(draw_sets(val.object_id, cfg.attention_val_sets, cfg.set_size,
+                                  cfg.seed + 1))
+    B = min(cfg.attention_batch, sets.shape[0])
+    steps = sets.shape[0] // B
+
+    def arrays(d: SampleSet):
+        y = torque_predictions(torque.model, torque.variables, fc, d).astype(dtype)
+        y = y - jnp.asarray(d.tau_g, dtype)
+        return (_features(fc, d), jnp.asarray(d.A, dtype), y,
+                jnp.asarray(d.x, dtype)[jnp.asarray(d.object_id)])
+
+    data, vdata = arrays(train), arrays(val)
+    tx = optax.adam(cfg.attention_lr)
+    k_init, k_epochs = jax.random.split(key)
+    params = _init_stacked(model, jax.random.split(k_init, K), data[0][:1])
+    opt = jax.vmap(tx.init)(params)
+
+    def loss_fn(p, feats, A, y, x_obj, idx):
+        w = model.apply(p, feats[idx])
+        loss, _ = attention_loss(w, A[idx], y[idx], x_obj[idx[:, 0]], w_mass=cfg.w_mass,
+                                 w_com=cfg.w_com)
+        return loss
+
+    @jax.jit
+    def epoch(state, key, data, vdata):
+        params, opt, best, best_loss, best_epoch, e = state
+        feats, A, y, x_obj = data
+
+        def one_model(p, o, y_k, k):
+            perm = jax.random.permutation(k, sets.shape[0])[: steps * B]
+            batches = sets[perm].reshape(steps, B, -1)
+
+            def step(carry, idx):
+                p, o = carry
+                loss, g = jax.value_and_grad(loss_fn)(p, feats, A, y_k, x_obj, idx)
+                upd, o = tx.update(g, o, p)
+                return (optax.apply_updates(p, upd), o), loss
+
+            (p, o), losses = jax.lax.scan(step, (p, o), batches)
+            return p, o, jnp.mean(losses)
+
+        params, opt, train_loss = jax.vmap(one_model)(params, opt, y,
+                                                      jax.random.split(key, K))
+        vf, vA, vy, vx = vdata
+        val_loss = jax.vmap(lambda p, y_k: loss_fn(p, vf, vA, y_k, vx, vsets))(params, vy)
+        improved = val_loss < best_loss
+        best = _keep_best(best, params, improved)
+        best_loss = jnp.where(improved, val_loss, best_loss)
+        best_epoch = jnp.where(improved, e, best_epoch)
+        return (params, opt, best, best_loss, best_epoch, e + 1), train_loss, val_loss
+
+    state = (params, opt, params, jnp.full(K, jnp.inf, dtype), jnp.zeros(K, jnp.int32),
+             jnp.int32(0))
+    state, hist = _run_epochs(lambda s, k: epoch(s, k, data, vdata), state,
+                              cfg.attention_epochs, k_epochs, "attention model", progress)
+    return TrainedAttention(model, state[2], hist, np.asarray(state[4]))
