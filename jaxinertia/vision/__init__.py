@@ -1,0 +1,1 @@
+"""Camera: AprilTag detection, tag pose and camera-to-base calibration."""
