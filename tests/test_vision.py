@@ -1,0 +1,265 @@
+"""Camera: tag detection + pose against rendered ground truth, camera-pose calibration.
+
+Images come from :func:`jaxinertia.vision.synthetic.render_tag`: the tag texture warped by
+the homography fixed by ``cv2.projectPoints`` of the tag plane (pinhole model), with lens
+distortion, blur and noise. The detector never sees the ground truth.
+"""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from jaxinertia.vision import commands
+from jaxinertia.vision.calibration import (
+    CameraPoseError,
+    calibrate_camera_pose,
+    load_camera_pose,
+    save_camera_pose,
+)
+from jaxinertia.vision.intrinsics import CameraIntrinsics, IntrinsicsError, load_intrinsics
+from jaxinertia.vision.source import CameraTagSource
+from jaxinertia.vision.synthetic import look_at, render_tag
+from jaxinertia.vision.tags import TagNotFoundError, measure_tag, tag_object_points
+
+TAG = 0.04  # [m]
+TAG_ID = 7
+POS_TOL = 1e-3  # [m]
+ANG_TOL = np.deg2rad(0.5)
+
+PLAIN = CameraIntrinsics(600.0, 600.0, 319.5, 239.5, 640, 480)
+DISTORTED = CameraIntrinsics(600.0, 602.0, 322.0, 236.0, 640, 480,
+                             (-0.12, 0.05, 0.001, -0.0005, 0.0))
+FACING = np.diag([1.0, -1.0, -1.0])  # tag face towards the camera
+
+
+def rot(axis, deg: float) -> np.ndarray:
+    a = np.asarray(axis, float)
+    return cv2.Rodrigues(a / np.linalg.norm(a) * np.deg2rad(deg))[0]
+
+
+def angle(R_a, R_b) -> float:
+    return float(np.linalg.norm(cv2.Rodrigues(np.asarray(R_a).T @ R_b)[0]))
+
+
+# Tag poses at 0.3 m: face-on (aligned with the pixel grid: the hardest case for corner
+# quantisation), turned in plane, and tilted 35-60 deg about several axes.
+POSES = {
+    "face_on": (FACING, [0.0, 0.0, 0.3]),
+    "in_plane_17": (FACING @ rot([0, 0, 1], 17), [0.01, 0.0, 0.3]),
+    "upside_down": (FACING @ rot([0, 0, 1], 180), [0.0, 0.0, 0.3]),
+    "tilt_x_35": (FACING @ rot([1, 0, 0], 35), [0.03, -0.02, 0.3]),
+    "tilt_y_50": (FACING @ rot([0, 1, 0], 50) @ rot([0, 0, 1], 20), [-0.05, 0.04, 0.3]),
+    "tilt_xy_45": (FACING @ rot([1, 1, 0], 45) @ rot([0, 0, 1], -70), [0.06, 0.05, 0.3]),
+    "tilt_60": (FACING @ rot([1, -2, 0], 60), [-0.07, -0.05, 0.3]),
+}
+
+
+@pytest.mark.parametrize("intr", [PLAIN, DISTORTED], ids=["pinhole", "distorted"])
+@pytest.mark.parametrize("name", list(POSES))
+def test_tag_pose_matches_rendered_ground_truth(name, intr):
+    R, p = POSES[name]
+    p = np.asarray(p)
+    rng = np.random.default_rng([list(POSES).index(name), int(intr is DISTORTED)])
+    img = render_tag(intr, R, p, TAG, tag_id=TAG_ID, blur_sigma=0.8, noise_std=3.0, rng=rng)
+    tp = measure_tag(img, intr, TAG, TAG_ID)
+    dp, da = np.linalg.norm(tp.p_cam_tag - p), angle(tp.R_cam_tag, R)
+    assert dp < POS_TOL, f"{name}: position error {dp * 1e3:.3f} mm"
+    assert da < ANG_TOL, f"{name}: angle error {np.rad2deg(da):.3f} deg"
+    assert tp.reprojection_error < 0.5, f"{name}: reprojection {tp.reprojection_error:.3f} px"
+
+
+def test_edge_refinement_beats_detector_corners_face_on():
+    # Face-on with edges mid-pixel: OpenCV's AprilTag refinement quantises to about 0.5 px,
+    # which costs degrees of tilt; the edge-line corners must not.
+    R, p = FACING, np.array([0.0, 0.0, 0.3])
+    img = render_tag(DISTORTED, R, p, TAG, tag_id=TAG_ID, blur_sigma=0.8, noise_std=3.0)
+    truth = cv2.projectPoints(tag_object_points(TAG), cv2.Rodrigues(R)[0], p, DISTORTED.K,
+                              DISTORTED.dist)[0].reshape(4, 2)
+    raw = measure_tag(img, DISTORTED, TAG, TAG_ID, edge_refine=False)
+    ref = measure_tag(img, DISTORTED, TAG, TAG_ID)
+    err_raw = np.abs(raw.corners - truth).max()
+    err_ref = np.abs(ref.corners - truth).max()
+    assert err_ref < 0.1, f"refined corners off by {err_ref:.3f} px"
+    assert err_ref < 0.5 * err_raw, f"refined {err_ref:.3f} px vs detector {err_raw:.3f} px"
+
+
+def test_no_tag_raises_tag_not_found():
+    img = np.full((480, 640), 120, np.uint8)
+    with pytest.raises(TagNotFoundError, match="not found"):
+        measure_tag(img, PLAIN, TAG, TAG_ID)
+    other = render_tag(PLAIN, FACING, np.array([0, 0, 0.3]), TAG, tag_id=3)
+    with pytest.raises(TagNotFoundError, match=r"tags seen: \[3\]"):
+        measure_tag(other, PLAIN, TAG, TAG_ID)
+
+
+def test_intrinsics_files(tmp_path):
+    good = tmp_path / "cam.json"
+    good.write_text(json.dumps(DISTORTED.to_dict()))
+    assert load_intrinsics(good) == DISTORTED
+    fs = cv2.FileStorage(str(tmp_path / "cam.yaml"), cv2.FileStorage_WRITE)
+    fs.write("image_width", 640)
+    fs.write("image_height", 480)
+    fs.write("camera_matrix", DISTORTED.K)
+    fs.write("distortion_coefficients", DISTORTED.dist.reshape(1, 5))
+    fs.release()
+    assert load_intrinsics(tmp_path / "cam.yaml") == DISTORTED
+    bad = {"missing.json": None, "notjson.json": "{fx: 1",
+           "nofx.json": json.dumps({"fy": 1, "cx": 1, "cy": 1, "width": 2, "height": 2}),
+           "neg.json": json.dumps({**PLAIN.to_dict(), "fx": -600.0}),
+           "dist3.json": json.dumps({**PLAIN.to_dict(), "distortion": [0.1, 0.0, 0.0]}),
+           "cam.txt": "fx 600"}
+    for name, text in bad.items():
+        if text is not None:
+            (tmp_path / name).write_text(text)
+        with pytest.raises(IntrinsicsError):
+            load_intrinsics(tmp_path / name)
+
+
+def _calibration_scene(n: int, seed: int):
+    """Arm poses in the paper's workspace (facing the camera), a camera above, a tag mount."""
+    import jax
+
+    from jaxinertia.kinematics import ee_pose
+    from jaxinertia.robot import open_manipulator_x
+    from jaxinertia.sim.scenarios import TAG_IN_EE, WORKSPACE_DEG
+
+    robot = open_manipulator_x()
+    rng = np.random.default_rng(seed)
+    lo, hi = np.deg2rad(np.array(WORKSPACE_DEG)).T
+    q = rng.uniform(lo, hi, size=(10 * n, 4))
+    q = q[np.abs(q[:, 1:].sum(axis=1)) < np.deg2rad(40)][:n]  # tag within 40 deg of facing
+    R_be, p_be = (np.asarray(a) for a in jax.vmap(lambda x: ee_pose(robot, x))(q))
+    p_bc = np.array([0.26, 0.03, 0.58])
+    R_bc = look_at(p_bc, [0.22, 0.0, 0.2], up=[1.0, 0.0, 0.0])
+    R_et = rot([0.5, -0.3, 1.0], 6.0)  # a mounting slightly off the nominal one
+    p_et = TAG_IN_EE[1] + np.array([0.002, -0.001, 0.001])
+    return robot, q, R_be, p_be, R_bc, p_bc, R_et, p_et, rng
+
+
+def test_camera_calibration_end_to_end(tmp_path):
+    robot, q, R_be, p_be, R_bc, p_bc, R_et, p_et, rng = _calibration_scene(10, seed=0)
+    corners = []
+    for i in range(len(q)):
+        R_ct = R_bc.T @ R_be[i] @ R_et
+        p_ct = R_bc.T @ (R_be[i] @ p_et + p_be[i] - p_bc)
+        img = render_tag(DISTORTED, R_ct, p_ct, TAG, tag_id=TAG_ID, blur_sigma=0.8,
+                         noise_std=3.0, rng=rng)
+        corners.append(measure_tag(img, DISTORTED, TAG, TAG_ID).corners)
+    res = calibrate_camera_pose(R_be, p_be, np.stack(corners), DISTORTED, TAG)
+    cp = res.camera_pose
+    assert np.linalg.norm(cp.p_base_cam - p_bc) < 0.5e-3
+    assert angle(cp.R_base_cam, R_bc) < np.deg2rad(0.1)
+    assert np.linalg.norm(cp.p_ee_tag - p_et) < 0.5e-3
+    assert angle(cp.R_ee_tag, R_et) < np.deg2rad(0.2)
+    assert res.rms_px < 0.2
+    # The refinement improves on the closed-form start.
+    assert (np.linalg.norm(cp.p_base_cam - p_bc)
+            < np.linalg.norm(res.initial.p_base_cam - p_bc))
+    # Round trip of the file, then a per-sample source on a fresh image.
+    path = save_camera_pose(tmp_path / "camera_pose.json", cp)
+    loaded = load_camera_pose(path)
+    np.testing.assert_allclose(loaded.R_base_cam, cp.R_base_cam, atol=1e-12)
+    np.testing.assert_allclose(loaded.p_base_cam, cp.p_base_cam, atol=1e-12)
+    from jaxinertia.kinematics import ee_pose
+
+    q_new = np.deg2rad([10.0, -30.0, 30.0, 5.0])
+    R_e, p_e = (np.asarray(a) for a in ee_pose(robot, q_new))
+    R_bt, p_bt = R_e @ R_et, R_e @ p_et + p_e
+    img = render_tag(DISTORTED, R_bc.T @ R_bt, R_bc.T @ (p_bt - p_bc), TAG, tag_id=TAG_ID,
+                     blur_sigma=0.8, noise_std=3.0, rng=rng)
+    source = CameraTagSource(DISTORTED, loaded, TAG, TAG_ID, capture=lambda: img)
+    R_meas, p_meas = source(q_new)
+    assert np.linalg.norm(p_meas - p_bt) < POS_TOL
+    assert angle(R_meas, R_bt) < ANG_TOL
+
+
+def test_camera_calibration_noiseless_exact():
+    # Exact corners: both unknowns come back to numerical precision (checks the algebra).
+    _, q, R_be, p_be, R_bc, p_bc, R_et, p_et, _ = _calibration_scene(6, seed=1)
+    obj = tag_object_points(TAG)
+    corners = []
+    for i in range(len(q)):
+        R_ct = R_bc.T @ R_be[i] @ R_et
+        p_ct = R_bc.T @ (R_be[i] @ p_et + p_be[i] - p_bc)
+        corners.append(cv2.projectPoints(obj, cv2.Rodrigues(R_ct)[0], p_ct, DISTORTED.K,
+                                         DISTORTED.dist)[0].reshape(4, 2))
+    res = calibrate_camera_pose(R_be, p_be, np.stack(corners), DISTORTED, TAG)
+    assert np.linalg.norm(res.camera_pose.p_base_cam - p_bc) < 1e-6
+    assert angle(res.camera_pose.R_base_cam, R_bc) < 1e-6
+    assert np.linalg.norm(res.initial.p_base_cam - p_bc) < 1e-6  # closed form is exact too
+    fixed = calibrate_camera_pose(R_be, p_be, np.stack(corners), DISTORTED, TAG,
+                                  tag_in_ee=(R_et, p_et))
+    assert np.linalg.norm(fixed.camera_pose.p_base_cam - p_bc) < 1e-6
+
+
+def test_calibration_rejects_degenerate_motion():
+    # Joint 1 fixed and the wrist pitch fixed: one rotation only, camera rotation undetermined.
+    _, q, R_be, p_be, R_bc, p_bc, R_et, p_et, _ = _calibration_scene(6, seed=2)
+    R_same = np.repeat(R_be[:1], 6, axis=0)
+    corners = np.zeros((6, 4, 2)) + [[300, 200], [340, 200], [340, 240], [300, 240]]
+    with pytest.raises(CameraPoseError):
+        calibrate_camera_pose(R_same, p_be, corners, DISTORTED, TAG)
+
+
+def test_bad_camera_pose_file(tmp_path):
+    f = tmp_path / "cp.json"
+    f.write_text(json.dumps({"R_base_cam": (2 * np.eye(3)).tolist(), "p_base_cam": [0, 0, 1]}))
+    with pytest.raises(CameraPoseError, match="not a rotation"):
+        load_camera_pose(f)
+
+
+def test_cli_tag_pose_and_calibrate(tmp_path, capsys):
+    from jaxinertia.cli import main
+
+    intr_file = tmp_path / "intr.json"
+    intr_file.write_text(json.dumps(DISTORTED.to_dict()))
+    R, p = POSES["tilt_x_35"]
+    img = render_tag(DISTORTED, R, np.asarray(p), TAG, tag_id=TAG_ID, blur_sigma=0.8,
+                     noise_std=3.0)
+    cv2.imwrite(str(tmp_path / "tag.png"), img)
+    args = ["tag-pose", "--image", str(tmp_path / "tag.png"), "--intrinsics", str(intr_file),
+            "--tag-size", str(TAG), "--tag-id", str(TAG_ID)]
+    assert main([*args, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert np.linalg.norm(np.asarray(out["p_cam_tag"]) - p) < POS_TOL
+    cv2.imwrite(str(tmp_path / "empty.png"), np.full((480, 640), 120, np.uint8))
+    args[2] = str(tmp_path / "empty.png")
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not found" in err[0], err
+    (tmp_path / "bad.json").write_text("{}")
+    args[4] = str(tmp_path / "bad.json")
+    assert main(args) == 2
+
+    # camera-calibrate from a CSV manifest of rendered images.
+    _, q, R_be, p_be, R_bc, p_bc, R_et, p_et, rng = _calibration_scene(8, seed=3)
+    lines = ["image,q1,q2,q3,q4"]
+    for i in range(len(q)):
+        R_ct = R_bc.T @ R_be[i] @ R_et
+        p_ct = R_bc.T @ (R_be[i] @ p_et + p_be[i] - p_bc)
+        cv2.imwrite(str(tmp_path / f"c{i}.png"),
+                    render_tag(DISTORTED, R_ct, p_ct, TAG, tag_id=TAG_ID, blur_sigma=0.8,
+                               noise_std=3.0, rng=rng))
+        lines.append(f"c{i}.png," + ",".join(f"{x:.12f}" for x in q[i]))
+    (tmp_path / "manifest.csv").write_text("\n".join(lines) + "\n")
+    out_file = tmp_path / "camera_pose.json"
+    assert main(["camera-calibrate", "--manifest", str(tmp_path / "manifest.csv"),
+                 "--intrinsics", str(intr_file), "--tag-size", str(TAG), "--tag-id",
+                 str(TAG_ID), "--out", str(out_file)]) == 0
+    cp = load_camera_pose(out_file)
+    assert np.linalg.norm(cp.p_base_cam - p_bc) < 0.5e-3
+    assert angle(cp.R_base_cam, R_bc) < np.deg2rad(0.1)
+
+
+def test_manifest_json(tmp_path):
+    (tmp_path / "m.json").write_text(json.dumps({"samples": [{"image": "a.png",
+                                                              "q": [0, 0.1, 0.2, 0.3]}]}))
+    rows = commands.read_manifest(tmp_path / "m.json")
+    assert rows == [(tmp_path / "a.png", [0.0, 0.1, 0.2, 0.3])]
+    (tmp_path / "bad.json").write_text(json.dumps({"samples": [{"img": "a.png"}]}))
+    with pytest.raises(ValueError, match="bad manifest"):
+        commands.read_manifest(tmp_path / "bad.json")
