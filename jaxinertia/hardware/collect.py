@@ -1,0 +1,194 @@
+"""Sample collection on the arm: the simulator's protocol, an append-only journal, resume.
+
+For each planned sample ``(q_d, s)`` the arm moves to the pre-position ``q_d - s * delta``
+and comes to rest, then moves to ``q_d`` (so every joint approaches its goal from its
+direction ``s``, as :func:`jaxinertia.sim.sampling.simulate_samples` does) and is recorded
+once at rest. Each record is appended to a JSON-lines journal (``<out>.journal.jsonl``)
+and flushed to disk before the next move, so an interruption loses nothing; ``resume``
+skips the plan indices already in the journal (a torn last line is discarded) and
+never records an index twice. At the end the native sample file is written from the
+journal, with ``A`` and ``tau_g`` of the bare arm computed at the measured ``q`` and
+tag pose.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from jaxinertia.hardware.driver import DynamixelArm
+from jaxinertia.robot import Robot
+from jaxinertia.sim.servo import NOMINAL_TORQUE_CONSTANT
+
+__all__ = [
+    "DELTA",
+    "Journal",
+    "JournalMismatch",
+    "KinematicTagPose",
+    "TagPoseSource",
+    "collect",
+    "journal_path",
+    "plan_digest",
+    "samples_from_records",
+]
+
+DELTA = 3.0 * np.pi / 180.0  # pre-position offset [rad], the simulator's default
+
+#: A tag-pose source: joint angles q (N,) [rad] at rest -> (R_base_tag (3, 3), p_base_tag
+#: (3,) [m]). The default is kinematic; a camera source may ignore q.
+TagPoseSource = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+class KinematicTagPose:
+    """The tag pose from forward kinematics of the measured q and a fixed tag-in-EE pose."""
+
+    def __init__(self, robot: Robot, R_ee_tag: np.ndarray, p_ee_tag: np.ndarray) -> None:
+        import jax
+
+        from jaxinertia.statics import tag_pose
+
+        self._fn = jax.jit(lambda q: tag_pose(robot, q, R_ee_tag, p_ee_tag))
+
+    def __call__(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        R, p = self._fn(np.asarray(q, np.float64))
+        return np.asarray(R), np.asarray(p)
+
+
+class JournalMismatch(ValueError):
+    """The journal on disk belongs to another collection (plan, object or robot)."""
+
+
+def journal_path(out: str | os.PathLike) -> Path:
+    out = Path(out)
+    return out.with_name(out.name + ".journal.jsonl")
+
+
+def plan_digest(q_d: np.ndarray, direction: np.ndarray) -> str:
+    h = hashlib.sha256()
+    for a in (q_d, direction):
+        h.update(np.ascontiguousarray(a, np.float64).tobytes())
+    return h.hexdigest()
+
+
+class Journal:
+    """Append-only JSON lines: a header, then one record per sample (fsynced each)."""
+
+    def __init__(self, path: Path, header: dict, records: dict[int, dict]) -> None:
+        self.path = path
+        self.header = header
+        self.records = records
+        self._file = open(path, "a", encoding="utf-8")  # noqa: SIM115 (closed by close())
+
+    @classmethod
+    def open(cls, path: str | os.PathLike, header: dict, *, resume: bool) -> Journal:
+        """A new journal, or (``resume``) the existing one after checking its header.
+
+        Raises FileExistsError when a journal exists and ``resume`` is False (nothing is
+        overwritten), JournalMismatch when the header's identity differs."""
+        path = Path(path)
+        records: dict[int, dict] = {}
+        if path.exists() and path.stat().st_size:
+            if not resume:
+                raise FileExistsError(f"{path} exists: pass --resume to continue it, or "
+                                      "remove it to start over")
+            lines = path.read_bytes().split(b"\n")
+            # A crash can tear the last line only (every line is flushed before the next);
+            # drop a torn tail so the next record starts on its own line.
+            complete, tail = lines[:-1], lines[-1]
+            old = json.loads(complete[0])
+            for key in ("plan_digest", "object", "n_samples"):
+                if old.get(key) != header.get(key):
+                    raise JournalMismatch(f"{path}: {key} is {old.get(key)!r} in the journal, "
+                                          f"{header.get(key)!r} now")
+            for line in complete[1:]:
+                rec = json.loads(line)
+                if rec["index"] in records:
+                    raise JournalMismatch(f"{path}: sample {rec['index']} recorded twice")
+                records[rec["index"]] = rec
+            if tail:
+                with open(path, "r+b") as f:
+                    f.truncate(path.stat().st_size - len(tail))
+            header = old
+        else:
+            with open(path, "w", encoding="utf-8") as f:
+                f.write(json.dumps(header) + "\n")
+                f.flush()
+                os.fsync(f.fileno())
+        return cls(path, header, records)
+
+    def append(self, record: dict) -> None:
+        if record["index"] in self.records:
+            raise ValueError(f"sample {record['index']} is already recorded")
+        self._file.write(json.dumps(record) + "\n")
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self.records[record["index"]] = record
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def collect(
+    arm: DynamixelArm,
+    q_d: np.ndarray,
+    direction: np.ndarray,
+    journal: Journal,
+    *,
+    tag_pose: TagPoseSource,
+    delta: float = DELTA,
+    progress: bool = True,
+) -> None:
+    """Runs the plan's samples that are not in ``journal`` yet, appending each one."""
+    from tqdm.auto import tqdm
+
+    todo = [i for i in range(len(q_d)) if i not in journal.records]
+    # Check the whole remaining plan before anything moves.
+    for i in todo:
+        arm.check_goal(q_d[i] - direction[i] * delta)
+        arm.check_goal(q_d[i])
+    with tqdm(total=len(q_d), initial=len(q_d) - len(todo), desc="collecting", unit="sample",
+              disable=not progress) as bar:
+        for i in todo:
+            goal, s = np.asarray(q_d[i], np.float64), np.asarray(direction[i], np.float64)
+            _, ok_pre, _ = arm.move_and_settle(goal - s * delta)
+            state, ok, settle = arm.move_and_settle(goal)
+            R, p = tag_pose(state.q)
+            journal.append({
+                "index": i, "q_d": goal.tolist(), "q": state.q.tolist(),
+                "current": state.current.tolist(),
+                "current_tau": (NOMINAL_TORQUE_CONSTANT * state.current).tolist(),
+                "direction": s.tolist(), "R_base_tag": np.asarray(R).tolist(),
+                "p_base_tag": np.asarray(p).tolist(), "at_rest": bool(ok_pre and ok),
+                "settle_time": settle, "timestamp": state.timestamp,
+                "temperature": state.temperature.tolist(), "voltage": state.voltage.tolist(),
+            })
+            bar.update(1)
+
+
+def samples_from_records(records: dict[int, dict], robot: Robot,
+                         x: np.ndarray | None) -> dict[str, np.ndarray]:
+    """Native fields (plan order) from journal records; ``A`` and ``tau_g`` of the bare
+    ``robot`` at the measured q and tag pose, ``tau = tau_g + A x`` (NaN when x is None)."""
+    import jax
+
+    from jaxinertia.kinematics import gravity_torques
+    from jaxinertia.statics import load_regressor
+
+    idx = sorted(records)
+    cols = ("q_d", "q", "current_tau", "direction", "R_base_tag", "p_base_tag", "at_rest",
+            "settle_time", "timestamp", "temperature", "voltage")
+    f = {k: np.asarray([records[i][k] for i in idx]) for k in cols}
+    f["at_rest"] = f["at_rest"].astype(bool)
+    q = f["q"].astype(np.float64)
+    A = np.asarray(jax.jit(jax.vmap(lambda q, R, p: load_regressor(robot, q, R, p)))(
+        q, f["R_base_tag"], f["p_base_tag"]))
+    tau_g = np.asarray(jax.jit(jax.vmap(lambda q: gravity_torques(robot, q)))(q))
+    f["A"], f["tau_g"] = A, tau_g
+    f["tau"] = tau_g + A @ x if x is not None else np.full_like(tau_g, np.nan)
+    f["plan_index"] = np.asarray(idx)
+    return f

@@ -1,0 +1,194 @@
+"""Protocol 2.0 conformance of the virtual servo bus, checked with dynamixel-sdk's own
+packet handler through the pseudo-terminal; plus the driver's safety checks."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
+                                reason="the virtual servo bus needs a Linux pseudo-terminal")
+
+IDS = (11, 12, 13, 14)
+
+
+@pytest.fixture(scope="module")
+def bus():
+    from jaxinertia.hardware.objects import resolve_object
+    from jaxinertia.hardware.virtual import VirtualServoBus
+    from jaxinertia.sim.run import default_sim_params
+
+    b = VirtualServoBus(default_sim_params(), resolve_object("cube"),
+                        q0=np.radians([0.0, -30.0, 30.0, 0.0]), speed=5.0)
+    with b:
+        yield b
+
+
+@pytest.fixture()
+def sdk(bus):
+    from dynamixel_sdk import PacketHandler, PortHandler
+
+    port = PortHandler(bus.path)
+    assert port.openPort()
+    yield port, PacketHandler(2.0)
+    port.closePort()
+
+
+def test_crc_and_stuffing_agree_with_the_sdk():
+    from dynamixel_sdk import PacketHandler
+
+    from jaxinertia.hardware.protocol import add_stuffing, crc16, remove_stuffing
+
+    ph = PacketHandler(2.0)
+    rng = np.random.default_rng(0)
+    for n in (1, 7, 64, 300):
+        data = rng.integers(0, 256, n).tolist()
+        assert crc16(bytes(data)) == ph.updateCRC(0, data, n)
+    body = bytes([0x03, 0x70, 0x00, 0xFF, 0xFF, 0xFD, 0x00, 0xFF, 0xFF, 0xFD])
+    stuffed = add_stuffing(body)
+    assert stuffed == body[:6] + b"\xfd" + body[6:] + b"\xfd"
+    assert remove_stuffing(stuffed) == body
+
+
+def test_ping_read_write_with_the_sdk(sdk):
+    from dynamixel_sdk import COMM_RX_TIMEOUT, COMM_SUCCESS
+
+    port, ph = sdk
+    for dxl_id in (*IDS, 15):
+        assert ph.ping(port, dxl_id) == (1020, COMM_SUCCESS, 0)
+    assert ph.ping(port, 99)[1] == COMM_RX_TIMEOUT  # no such servo: silence
+    found, result = ph.broadcastPing(port)
+    assert result == COMM_SUCCESS and sorted(found) == [*IDS, 15]
+    assert ph.read1ByteTxRx(port, 11, 11) == (3, COMM_SUCCESS, 0)  # operating mode
+    assert ph.read2ByteTxRx(port, 12, 84) == (800, COMM_SUCCESS, 0)  # P gain
+    assert ph.read4ByteTxRx(port, 12, 132)[0] == 2048 - 341  # -30 deg
+    # A WRITE whose data contain FF FF FD (byte stuffing both ways).
+    value = int.from_bytes(b"\xff\xff\xfd\x00", "little")
+    assert ph.write4ByteTxRx(port, 13, 112, value) == (COMM_SUCCESS, 0)
+    assert ph.read4ByteTxRx(port, 13, 112) == (value, COMM_SUCCESS, 0)
+    assert ph.write4ByteTxRx(port, 13, 112, 0) == (COMM_SUCCESS, 0)
+    # Read-only item and unknown instruction: status packets with the error number.
+    assert ph.write2ByteTxRx(port, 11, 126, 5) == (COMM_SUCCESS, 7)  # access error
+    rx, result, error = ph.txRxPacket(port, [0, 0, 0, 0, 11, 3, 0, 0x7E, 0, 0])
+    assert result == COMM_SUCCESS and error == 2  # instruction error
+
+
+def test_sync_and_bulk_instructions(sdk):
+    from dynamixel_sdk import COMM_SUCCESS, GroupBulkRead, GroupSyncRead, GroupSyncWrite
+
+    port, ph = sdk
+    w = GroupSyncWrite(port, ph, 108, 4)
+    for k, dxl_id in enumerate(IDS):
+        assert w.addParam(dxl_id, (100 + k).to_bytes(4, "little"))
+    assert w.txPacket() == COMM_SUCCESS
+    r = GroupSyncRead(port, ph, 108, 8)  # profile acceleration + velocity
+    for dxl_id in IDS:
+        r.addParam(dxl_id)
+    assert r.txRxPacket() == COMM_SUCCESS
+    assert [r.getData(i, 108, 4) for i in IDS] == [100, 101, 102, 103]
+    b = GroupBulkRead(port, ph)
+    assert b.addParam(11, 84, 2) and b.addParam(14, 0, 2) and b.addParam(15, 7, 1)
+    assert b.txRxPacket() == COMM_SUCCESS
+    assert (b.getData(11, 84, 2), b.getData(14, 0, 2), b.getData(15, 7, 1)) == (800, 1020, 15)
+    for dxl_id in IDS:
+        assert ph.write4ByteTxRx(port, dxl_id, 108, 0) == (COMM_SUCCESS, 0)
+
+
+def test_a_corrupted_packet_gets_no_reply_and_changes_nothing(bus, sdk):
+    from jaxinertia.hardware.protocol import Instruction, encode_packet
+
+    port, ph = sdk
+    good = encode_packet(12, Instruction.WRITE, bytes([112, 0, 9, 0, 0, 0]))
+    bad = good[:-1] + bytes([good[-1] ^ 0xFF])
+    port.clearPort()
+    port.writePort(bad)
+    time.sleep(0.1)
+    assert port.getBytesAvailable() == 0
+    assert ph.read4ByteTxRx(port, 12, 112)[0] == 0
+    port.writePort(good)  # the same packet with its CRC intact is executed and answered
+    time.sleep(0.1)
+    assert port.getBytesAvailable() == 11
+    assert ph.read4ByteTxRx(port, 12, 112)[0] == 9
+    ph.write4ByteTxRx(port, 12, 112, 0)
+
+
+def test_overload_sets_the_alert_bit_and_reboot_clears_it(bus, sdk):
+    from dynamixel_sdk import COMM_SUCCESS
+
+    from jaxinertia.hardware import control_table as ct
+
+    port, ph = sdk
+    mem = bus.servos[14]
+    with bus._lock:  # inject: as a servo that detected an overload
+        mem.set("hardware_error_status", ct.HW_ERROR_OVERLOAD)
+    model, result, error = ph.ping(port, 14)
+    assert result == COMM_SUCCESS and error == 0x80
+    assert ph.read1ByteTxRx(port, 14, 70) == (ct.HW_ERROR_OVERLOAD, COMM_SUCCESS, 0x80)
+    assert ph.reboot(port, 14) == (COMM_SUCCESS, 0)
+    assert ph.read1ByteTxRx(port, 14, 70) == (0, COMM_SUCCESS, 0)
+
+
+def test_a_goal_outside_the_limits_is_refused_before_anything_moves(bus):
+    from jaxinertia.hardware.driver import ArmConfig, DynamixelArm
+    from jaxinertia.hardware.safety import SafetyError, SafetyLimits
+    from jaxinertia.sim.run import default_sim_params
+
+    robot = default_sim_params().robot
+    arm = DynamixelArm(ArmConfig(port=bus.path), robot=robot,
+                       safety=SafetyLimits.around_workspace(robot))
+    with arm:
+        before = bus.goal_position_writes
+        goals = {i: bus.servos[i].get("goal_position") for i in IDS}
+        with pytest.raises(SafetyError, match="joint 2"):
+            arm.command(np.radians([0.0, -80.0, 30.0, 0.0]))  # joint 2 limit: -58 deg
+        with pytest.raises(SafetyError, match="not finite"):
+            arm.command(np.array([0.0, np.nan, 0.0, 0.0]))
+        tight = SafetyLimits(arm.safety.joint_limits, arm.safety.ee_box * 0.5)
+        arm.safety = tight
+        with pytest.raises(SafetyError, match="workspace"):
+            arm.command(np.radians([0.0, -30.0, 30.0, 0.0]))
+        assert bus.goal_position_writes == before
+        assert {i: bus.servos[i].get("goal_position") for i in IDS} == goals
+        # The servos' own limit registers hold the same joint limits.
+        lo = [bus.servos[i].get("min_position_limit") for i in IDS]
+        assert lo[1] == 2048 + round(np.radians(-58.0) / (2 * np.pi / 4096))
+        arm.safety = SafetyLimits.around_workspace(robot)
+        state, at_rest, _ = arm.move_and_settle(np.radians([5.0, -30.0, 30.0, 0.0]))
+        assert bus.goal_position_writes == before + len(IDS)
+        assert at_rest and abs(np.degrees(state.q[0]) - 5.0) < 0.5
+
+
+def test_register_gains_map_onto_the_simulator(bus):
+    from jaxinertia.sim.run import default_sim_params
+
+    servo = default_sim_params().servo
+    with bus._lock:
+        for dxl_id in IDS:
+            bus.servos[dxl_id].set("position_p_gain", 400)
+            bus.servos[dxl_id].set("pwm_limit", 300)
+        mapped = bus._servo_params()
+        for dxl_id in IDS:
+            bus.servos[dxl_id].set("position_p_gain", 800)
+            bus.servos[dxl_id].set("pwm_limit", 885)
+    np.testing.assert_allclose(mapped.p_gain, np.asarray(servo.p_gain) / 2)
+    np.testing.assert_allclose(mapped.pwm_limit, 300.0)
+
+
+def test_virtual_robot_cli_prints_its_device_first(tmp_path):
+    from jaxinertia.hardware.testing import VirtualRobotProcess
+
+    with VirtualRobotProcess(["--speed", "2", "--gripper-id", "none"]) as r:
+        assert r.path.startswith("/dev/") and os.path.exists(r.path)
+        from dynamixel_sdk import COMM_RX_TIMEOUT, COMM_SUCCESS, PacketHandler, PortHandler
+
+        port = PortHandler(r.path)
+        assert port.openPort()
+        ph = PacketHandler(2.0)
+        assert ph.ping(port, 11)[1] == COMM_SUCCESS
+        assert ph.ping(port, 15)[1] == COMM_RX_TIMEOUT
+        port.closePort()
+    assert r.proc.returncode is not None
