@@ -148,3 +148,75 @@ def test_shipped_link_gravity_reproduces_the_real_tau_g(lbipe_dir):
     fitted, _ = fit_link_gravity(urdf, lbipe_dir)
     np.testing.assert_allclose(fitted.mass, robot.mass, rtol=1e-9)
     np.testing.assert_allclose(fitted.com, robot.com, atol=1e-12)
+
+
+def test_samples_do_not_depend_on_the_chunk_size():
+    """Per-sample keys: the same plan gives the same samples whatever the batching (CPU and
+    GPU use different default chunks)."""
+    from jaxinertia.sim.run import default_sim_params, run_plan
+    from jaxinertia.sim.scenarios import lbipe_object, random_plan
+
+    p = default_sim_params()
+    q, d = random_plan(6, 0)
+    a = run_plan(p, lbipe_object("cube"), q, d, jax.random.key(3), chunk=4, progress=False)
+    b = run_plan(p, lbipe_object("cube"), q, d, jax.random.key(3), chunk=6, progress=False)
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_planning_grid_drops_configurations_at_the_mounting_surface():
+    """The paper's 46,144 planning samples = 721 of the 875 grid configurations x 16
+    directions x 4 loads; the end-effector positions that decide come from MuJoCo C."""
+    import itertools
+
+    import mujoco
+
+    from jaxinertia.robot import data_path
+    from jaxinertia.sim.scenarios import MOUNT_CLEARANCE_M, WORKSPACE_DEG, planning_plan
+
+    q, d = planning_plan()
+    assert q.shape == (11536, 4) and 4 * len(q) == 46144
+    kept = np.unique(q, axis=0)
+    assert len(kept) == 721
+    assert len(np.unique(np.c_[q, d], axis=0)) == len(q)  # 16 distinct patterns each
+
+    model = mujoco.MjModel.from_xml_path(str(data_path("open_manipulator_x.xml")))
+    data = mujoco.MjData(model)
+    site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, "end_effector")
+    axes = [np.deg2rad(np.arange(lo, hi + 1e-9, 10.0)) for lo, hi in WORKSPACE_DEG]
+    z = {}
+    for g in itertools.product(*axes):
+        data.qpos[:4] = g
+        mujoco.mj_kinematics(model, data)
+        z[g] = data.site_xpos[site][2]
+    clear = {g for g, zg in z.items() if zg >= MOUNT_CLEARANCE_M}
+    assert {tuple(g) for g in kept} == clear
+    # The threshold sits in a gap of the grid's heights: nothing within 2 mm of it.
+    assert min(abs(zg - MOUNT_CLEARANCE_M) for zg in z.values()) > 0.002
+
+
+def test_bad_plans_and_diverging_integration_name_the_scenario_and_sample():
+    from jaxinertia.sim.run import SimulationError, default_sim_params, run_plan
+    from jaxinertia.sim.scenarios import lbipe_object, random_plan
+
+    params = default_sim_params()
+    q, d = random_plan(4, seed=0)
+    cube = lbipe_object("cube")
+
+    def run(p, qq, dd):
+        return run_plan(p, cube, qq, dd, jax.random.key(0), desc="test/cube", progress=False)
+
+    outside = q.copy()
+    outside[2, 3] = np.radians(150.0)  # joint 4's upper limit is 112.9 deg
+    with pytest.raises(SimulationError, match=r"test/cube: sample 2: joint 4 goal 150\.00 deg "
+                                              r"is outside its limits"):
+        run(params, outside, d)
+    nan = q.copy()
+    nan[1, 0] = np.nan
+    with pytest.raises(SimulationError, match="test/cube: sample 1: goal is not finite"):
+        run(params, nan, d)
+    with pytest.raises(SimulationError, match="test/cube: sample 0: direction"):
+        run(params, q, np.zeros_like(d))
+    # A 50 ms step makes the servo loop unstable: refused, not recorded.
+    with pytest.raises(SimulationError, match="test/cube: the integration diverged at sample"):
+        run(params.replace(dt=0.05), q, d)

@@ -26,7 +26,7 @@ from jaxinertia.sim.servo import (
 from jaxinertia.sim.simulator import SimParams, SimState, attach_payload, move_and_settle
 from jaxinertia.statics import load_regressor, tag_pose
 
-__all__ = ["HeldObject", "Samples", "simulate_samples"]
+__all__ = ["HeldObject", "Samples", "loaded_params", "record", "simulate_samples"]
 
 
 @struct.dataclass
@@ -67,17 +67,17 @@ class Samples(NamedTuple):
     friction_tau: jnp.ndarray  # (S, N) true friction torque
 
 
-def _one_sample(params: SimParams, bare: Robot, obj: HeldObject, q_d, direction, delta, key):
-    key_f, key = jax.random.split(key)
-    # Friction varies from sample to sample (temperature, lubricant, gear mesh).
-    scale = jnp.exp(params.friction.jitter * jax.random.normal(key_f, q_d.shape))
+def jitter_friction(params: SimParams, key: jax.Array, n_joints: int) -> SimParams:
+    """Friction varies from sample to sample (temperature, lubricant, gear mesh)."""
+    scale = jnp.exp(params.friction.jitter * jax.random.normal(key, (n_joints,)))
     fr = params.friction
-    params = params.replace(friction=fr.replace(coulomb=fr.coulomb * scale,
-                                                static=fr.static * scale))
-    pre = q_d - direction * delta
-    state = SimState.at_rest(pre)
-    state, ok1, _ = move_and_settle(params, state, pre, pre)
-    state, ok2, t = move_and_settle(params, state, pre, q_d)
+    return params.replace(friction=fr.replace(coulomb=fr.coulomb * scale,
+                                              static=fr.static * scale))
+
+
+def record(params: SimParams, bare: Robot, obj: HeldObject, q_d, direction, state: SimState,
+           key: jax.Array, *, at_rest, settle_time) -> Samples:
+    """What the servos and the statics report for the arm in ``state`` (one sample)."""
     q = present_ticks(state.q) * RAD_PER_TICK
     noise = jax.random.normal(key, q.shape) * params.servo.current_noise
     current = jnp.round((state.servo.current + noise) / CURRENT_LSB_A) * CURRENT_LSB_A
@@ -87,9 +87,29 @@ def _one_sample(params: SimParams, bare: Robot, obj: HeldObject, q_d, direction,
     return Samples(
         q_d=q_d, q=q, current_tau=NOMINAL_TORQUE_CONSTANT * current,
         direction=direction, tau=tau_g + A @ obj.x, tau_g=tau_g, A=A, R_base_tag=R_bt,
-        p_base_tag=p_bt, at_rest=ok1 & ok2, settle_time=t, q_true=state.q,
+        p_base_tag=p_bt, at_rest=at_rest, settle_time=settle_time, q_true=state.q,
         servo_tau=state.servo.torque, friction_tau=state.friction,
     )
+
+
+def _one_sample(params: SimParams, bare: Robot, obj: HeldObject, q_d, direction, delta, key):
+    key_f, key = jax.random.split(key)
+    params = jitter_friction(params, key_f, q_d.shape[0])
+    pre = q_d - direction * delta
+    state = SimState.at_rest(pre)
+    state, ok1, _ = move_and_settle(params, state, pre, pre)
+    state, ok2, t = move_and_settle(params, state, pre, q_d)
+    return record(params, bare, obj, q_d, direction, state, key, at_rest=ok1 & ok2,
+                  settle_time=t)
+
+
+def loaded_params(params: SimParams, obj: HeldObject) -> SimParams:
+    """The physical arm holding ``obj`` (gravity reversed, see :func:`simulate_samples`)."""
+    bare = params.robot
+    R_ee = obj.R_ee_tag
+    inertia_ee = R_ee @ obj.inertia @ R_ee.T
+    physical = bare.with_gravity(-bare.gravity)
+    return params.replace(robot=attach_payload(physical, obj.mass, obj.com_ee(), inertia_ee))
 
 
 def simulate_samples(
@@ -115,10 +135,8 @@ def simulate_samples(
     the servo's holding torque equals ``+tau`` at rest.
     """
     bare = params.robot
-    R_ee = obj.R_ee_tag
-    inertia_ee = R_ee @ obj.inertia @ R_ee.T
-    physical = bare.with_gravity(-bare.gravity)
-    loaded = params.replace(robot=attach_payload(physical, obj.mass, obj.com_ee(), inertia_ee))
-    keys = jax.random.split(key, q_d.shape[0])
+    loaded = loaded_params(params, obj)
+    # One key per sample (or a single key, split here): samples do not depend on batching.
+    keys = key if key.ndim == 1 else jax.random.split(key, q_d.shape[0])
     return jax.vmap(_one_sample, (None, None, None, 0, 0, None, 0))(
         loaded, bare, obj, q_d, direction, delta, keys)
