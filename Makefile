@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 RUNS := runs
 
-.PHONY: all venv test demo lint bench bench-sim clean
+.PHONY: all venv test demo lbipe-benchmark export-lbipe lint bench bench-sim bench-train clean
 
 all: test
 
@@ -21,10 +21,22 @@ venv: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
+# The paper end to end (quick scale): simulate, train, evaluate, switching loads,
+# sim-to-real on shared/lbipe beside the released models; report in runs/demo/report.md.
 demo: $(STAMP)
+	$(BIN)/jaxinertia reproduce --out $(RUNS)/demo
+
+# The released models on the real data only (Tables I and III, seconds).
+lbipe-benchmark: $(STAMP)
 	@mkdir -p $(RUNS)
 	$(BIN)/jaxinertia lbipe-benchmark --json $(RUNS)/lbipe_benchmark.json \
 		--plot $(RUNS)/lbipe_benchmark.png
+
+# The paper-scale simulated training set in the authors' npz layout (seed 0), so that their
+# own PyTorch training runs on exactly our data: runs/lbipe_train/{planning,random}.
+export-lbipe: $(STAMP)
+	$(BIN)/jaxinertia simulate --scenario planning --format lbipe --out $(RUNS)/lbipe_train/planning
+	$(BIN)/jaxinertia simulate --scenario random --n 9000 --format lbipe --out $(RUNS)/lbipe_train/random
 
 lint: $(STAMP)
 	$(BIN)/ruff check jaxinertia tests experiments
@@ -35,6 +47,9 @@ bench: $(STAMP)
 
 bench-sim: $(STAMP)
 	$(BIN)/python experiments/bench_sim.py --batches 256 1024 4096
+
+bench-train: $(STAMP)
+	$(BIN)/python experiments/bench_train.py
 
 clean:
 	rm -rf $(VENV) $(RUNS) .pytest_cache .ruff_cache

@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 __all__ = ["main"]
 
 
@@ -73,17 +75,30 @@ def cmd_simulate(args) -> int:
     from jaxinertia.datasets import save_lbipe, save_native
     from jaxinertia.sim.run import default_sim_params, native_fields, simulate_scenario
 
-    if args.scenario == "continuous":
-        print("jaxinertia simulate: error: the continuous scenario is not implemented yet "
-              "(issue 3)", file=sys.stderr)
-        return 2
     params = default_sim_params(args.calibration)
+    if args.scenario == "continuous":
+        if args.format != "native":
+            return _fail("simulate", ValueError("the continuous run is one trajectory with "
+                                                "switching objects: use --format native"))
+        from jaxinertia.sim.continuous import simulate_continuous_run
+
+        try:
+            fields, meta = simulate_continuous_run(
+                params, n=args.n or 2048, objects=args.objects or ["empty", "cube", "white",
+                                                                   "black"],
+                switch_every=args.switch_every, seed=args.seed)
+        except ValueError as e:
+            return _fail("simulate", e)
+        meta["version"] = __version__
+        path = save_native(args.out, fields, meta)
+        print(f"wrote {path} ({len(fields['q'])} samples, object switching every "
+              f"{args.switch_every})")
+        return 0
     try:
         results = simulate_scenario(params, args.scenario, n=args.n, objects=args.objects,
                                     seed=args.seed)
     except ValueError as e:
-        print(f"jaxinertia simulate: error: {e}", file=sys.stderr)
-        return 2
+        return _fail("simulate", e)
     for name, (_, r) in results.items():
         bad = int(np.sum(~r["at_rest"]))
         if bad:
@@ -136,7 +151,8 @@ def cmd_calibrate(args) -> int:
     out = args.out or data_path(SIM_CALIBRATION_FILE)
     payload = {"robot": "open_manipulator_x", "link_gravity": gravity_info,
                "servo_friction": params_to_dict(params),
-               "fit": {"iterations": args.iterations, "seed": args.seed, "real": info["real"],
+               "fit": {"iterations": args.iterations, "seed": args.seed,
+                       "fit_offset": args.fit_offset, "real": info["real"],
                        "final_sim": info["history"][-1]["sim"]}}
     Path(out).write_text(json.dumps(payload, indent=2) + "\n")
     print(f"wrote {out}")
@@ -168,8 +184,104 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
+def _fail(command: str, e: Exception) -> int:
+    print(f"jaxinertia {command}: error: {e}", file=sys.stderr)
+    return 2
+
+
+def _user_errors():
+    from jaxinertia.checkpoints import CheckpointError
+    from jaxinertia.lbipe import LbipeFormatError
+    from jaxinertia.networks import WeightsError
+
+    return (CheckpointError, LbipeFormatError, WeightsError, ValueError, FileNotFoundError)
+
+
+def cmd_train(args) -> int:
+    _enable_x64()
+    from jaxinertia.pipeline import train
+    from jaxinertia.training import TrainConfig
+
+    overrides = {k: v for k, v in vars(args).items()
+                 if k in TrainConfig.__dataclass_fields__ and v is not None}
+    cfg = TrainConfig(**overrides)
+    try:
+        info = train(args.data, args.out, cfg)
+    except _user_errors() as e:
+        return _fail("train", e)
+    print(f"trained {cfg.n_models} model pairs on {info['samples']['train']} samples "
+          f"({info['samples']['validation']} validation) in "
+          f"{sum(info['wall_time_s'].values()):.1f} s; wrote {args.out}")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    _enable_x64()
+    from jaxinertia.evaluation import format_table1, format_table2, format_table3
+    from jaxinertia.pipeline import evaluate_samples, write_json
+    from jaxinertia.reproduce import sim_to_real
+
+    try:
+        if args.samples:
+            res = evaluate_samples(args.models, args.samples, n_sets=args.sets, seed=args.seed)
+            objects, torque, released = res["objects"], res["torque"], None
+        else:
+            real = sim_to_real(args.models, args.lbipe_dir, seed=args.seed, n_sets=args.sets)
+            if real is None:
+                return _fail("evaluate", FileNotFoundError(
+                    f"no real data at {args.lbipe_dir}: pass --lbipe-dir or --samples"))
+            objects, torque = real["ours"]["objects"], real["ours"]["torque"]
+            released = real.get("released")
+    except _user_errors() as e:
+        return _fail("evaluate", e)
+    print(format_table1(objects, f"Table I: models {args.models}"))
+    if released:
+        print()
+        print(format_table1(released, "The authors' released models, same files and sets"))
+    print()
+    print(format_table2(torque, "Table II: joint torque"))
+    print()
+    print(format_table3(objects, "Table III: mean attention weights"))
+    if args.json:
+        write_json(args.json, objects)
+        print(f"wrote {args.json}")
+    return 0
+
+
+def cmd_estimate(args) -> int:
+    _enable_x64()
+    from jaxinertia.pipeline import estimate, write_json
+
+    try:
+        res = estimate(args.models, args.samples, set_size=args.set_size)
+    except _user_errors() as e:
+        return _fail("estimate", e)
+    print(f"{res['n_samples']} samples")
+    print(f"{'method':<7} {'mass [g]':>9} {'COM x [mm]':>11} {'COM y [mm]':>11} "
+          f"{'COM z [mm]':>11}   (COM in the tag frame)")
+    for m, r in res["methods"].items():
+        c = np.asarray(r["com_tag_m"]) * 1e3
+        print(f"{m:<7} {r['mass_kg'] * 1e3:>9.1f} {c[0]:>11.1f} {c[1]:>11.1f} {c[2]:>11.1f}")
+    if args.json:
+        write_json(args.json, res)
+        print(f"wrote {args.json}")
+    return 0
+
+
+def cmd_reproduce(args) -> int:
+    _enable_x64()
+    from jaxinertia.reproduce import reproduce
+
+    try:
+        reproduce(args.out, full=args.full, seed=args.seed, lbipe_dir=args.lbipe_dir)
+    except _user_errors() as e:
+        return _fail("reproduce", e)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from jaxinertia.lbipe import default_lbipe_dir
+    from jaxinertia.training import TrainConfig
 
     p = argparse.ArgumentParser(
         prog="jaxinertia",
@@ -198,7 +310,8 @@ def build_parser() -> argparse.ArgumentParser:
         "simulate",
         help="generate samples from the simulated OpenMANIPULATOR-X",
         description="planning: the 10 deg grid x 16 direction patterns x training loads; "
-        "random: N random goals per training load; test: N per test object.",
+        "random: N random goals per training load; test: N per test object; continuous: N "
+        "consecutive nearby goals without stopping, the held object switching.",
     )
     s.add_argument("--scenario", required=True,
                    choices=["planning", "random", "test", "continuous"])
@@ -206,7 +319,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="native: an .npz file; lbipe: a directory for data_<split>_<obj>.npz")
     s.add_argument("--format", choices=["native", "lbipe"], default="native")
     s.add_argument("--n", type=int, help="samples per object (random/test; caps planning)")
-    s.add_argument("--objects", nargs="+", help="test objects (default: all four)")
+    s.add_argument("--objects", nargs="+",
+                   help="test objects (default: all four); continuous: the switching order, "
+                   "'empty' or test objects or training loads like 100g")
+    s.add_argument("--switch-every", type=int, default=512,
+                   help="continuous: samples between object switches (default 512)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--calibration", type=Path,
                    help="simulator parameter file (default: the shipped calibration)")
@@ -227,9 +344,55 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--start", type=Path, help="parameter file to start from (default: shipped)")
     c.add_argument("--kinetic-ratio", type=float, default=0.6,
                    help="Coulomb (sliding) friction as a fraction of breakaway (default 0.6)")
-    c.add_argument("--fit-offset", action="store_true",
-                   help="also fit a constant joint torque to the PE intercepts (experimental)")
+    c.add_argument("--fit-offset", action=argparse.BooleanOptionalAction, default=True,
+                   help="after the servo and friction, fit a constant torque per joint "
+                   "(unmodelled loads such as cables) to the real torque intercept at the "
+                   "real PE gain (default: on)")
     c.set_defaults(func=cmd_calibrate)
+
+    t = sub.add_parser(
+        "train", help="train torque and attention models (K seeds) and fit the baselines",
+        description="Trains on native sample files of known objects (jaxinertia simulate or "
+        "collect). Defaults are the paper's hyperparameters.")
+    t.add_argument("--data", nargs="+", required=True, type=Path, help="native sample files")
+    t.add_argument("--out", required=True, type=Path, help="model folder to write")
+    for name, typ in (("n_models", int), ("seed", int), ("torque_epochs", int),
+                      ("torque_batch", int), ("torque_lr", float), ("attention_epochs", int),
+                      ("attention_batch", int), ("attention_lr", float), ("set_size", int),
+                      ("attention_sets", int), ("w_mass", float), ("w_com", float),
+                      ("val_fraction", float)):
+        t.add_argument("--" + name.replace("_", "-"), dest=name, type=typ,
+                       help=f"(default {getattr(TrainConfig(), name)})")
+    t.set_defaults(func=cmd_train)
+
+    e = sub.add_parser(
+        "evaluate", help="Tables I-III of trained models on real (default) or simulated data",
+        description="Evaluates a model folder on every data/data_test_<name>.npz in the lbipe "
+        "folder (beside the released models on the same sets), or on a native sample file.")
+    e.add_argument("--models", required=True, type=Path)
+    e.add_argument("--lbipe-dir", type=Path, default=default_lbipe_dir())
+    e.add_argument("--samples", type=Path, help="a native sample file of known objects instead")
+    e.add_argument("--json", type=Path, help="write Table I/III (lbipe-benchmark schema)")
+    e.add_argument("--sets", type=int, default=1000, help="random sets per object (no golden)")
+    e.add_argument("--seed", type=int, default=0)
+    e.set_defaults(func=cmd_evaluate)
+
+    m = sub.add_parser("estimate", help="mass and COM of an unknown object from a sample file")
+    m.add_argument("--models", required=True, type=Path)
+    m.add_argument("--samples", required=True, type=Path)
+    m.add_argument("--set-size", type=int, default=64, help="for the spread over sample sets")
+    m.add_argument("--json", type=Path)
+    m.set_defaults(func=cmd_estimate)
+
+    r = sub.add_parser(
+        "reproduce", help="simulate, train, evaluate, switching loads, sim-to-real, report",
+        description="The paper end to end into a run folder (report.md, tables.json, plots). "
+        "Default: a quick run (minutes on a laptop CPU); --full: the paper's scale.")
+    r.add_argument("--out", type=Path, default=Path("runs/reproduce"))
+    r.add_argument("--full", action="store_true")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--lbipe-dir", type=Path, default=default_lbipe_dir())
+    r.set_defaults(func=cmd_reproduce)
 
     # Hardware (DYNAMIXEL bus, virtual robot, collection) and camera commands live with
     # their packages; each module adds its own subcommands.

@@ -78,10 +78,11 @@ def save_lbipe(directory: str | os.PathLike, split: str, name: str, fields, x) -
 SAMPLE_FIELDS = ("q_d", "q", "direction", "current_tau", "tau_g", "A")
 
 
-def load_samples(path: str | os.PathLike, *, need_tau: bool = True):
+def load_samples(path: str | os.PathLike, *, need_tau: bool = True, only_at_rest: bool = True):
     """A native sample file as a :class:`jaxinertia.training.SampleSet` plus its metadata.
 
-    Samples flagged ``at_rest = False`` (timed out) are dropped. Missing or malformed
+    Samples flagged ``at_rest = False`` (timed out) are dropped unless ``only_at_rest`` is
+    False (the continuous run, read without waiting for rest). Missing or malformed
     fields raise :class:`jaxinertia.lbipe.LbipeFormatError` naming the file and field.
     """
     from jaxinertia.lbipe import LbipeFormatError
@@ -109,7 +110,7 @@ def load_samples(path: str | os.PathLike, *, need_tau: bool = True):
             raise LbipeFormatError(path, k, "holds non-finite values")
     if not np.all(np.isin(fields["direction"], (-1, 1))):
         raise LbipeFormatError(path, "direction", "must be +1 or -1")
-    keep = np.asarray(fields.get("at_rest", np.ones(S, bool)), bool)
+    keep = np.asarray(fields.get("at_rest", np.ones(S, bool)), bool) | (not only_at_rest)
     object_id = np.asarray(fields.get("object_id", np.zeros(S, int)), np.int64)
     x = np.asarray(fields.get("x", np.full((int(object_id.max()) + 1, 4), np.nan)), np.float64)
     if x.ndim != 2 or x.shape[1] != 4 or object_id.min() < 0 or object_id.max() >= len(x):

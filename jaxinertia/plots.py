@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_calibration", "plot_lbipe_estimates"]
+__all__ = ["plot_calibration", "plot_continuous", "plot_lbipe_estimates", "plot_table1",
+           "plot_training"]
 
 
 def _pyplot():
@@ -93,3 +94,75 @@ def plot_calibration(real: dict, sim: dict, path: str | os.PathLike) -> Path:
         ax.set(title=f"PE-fit residual, joint {j + 1}", xlabel="[N mm]")
         ax.legend(fontsize=8)
     return _save(plt, fig, path, dpi=110)
+
+
+_METHOD_COLORS = {"Sensor": "tab:gray", "PE": "tab:green", "T": "tab:orange", "T-A": "tab:blue",
+                  "truth": "black"}
+
+
+def plot_training(history: dict, path: str | os.PathLike) -> Path:
+    """Validation loss per epoch of every model (torque MSE; attention loss)."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for ax, (name, label) in zip(axes, (("torque", "torque model: MSE (normalised)"),
+                                        ("attention", "attention model: loss [SI]"))):
+        h = np.asarray(history[name])  # (epochs, 2, K)
+        ep = np.arange(1, h.shape[0] + 1)
+        ax.semilogy(ep, h[:, 0], color="tab:gray", lw=0.8, alpha=0.6)
+        ax.semilogy(ep, h[:, 1], color="tab:blue", lw=1.0)
+        ax.set_title(label)
+        ax.set_xlabel("epoch")
+        ax.plot([], [], color="tab:gray", label="training")
+        ax.plot([], [], color="tab:blue", label="validation")
+        ax.legend()
+    return _save(plt, fig, path, 120)
+
+
+def plot_table1(objects: dict, path: str | os.PathLike, title: str = "") -> Path:
+    """Mass and COM NMAE per object and method (Table I as bars)."""
+    plt = _pyplot()
+    names = list(objects)
+    methods = [m for m in ("Sensor", "PE", "T", "T-A") if m in objects[names[0]]]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+    width = 0.8 / len(methods)
+    x = np.arange(len(names))
+    for ax, key, label in ((axes[0], "mass_NMAE_pct", "mass NMAE [%]"),
+                           (axes[1], "com_NMAE_pct", "COM NMAE [%]")):
+        for i, m in enumerate(methods):
+            ax.bar(x + (i - (len(methods) - 1) / 2) * width,
+                   [objects[n][m][key] for n in names], width, label=m,
+                   color=_METHOD_COLORS[m])
+        ax.set_xticks(x, names)
+        ax.set_ylabel(label)
+        ax.set_yscale("log")
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].legend()
+    if title:
+        fig.suptitle(title)
+    return _save(plt, fig, path, 120)
+
+
+def plot_continuous(res: dict, path: str | os.PathLike, joints=(0, 1, 2, 3)) -> Path:
+    """Switching-load run: filtered vertical force per method against the truth, and the
+    joint torques along the trajectory."""
+    plt = _pyplot()
+    n_j = len(joints)
+    fig, axes = plt.subplots(1 + n_j, 1, figsize=(10, 2.4 * (1 + n_j)), sharex=True)
+    ax = axes[0]
+    ax.plot(res["sample"], res["truth_N"], color="black", lw=1.5, label="truth")
+    for m, r in res["methods"].items():
+        ax.plot(res["sample"], r["force_N"], color=_METHOD_COLORS[m], lw=1.0,
+                label=f"{m} (MAE {r['MAE_N']:.3f} N)")
+    ax.set_ylabel("vertical force [N]")
+    ax.legend(fontsize=8, ncol=3)
+    tq = res["torques"]
+    s = np.arange(len(tq["truth"]))
+    for ax, j in zip(axes[1:], joints):
+        for m in ("truth", "Sensor", "PE", "T"):
+            if m in tq:
+                ax.plot(s, tq[m][:, j], color=_METHOD_COLORS[m], lw=0.8 if m != "truth" else 1.2,
+                        label=m)
+        ax.set_ylabel(f"joint {j + 1} [N m]")
+    axes[1].legend(fontsize=8, ncol=4)
+    axes[-1].set_xlabel("sample")
+    return _save(plt, fig, path, 110)

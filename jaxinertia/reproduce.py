@@ -1,0 +1,276 @@
+"""``jaxinertia reproduce``: the paper end to end on the simulator, then sim-to-real.
+
+Stages (each timed): simulate the training, test and continuous data; train K model pairs;
+evaluate Tables I-III on the simulated test objects; the switching-load run; evaluate the
+trained models on the real lbipe files beside the authors' released models; write
+``report.md``, ``tables.json`` and the plots into the run folder.
+
+``QUICK`` (the default, ``make demo``) keeps the paper's hyperparameters but simulates fewer
+samples, trains five model pairs and draws fewer attention training sets, to finish in a few
+minutes on a 2-core CPU. ``FULL`` is the paper's scale (GPU recommended).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import platform
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from jaxinertia.training import TrainConfig
+
+__all__ = ["FULL", "QUICK", "Scale", "reproduce"]
+
+
+@dataclass(frozen=True)
+class Scale:
+    planning: bool  # the 10 deg planning grid per training load
+    random_per_load: int
+    test_per_object: int
+    continuous_samples: int
+    switch_every: int
+    train: TrainConfig
+    n_sets: int = 1000  # evaluation repeats per object (the paper's 1000)
+
+
+QUICK = Scale(planning=False, random_per_load=800, test_per_object=300,
+              continuous_samples=2048, switch_every=512,
+              # 3,200 training samples give 12 minibatches an epoch (the full run: 289), so
+              # the torque model gets a larger step to converge in its 300 epochs.
+              train=TrainConfig(n_models=5, attention_sets=250, attention_val_sets=50,
+                                torque_lr=1e-3))
+FULL = Scale(planning=True, random_per_load=9000, test_per_object=1000,
+             continuous_samples=4096, switch_every=1024, train=TrainConfig())
+
+
+def _machine() -> str:
+    dev = jax.devices()[0]
+    kind = getattr(dev, "device_kind", dev.platform)
+    return (f"{platform.machine()} {os.cpu_count()} CPU cores, JAX {jax.__version__} on "
+            f"{dev.platform} ({kind})")
+
+
+def _cached(path: Path, request: dict, make) -> Path:
+    """Writes ``make() -> (fields, meta)`` to ``path`` unless the file there was made by the
+    same request (a re-run reuses its data)."""
+    from jaxinertia import __version__
+    from jaxinertia.datasets import load_native, save_native
+
+    if path.exists():
+        try:
+            if load_native(path)[1].get("request") == request:
+                print(f"reusing {path}")
+                return path
+        except ValueError:
+            pass
+    fields, meta = make()
+    meta.update(request=request, version=__version__)
+    save_native(path, fields, meta)
+    return path
+
+
+def _simulate(params, path: Path, scenario: str, n, seed: int) -> Path:
+    from jaxinertia import __version__
+    from jaxinertia.sim.run import native_fields, simulate_scenario
+
+    def make():
+        res = simulate_scenario(params, scenario, n=n, seed=seed)
+        return native_fields(res, params, scenario=scenario, seed=seed, version=__version__)
+
+    return _cached(path, {"scenario": scenario, "seed": seed, "n": n}, make)
+
+
+CONTINUOUS_OBJECTS = ["empty", "cube", "white", "black"]
+
+
+def _continuous(params, path: Path, scale: Scale, seed: int) -> Path:
+    from jaxinertia.sim.continuous import simulate_continuous_run
+
+    kw = dict(n=scale.continuous_samples, objects=CONTINUOUS_OBJECTS,
+              switch_every=scale.switch_every, seed=seed)
+
+    def make():
+        # One arm stepped sequentially: latency-bound, so it runs on the host CPU even when
+        # an accelerator is the default device (same code, same results).
+        with jax.default_device(jax.devices("cpu")[0]):
+            return simulate_continuous_run(params, **kw)
+
+    return _cached(path, {"scenario": "continuous", **kw}, make)
+
+
+def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
+              lbipe_dir: str | os.PathLike | None = None, scale: Scale | None = None,
+              progress: bool = True) -> dict:
+    """Runs every stage into the folder ``out``; returns the results (also in tables.json)."""
+    from jaxinertia import plots
+    from jaxinertia.datasets import load_samples
+    from jaxinertia.evaluation import (
+        continuous_force,
+        format_table1,
+        format_table2,
+        format_table3,
+        sliding_windows,
+        stack_objects,
+    )
+    from jaxinertia.lbipe import LbipeDataset, default_lbipe_dir
+    from jaxinertia.pipeline import evaluate_samples, train, write_json
+    from jaxinertia.sim.run import default_sim_params
+
+    scale = scale or (FULL if full else QUICK)
+    out = Path(out)
+    data_dir = out / "data"
+    timings: dict[str, float] = {}
+    t_all = time.perf_counter()
+    params = default_sim_params()
+
+    def stage(name):
+        class _T:
+            def __enter__(self):
+                print(f"== {name}", flush=True)
+                self.t = time.perf_counter()
+
+            def __exit__(self, *exc):
+                timings[name] = time.perf_counter() - self.t
+                print(f"   {name}: {timings[name]:.1f} s", flush=True)
+        return _T()
+
+    with stage("simulate"):
+        train_files = [_simulate(params, data_dir / "train_random.npz", "random",
+                                 scale.random_per_load, seed)]
+        if scale.planning:
+            train_files.append(_simulate(params, data_dir / "train_planning.npz", "planning",
+                                         None, seed))
+        test_file = _simulate(params, data_dir / "test.npz", "test", scale.test_per_object,
+                              seed + 1000)
+    with stage("simulate continuous"):
+        cont_file = _continuous(params, data_dir / "continuous.npz", scale, seed)
+    with stage("train"):
+        info = train(train_files, out / "models", scale.train.replace(seed=seed),
+                     progress=progress)
+    with stage("evaluate"):
+        sim = evaluate_samples(out / "models", test_file, n_sets=scale.n_sets, seed=seed)
+    with stage("continuous"):
+        from jaxinertia.checkpoints import load_models
+
+        pair, baselines, fc, _ = load_models(out / "models")
+        r, _ = load_samples(cont_file, only_at_rest=False)
+        cont_mass = r.x[r.object_id, 0]
+        cont_names = [CONTINUOUS_OBJECTS[i] for i in r.object_id]
+        traj = LbipeDataset(name="continuous", q_d=r.q_d, q=r.q, current_tau=r.current_tau,
+                            direction=r.direction, tau=r.tau, tau_g=r.tau_g, A=r.A,
+                            x=np.full(4, np.nan))
+        windows = sliding_windows(len(r.q), 128)
+        cres = continuous_force(stack_objects([traj], [np.nan], [windows], fc), pair, baselines,
+                                cont_mass)
+    real = None
+    lbipe_dir = Path(lbipe_dir) if lbipe_dir else default_lbipe_dir()
+    with stage("sim-to-real"):
+        real = sim_to_real(out / "models", lbipe_dir, seed=seed)
+    timings["total"] = time.perf_counter() - t_all
+
+    # Report.
+    figs = {"training": plots.plot_training(info["history"], out / "training.png"),
+            "table1": plots.plot_table1(sim["objects"], out / "table1_sim.png",
+                                        "simulated test objects"),
+            "continuous": plots.plot_continuous(cres, out / "continuous.png")}
+    if real and "ours" in real:
+        figs["real"] = plots.plot_table1(real["ours"]["objects"], out / "table1_real.png",
+                                         "real lbipe files, models trained on the simulator")
+    results = {
+        "machine": _machine(), "scale": dataclasses.asdict(scale), "timings_s": timings,
+        "training": {k: info[k] for k in ("samples", "best_epoch", "wall_time_s", "data")},
+        "simulated": {"objects": sim["objects"], "torque": sim["torque"],
+                      "diagnostics": sim["diagnostics"]},
+        "continuous": {m: v["MAE_N"] for m, v in cres["methods"].items()},
+        "real": None if real is None else {k: v for k, v in real.items() if k != "note"},
+    }
+    write_json(out / "tables.json", results)
+    lines = [
+        "# jaxinertia reproduce", "",
+        f"{'Full (paper-scale)' if full else 'Quick'} run, seed {seed}, on {_machine()}.",
+        f"Total {timings['total']:.0f} s: " + ", ".join(
+            f"{k} {v:.0f} s" for k, v in timings.items() if k != "total") + ".", "",
+        f"Training samples: {info['samples']['train']} (+{info['samples']['validation']} "
+        f"validation), {scale.train.n_models} model pairs; test: {scale.test_per_object} "
+        f"samples per object, {scale.n_sets} sets of {scale.train.set_size} per object and "
+        "model.", "",
+        "## Simulated test objects", "",
+        format_table1(sim["objects"], "Table I: mass and COM"), "",
+        format_table2(sim["torque"], "Table II: joint torque (all test samples)"), "",
+        format_table3(sim["objects"], "Table III: mean attention weights"), "",
+        f"![Table I]({figs['table1'].name})", "",
+        "## Switching loads (continuous run)", "",
+        f"{len(cont_mass)} consecutive samples, held object switching every "
+        f"{scale.switch_every} samples ({' -> '.join(dict.fromkeys(cont_names))}); windows "
+        "of 128 samples, 128-wide mean filter. MAE of the vertical force: " + ", ".join(
+            f"{m} {v['MAE_N']:.3f} N" for m, v in cres["methods"].items()) + ".", "",
+        f"![continuous]({figs['continuous'].name})", "",
+        "## Sim-to-real", "",
+    ]
+    if real is None:
+        lines += [f"Skipped: no real data at {lbipe_dir} (see README: shared/lbipe)."]
+    else:
+        lines += [real.get("note", ""), "",
+                  format_table1(real["ours"]["objects"], "Models trained on the simulator, "
+                                "real test files"), ""]
+        if real.get("released"):
+            lines += [format_table1(real["released"], "The authors' released models, same "
+                                    "files and sets"), ""]
+        lines += [f"![real]({figs['real'].name})", ""]
+    lines += ["## Training", "", f"Best epochs: torque {info['best_epoch']['torque']}, "
+              f"attention {info['best_epoch']['attention']}.", "",
+              f"![training]({figs['training'].name})", ""]
+    (out / "report.md").write_text("\n".join(lines))
+    print(f"wrote {out / 'report.md'}, {out / 'tables.json'} and {len(figs)} plots")
+    return results
+
+
+def sim_to_real(models: str | os.PathLike, lbipe_dir: str | os.PathLike, *, seed: int = 0,
+                n_sets: int = 1000) -> dict | None:
+    """Trained models on every real test file in ``lbipe_dir`` (the golden sets when the
+    folder has them, else seeded random sets), beside the released models on the same sets.
+    None when the folder is absent."""
+    from jaxinertia.lbipe import (
+        BOUNDING_BOX_DIAGONALS,
+        find_layout,
+        load_golden,
+        load_test_file,
+    )
+    from jaxinertia.lbipe_benchmark import random_sets, run_lbipe_benchmark
+    from jaxinertia.pipeline import evaluate_datasets
+
+    lbipe_dir = Path(lbipe_dir)
+    if not lbipe_dir.is_dir():
+        return None
+    layout = find_layout(lbipe_dir)
+    datasets, sets, sources = [], [], []
+    for name, path in layout.test_files.items():
+        if name not in BOUNDING_BOX_DIAGONALS:
+            continue
+        d = load_test_file(path, name)
+        g = layout.golden_dir / f"golden_{name}.npz" if layout.golden_dir else None
+        if g is not None and g.exists():
+            sets.append(load_golden(g, d.n_samples)["sets"])
+            sources.append("golden")
+        else:
+            sets.append(random_sets(d.n_samples, n_sets=n_sets, seed=seed))
+            sources.append(f"random seed {seed}")
+        datasets.append(d)
+    ours = evaluate_datasets(models, datasets, sets=sets)
+    out = {"ours": {"objects": ours["objects"], "torque": ours["torque"]},
+           "files": {d.name: str(p) for d, p in zip(datasets, layout.test_files.values())},
+           "sets": dict(zip([d.name for d in datasets], sources))}
+    try:
+        released = run_lbipe_benchmark(lbipe_dir, seed=seed)["metrics"]
+        out["released"] = {k: {m: v[m] for m in ("T", "T-A")} for k, v in released.items()}
+    except (ValueError, OSError) as e:
+        out["released_error"] = str(e)
+    out["note"] = ("Real files: " + ", ".join(f"{k} ({v} sets)" for k, v in out["sets"].items())
+                   + ". The released models were trained on the authors' real training set.")
+    return out
+

@@ -1,0 +1,261 @@
+"""Learning pipeline: baselines, training through the WLS, tables, checkpoints, end to end."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxinertia.baselines import fit_baselines
+from jaxinertia.checkpoints import CheckpointError, load_models, save_models
+from jaxinertia.datasets import load_samples, save_native
+from jaxinertia.estimation import ModelPair
+from jaxinertia.evaluation import evaluate, mean_filter, sliding_windows, stack_objects
+from jaxinertia.features import FeatureConfig
+from jaxinertia.lbipe import LbipeDataset, LbipeFormatError
+from jaxinertia.metrics import inertial_metrics
+from jaxinertia.networks import AttentionModel, TorqueModel
+from jaxinertia.training import (
+    SampleSet,
+    TrainConfig,
+    attention_loss,
+    feature_config_from,
+    split_validation,
+    train_torque_models,
+)
+
+
+def _synthetic(rng, n=400, n_obj=3, *, k=(16.0, 18.0, 17.0, 10.0), f=(0.02, 0.05, 0.03, 0.01)):
+    """Samples whose torque is an exact PE law of (q_d - q, s) and A a random regressor."""
+    k, f = np.asarray(k), np.asarray(f)
+    q = rng.uniform(-0.5, 0.5, (n, 4))
+    s = rng.choice([-1.0, 1.0], (n, 4))
+    A = rng.normal(size=(n, 4, 4)) * [1.0, 0.1, 0.1, 0.1]
+    x = np.column_stack([rng.uniform(0.04, 0.15, n_obj), rng.normal(size=(n_obj, 3)) * 0.003])
+    oid = np.arange(n) % n_obj
+    tau_g = rng.normal(size=(n, 4)) * 0.2
+    tau = tau_g + np.einsum("snp,sp->sn", A, x[oid])
+    qe = (tau + s * f - 0.01) / k
+    return SampleSet(q_d=q + qe, q=q, direction=s, current_tau=tau - 0.03 * s + 0.004,
+                     tau=tau, tau_g=tau_g, A=A, object_id=oid, x=x)
+
+
+def test_baselines_recover_the_constants_of_an_exact_law():
+    d = _synthetic(np.random.default_rng(0))
+    b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.tau)
+    np.testing.assert_allclose(b.pe_gain, [16.0, 18.0, 17.0, 10.0], rtol=1e-9)
+    np.testing.assert_allclose(b.pe_friction, [0.02, 0.05, 0.03, 0.01], atol=1e-10)
+    np.testing.assert_allclose(b.pe_offset, 0.01, atol=1e-10)
+    np.testing.assert_allclose(b.sensor_friction, -0.03, atol=1e-10)
+    np.testing.assert_allclose(b.sensor_offset, -0.004, atol=1e-10)
+    np.testing.assert_allclose(b.pe(d.q_d, d.q, d.direction), d.tau, atol=1e-10)
+
+
+def test_attention_loss_gradient_through_batched_wls_equals_finite_differences():
+    rng = np.random.default_rng(1)
+    B, M, N = 3, 16, 4
+    A = jnp.asarray(rng.normal(size=(B, M, N, 4)))
+    x_true = jnp.asarray(np.column_stack([[0.05, 0.0, 0.12],
+                                          rng.normal(size=(3, 3)) * 1e-3]))
+    y = jnp.einsum("bmnp,bp->bmn", A, x_true) + 0.05 * rng.normal(size=(B, M, N))
+    w0 = jnp.asarray(rng.uniform(0.1, 1.0, (B, M, N)))
+
+    def loss(w):
+        return attention_loss(w, A, y, x_true, w_mass=1.0, w_com=0.3)[0]
+
+    g = jax.grad(loss)(w0)
+    eps = 1e-6
+    for idx in [(0, 0, 0), (1, 5, 2), (2, 15, 3), (0, 7, 1)]:
+        e = jnp.zeros_like(w0).at[idx].set(eps)
+        fd = (loss(w0 + e) - loss(w0 - e)) / (2 * eps)
+        np.testing.assert_allclose(g[idx], fd, rtol=1e-5, atol=1e-12)
+    # The empty-gripper set (m = 0) carries no COM loss: its COM column cannot matter.
+    x2 = x_true.at[1, 1:].set(0.5)
+    assert loss(w0) == attention_loss(w0, A, y, x2, w_mass=1.0, w_com=0.3)[0]
+
+
+def test_attention_loss_is_zero_for_exact_torques_and_flags_singular_sets():
+    rng = np.random.default_rng(2)
+    A = rng.normal(size=(2, 8, 4, 4))
+    x = np.array([[0.1, 1e-3, 2e-3, -3e-3], [0.06, 0, 1e-3, -1e-3]])
+    y = np.einsum("bmnp,bp->bmn", A, x)
+    A[1, :, :, 2] = 0.0  # set 1 cannot see the y coordinate of the COM
+    loss, (e_m, e_p) = attention_loss(jnp.ones((2, 8, 4)), jnp.asarray(A), jnp.asarray(y),
+                                      jnp.asarray(x), w_mass=1.0, w_com=0.3)
+    assert float(loss) < 1e-20
+    assert np.isfinite(e_m[0]) and np.isnan(e_m[1]) and np.isnan(e_p[1])
+
+
+def test_torque_training_learns_and_keeps_the_best_validation_epoch():
+    d = _synthetic(np.random.default_rng(3), n=1200)
+    train, val = split_validation(d, 0.2, 0)
+    assert train.n_samples + val.n_samples == d.n_samples
+    assert not set(map(tuple, train.q)) & set(map(tuple, val.q))
+    fc = feature_config_from(train)
+    cfg = TrainConfig(n_models=2, torque_epochs=60, torque_lr=3e-3)
+    res = train_torque_models(cfg, fc, train, val, jax.random.key(0), progress=False)
+    hist = res.history  # (epochs, 2, K)
+    assert hist.shape == (60, 2, 2)
+    assert np.all(hist[-1, 1] < 0.05 * hist[0, 1])  # validation MSE falls 20-fold
+    best = np.argmin(hist[:, 1], axis=0)
+    np.testing.assert_array_equal(res.best_epoch, best)
+    # The kept parameters are the best epoch's: their validation MSE is the minimum.
+    from jaxinertia.training import torque_predictions
+
+    pred = np.asarray(torque_predictions(res.model, res.variables, fc, val))
+    mse = np.mean(((pred - val.tau) / np.asarray(fc.tau_scale)) ** 2, axis=(1, 2))
+    np.testing.assert_allclose(mse, hist[best, 1, [0, 1]], rtol=1e-4)
+    # Two seeds, two different models.
+    leaf = jax.tree_util.tree_leaves(res.variables)[0]
+    assert not np.allclose(leaf[0], leaf[1])
+
+
+def _tiny_pair(K=2, seed=0):
+    tm, am = TorqueModel(), AttentionModel()
+    feats = jnp.zeros((1, 4, 4), jnp.float32)
+    keys = jax.random.split(jax.random.key(seed), K)
+    return ModelPair(torque_vars=jax.vmap(lambda k: tm.init(k, feats))(keys),
+                     attention_vars=jax.vmap(lambda k: am.init(k, feats))(keys),
+                     tau_scale=jnp.asarray([0.4, 1.2, 0.6, 0.3], jnp.float32),
+                     torque_model=tm, attention_model=am)
+
+
+def _fc():
+    return FeatureConfig.create([-0.6] * 4, [0.6] * 4, [0.05] * 4, [0.4, 1.2, 0.6, 0.3])
+
+
+def test_checkpoints_round_trip_and_refuse_another_robot(tmp_path):
+    d = _synthetic(np.random.default_rng(4))
+    b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.tau)
+    pair = _tiny_pair()
+    save_models(tmp_path / "m", pair, b, _fc(), robot="open_manipulator_x", extra={"a": 1})
+    pair2, b2, fc2, cfg = load_models(tmp_path / "m", robot="open_manipulator_x")
+    for u, v in zip(jax.tree_util.tree_leaves((pair.torque_vars, pair.attention_vars)),
+                    jax.tree_util.tree_leaves((pair2.torque_vars, pair2.attention_vars))):
+        np.testing.assert_array_equal(np.asarray(u), np.asarray(v))
+    assert pair2.torque_model == pair.torque_model and cfg["a"] == 1
+    np.testing.assert_array_equal(b2.pe_gain, b.pe_gain)
+    np.testing.assert_array_equal(fc2.qe_scale, _fc().qe_scale)
+    with pytest.raises(CheckpointError, match="trained for robot 'open_manipulator_x'"):
+        load_models(tmp_path / "m", robot="another_arm")
+    with pytest.raises(CheckpointError, match="not a jaxinertia model folder"):
+        load_models(tmp_path / "nothing")
+
+
+def test_tables_equal_a_direct_numpy_computation():
+    rng = np.random.default_rng(5)
+    d = _synthetic(rng, n=200, n_obj=2)
+    b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.tau)
+    objs = []
+    for o in range(2):
+        s = d.take(np.flatnonzero(d.object_id == o))
+        objs.append(LbipeDataset(name=f"o{o}", q_d=s.q_d, q=s.q,
+                                 current_tau=s.current_tau + rng.normal(size=s.q.shape) * 0.02,
+                                 direction=s.direction, tau=s.tau, tau_g=s.tau_g, A=s.A,
+                                 x=d.x[o]))
+    sets = [np.stack([rng.choice(o.n_samples, 20, replace=False) for _ in range(7)])
+            for o in objs]
+    pair = _tiny_pair()
+    res = evaluate(stack_objects(objs, [0.07, 0.08], sets, _fc()), pair, b)
+    for o, ds in enumerate(objs):
+        # Sensor by hand: numpy lstsq with identity weights, set by set.
+        tau_hat = ds.current_tau - ds.direction * np.asarray(b.sensor_friction) + np.asarray(
+            b.sensor_offset)
+        xs = np.stack([np.linalg.lstsq(ds.A[i].reshape(-1, 4),
+                                       (tau_hat - ds.tau_g)[i].reshape(-1), rcond=None)[0]
+                       for i in sets[o]])
+        np.testing.assert_allclose(res["estimates"]["Sensor"][o], xs, rtol=1e-8, atol=1e-12)
+        m, p = ds.x[0], ds.x[1:] / ds.x[0]
+        e_m = xs[:, 0] - m
+        e_p = np.linalg.norm(xs[:, 1:] / xs[:, :1] - p, axis=1)
+        got = res["objects"][ds.name]["Sensor"]
+        assert got["mass_MAE_g"] == pytest.approx(np.mean(np.abs(e_m)) * 1e3, rel=1e-9)
+        assert got["com_NMAE_pct"] == pytest.approx(
+            100 * np.mean(e_p) / [0.07, 0.08][o], rel=1e-9)
+        assert got["com_NRMSE_pct"] == pytest.approx(
+            100 * np.sqrt(np.mean(e_p**2)) / [0.07, 0.08][o], rel=1e-9)
+        # T-A through the networks equals inertial_metrics of its own estimates.
+        x_ta = res["estimates"]["T-A"][o].reshape(-1, 4)
+        assert res["objects"][ds.name]["T-A"] == inertial_metrics(x_ta, ds.x, [0.07, 0.08][o])
+    # Table II (PE) by hand, over all samples of both objects.
+    tau = np.concatenate([o.tau for o in objs])
+    pe = np.concatenate([np.asarray(b.pe(o.q_d, o.q, o.direction)) for o in objs])
+    mae = np.mean(np.abs(pe - tau), axis=0) * 1e3
+    np.testing.assert_allclose(res["torque"]["PE"]["MAE_Nmm"], mae, rtol=1e-9)
+
+
+def test_sliding_windows_and_mean_filter():
+    w = sliding_windows(10, 4)
+    assert w.shape == (7, 4) and w[0].tolist() == [0, 1, 2, 3] and w[-1].tolist() == [6, 7, 8, 9]
+    x = np.arange(10.0)
+    f = mean_filter(x, 4)
+    assert f[5] == pytest.approx(np.mean(x[3:7]))
+    assert f[0] == pytest.approx(np.mean(x[0:2]))
+    with pytest.raises(ValueError):
+        sliding_windows(3, 4)
+
+
+def _write(path, d: SampleSet, drop=()):
+    fields = {k: getattr(d, k) for k in d._fields if k not in drop}
+    return save_native(path, fields, {"robot": "open_manipulator_x", "objects": ["a", "b", "c"]})
+
+
+def test_bad_sample_files_give_one_clear_error(tmp_path):
+    d = _synthetic(np.random.default_rng(6), n=50)
+    with pytest.raises(LbipeFormatError, match=r"\[A\]: missing"):
+        load_samples(_write(tmp_path / "a.npz", d, drop=("A",)))
+    bad = d._replace(direction=d.direction * 0.5)
+    with pytest.raises(LbipeFormatError, match=r"\[direction\]: must be"):
+        load_samples(_write(tmp_path / "b.npz", bad))
+    # An unknown object has no tau: fine for estimation, refused for training.
+    unknown = d._replace(tau=np.full_like(d.tau, np.nan))
+    p = _write(tmp_path / "c.npz", unknown)
+    assert load_samples(p, need_tau=False)[0].n_samples == 50
+    with pytest.raises(LbipeFormatError, match=r"\[tau\]: holds non-finite"):
+        load_samples(p)
+
+
+def test_estimate_refuses_a_singular_sample_set(tmp_path):
+    from jaxinertia.pipeline import estimate
+
+    d = _synthetic(np.random.default_rng(7), n=64)
+    d = d._replace(A=np.repeat(d.A[:1], 64, axis=0) * [1, 1, 0, 1])  # no y information
+    p = _write(tmp_path / "s.npz", d._replace(tau=np.full_like(d.tau, np.nan)))
+    b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.q_d)
+    save_models(tmp_path / "m", _tiny_pair(), b, _fc(), robot="open_manipulator_x")
+    with pytest.raises(ValueError, match="do not determine mass and COM"):
+        estimate(tmp_path / "m", p)
+
+
+def test_tiny_end_to_end_report_numbers_come_from_the_run(tmp_path, lbipe_dir):
+    """simulate -> train -> evaluate -> continuous -> sim-to-real -> report, tiny."""
+    from jaxinertia.reproduce import Scale, reproduce
+
+    scale = Scale(planning=False, random_per_load=80, test_per_object=70,
+                  continuous_samples=160, switch_every=40, n_sets=20,
+                  train=TrainConfig(n_models=2, torque_epochs=5, attention_epochs=2,
+                                    attention_sets=8, attention_val_sets=4, set_size=64,
+                                    val_fraction=0.2))
+    res = reproduce(tmp_path / "run", scale=scale, lbipe_dir=lbipe_dir, progress=False)
+    run = Path(tmp_path / "run")
+    tables = json.loads((run / "tables.json").read_text())
+    report = (run / "report.md").read_text()
+    for name in ("cube", "red", "white", "black"):
+        for m in ("Sensor", "PE", "T", "T-A"):
+            v = tables["simulated"]["objects"][name][m]["com_NMAE_pct"]
+            assert np.isfinite(v)
+            assert f"| {name} | {m} | " in report and f"{v:.2f}" in report
+    assert res["simulated"]["objects"] == tables["simulated"]["objects"]
+    for png in ("training.png", "table1_sim.png", "continuous.png", "table1_real.png"):
+        assert (run / png).stat().st_size > 10_000
+    # Sim-to-real ran on the real files, beside the released models on the same sets.
+    assert set(tables["real"]["ours"]["objects"]) == {"cube", "white"}
+    assert set(tables["real"]["released"]) == {"cube", "white"}
+    # The models load back and estimate an object from the run's own test file.
+    _, meta = load_samples(run / "data" / "test.npz")
+    assert meta["request"]["n"] == 70
+    assert set(tables["continuous"]) == {"Sensor", "PE", "T", "T-A"}
