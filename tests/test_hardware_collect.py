@@ -4,7 +4,7 @@
 collect`` in another, talking Protocol 2.0 through the pseudo-terminal. The collected
 samples must agree with the simulator's own samples (``simulate_samples``) for the same
 plan and object: the virtual robot replays the protocol tick by tick through registers,
-so the per-joint rest discrepancies q_d - q must agree to about a tick.
+so the per-joint rest discrepancies q_d - q must agree as well as two simulator runs do.
 """
 
 from __future__ import annotations
@@ -37,9 +37,10 @@ def reference():
 
     def run():
         q_d, d = sc.random_plan(N, 0)
-        s = simulate_samples(default_sim_params(), sc.lbipe_object(OBJECT), q_d, d,
-                             jax.random.key(1))
-        out["samples"] = jax.tree.map(np.asarray, s)
+        for seed in (1, 2):  # the second: the simulator's own sample-to-sample spread
+            s = simulate_samples(default_sim_params(), sc.lbipe_object(OBJECT), q_d, d,
+                                 jax.random.key(seed))
+            out.setdefault("samples", []).append(jax.tree.map(np.asarray, s))
 
     th = threading.Thread(target=run, daemon=True)
     th.start()
@@ -95,8 +96,8 @@ def test_collected_file_loads_like_a_simulated_one(collected):
 
 def test_collected_statistics_match_the_simulator(collected, reference):
     fields, _, _ = collected
-    sim = reference()
-    assert sim.at_rest.all()
+    sim, sim2 = reference()
+    assert sim.at_rest.all() and sim2.at_rest.all()
     np.testing.assert_array_equal(fields["q_d"], sim.q_d)
     tick = 2 * np.pi / 4096
     e_hw = (fields["q_d"] - fields["q"]) / tick  # rest discrepancy [ticks]
@@ -110,9 +111,18 @@ def test_collected_statistics_match_the_simulator(collected, reference):
                                  err_msg="per-joint mean q_d - q [ticks]")
     np.testing.assert_array_less(np.abs(e_hw.std(0) - e_sim.std(0)), 1.0,
                                  err_msg="per-joint std of q_d - q [ticks]")
-    # Same q_d on both sides, so e_hw - e_sim is a whole number of ticks (up to rounding).
-    d_ticks = np.round(np.abs(e_hw - e_sim), 6)
-    assert np.all(np.median(d_ticks, 0) <= 1.0), "per-sample q_d - q [ticks]"
+    # Sample by sample, load and direction (not the friction draw) set the discrepancy on
+    # both sides: the simulator against itself with another seed correlates 0.90-0.98 per
+    # joint and differs by 0.6-1.7 ticks on average; the virtual robot must do as well (the
+    # 1-tick margin is ~3 standard errors of a 20-sample mean difference of the two).
+    e_sim2 = (sim2.q_d - sim2.q) / tick
+    for j in range(4):
+        corr = np.corrcoef(e_hw[:, j], e_sim[:, j])[0, 1]
+        assert corr > 0.85, f"joint {j + 1}: per-sample q_d - q correlates {corr:.3f}"
+    spread_hw = np.abs(e_hw - e_sim).mean(0)
+    spread_sim = np.abs(e_sim2 - e_sim).mean(0)
+    np.testing.assert_array_less(spread_hw, spread_sim + 1.0,
+                                 err_msg="per-sample |q_d - q| difference [ticks]")
     # The direction of approach shows in the discrepancy exactly as in the simulator.
     for j in range(4):
         up = fields["direction"][:, j] > 0
