@@ -55,34 +55,57 @@ def _machine() -> str:
             f"{dev.platform} ({kind})")
 
 
-def _cached(path: Path, request: dict, make) -> Path:
-    """Writes ``make() -> (fields, meta)`` to ``path`` unless the file there was made by the
-    same request (a re-run reuses its data)."""
-    from jaxinertia import __version__
-    from jaxinertia.datasets import load_native, save_native
+def _reusable(path: Path, request: dict) -> bool:
+    """Whether the file at ``path`` was made by the same request (a re-run reuses it)."""
+    from jaxinertia.datasets import load_native
 
-    if path.exists():
-        try:
-            if load_native(path)[1].get("request") == request:
-                print(f"reusing {path}")
-                return path
-        except ValueError:
-            pass
-    fields, meta = make()
+    try:
+        return path.exists() and load_native(path)[1].get("request") == request
+    except ValueError:
+        return False
+
+
+def _save(path: Path, request: dict, fields: dict, meta: dict) -> Path:
+    from jaxinertia import __version__
+    from jaxinertia.datasets import save_native
+
     meta.update(request=request, version=__version__)
     save_native(path, fields, meta)
     return path
 
 
-def _simulate(params, path: Path, scenario: str, n, seed: int) -> Path:
+def _cached(path: Path, request: dict, make) -> Path:
+    """Writes ``make() -> (fields, meta)`` to ``path`` unless the file there was made by the
+    same request."""
+    if _reusable(path, request):
+        print(f"reusing {path}")
+        return path
+    return _save(path, request, *make())
+
+
+def _simulate(params, wanted: list[tuple[Path, str, int | None, int]]) -> list[Path]:
+    """Simulates the scenarios ``(path, scenario, n, seed)`` whose files are not there yet,
+    all in one stream (one compiled program, one settling tail)."""
     from jaxinertia import __version__
-    from jaxinertia.sim.run import native_fields, simulate_scenario
+    from jaxinertia.sim.run import ScenarioRequest, native_fields, simulate_scenarios
 
-    def make():
-        res = simulate_scenario(params, scenario, n=n, seed=seed)
-        return native_fields(res, params, scenario=scenario, seed=seed, version=__version__)
+    def request(scenario, n, seed):
+        return {"scenario": scenario, "seed": seed, "n": n}
 
-    return _cached(path, {"scenario": scenario, "seed": seed, "n": n}, make)
+    missing = []
+    for path, scenario, n, seed in wanted:
+        if _reusable(path, request(scenario, n, seed)):
+            print(f"reusing {path}")
+        else:
+            missing.append((path, scenario, n, seed))
+    if missing:
+        results = simulate_scenarios(
+            params, [ScenarioRequest(scenario, n, None, seed) for _, scenario, n, seed in missing])
+        for (path, scenario, n, seed), res in zip(missing, results):
+            fields, meta = native_fields(res, params, scenario=scenario, seed=seed,
+                                         version=__version__)
+            _save(path, request(scenario, n, seed), fields, meta)
+    return [w[0] for w in wanted]
 
 
 CONTINUOUS_OBJECTS = ["empty", "cube", "white", "black"]
@@ -140,13 +163,11 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
         return _T()
 
     with stage("simulate"):
-        train_files = [_simulate(params, data_dir / "train_random.npz", "random",
-                                 scale.random_per_load, seed)]
+        wanted = [(data_dir / "test.npz", "test", scale.test_per_object, seed + 1000),
+                  (data_dir / "train_random.npz", "random", scale.random_per_load, seed)]
         if scale.planning:
-            train_files.append(_simulate(params, data_dir / "train_planning.npz", "planning",
-                                         None, seed))
-        test_file = _simulate(params, data_dir / "test.npz", "test", scale.test_per_object,
-                              seed + 1000)
+            wanted.append((data_dir / "train_planning.npz", "planning", None, seed))
+        test_file, *train_files = _simulate(params, wanted)
     with stage("simulate continuous"):
         cont_file = _continuous(params, data_dir / "continuous.npz", scale, seed)
     with stage("train"):

@@ -150,18 +150,33 @@ def test_shipped_link_gravity_reproduces_the_real_tau_g(lbipe_dir):
     np.testing.assert_allclose(fitted.com, robot.com, atol=1e-12)
 
 
-def test_samples_do_not_depend_on_the_chunk_size():
-    """Per-sample keys: the same plan gives the same samples whatever the batching (CPU and
-    GPU use different default chunks)."""
-    from jaxinertia.sim.run import default_sim_params, run_plan
+def test_streamed_lanes_give_the_samples_of_the_plain_vmap():
+    """The lane scheduler (lanes refill as samples finish, objects mixed) runs the same
+    arithmetic as ``simulate_samples`` (one vmapped protocol per sample) with the same
+    per-sample keys, so the samples agree; and they do not depend on the lane count."""
+    from jaxinertia.sim.run import default_sim_params, run_plans
+    from jaxinertia.sim.sampling import simulate_samples
     from jaxinertia.sim.scenarios import lbipe_object, random_plan
 
     p = default_sim_params()
-    q, d = random_plan(6, 0)
-    a = run_plan(p, lbipe_object("cube"), q, d, jax.random.key(3), chunk=4, progress=False)
-    b = run_plan(p, lbipe_object("cube"), q, d, jax.random.key(3), chunk=6, progress=False)
-    for k in a:
-        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    plans = [(lbipe_object("cube"), *random_plan(5, 0), jax.random.key(3)),
+             (lbipe_object("white"), *random_plan(4, 1), jax.random.key(4))]
+    a = run_plans(p, plans, lanes=3, progress=False)
+    b = run_plans(p, plans, lanes=8, progress=False)
+    for obj, q_d, d, key in plans[::-1]:
+        ref = simulate_samples(p, obj, jnp.asarray(q_d), jnp.asarray(d),
+                               jax.random.split(key, len(q_d)))
+        got_a, got_b = a.pop(), b.pop()
+        for k, v in ref._asdict().items():
+            v = np.asarray(v)
+            np.testing.assert_array_equal(got_a[k], got_b[k], err_msg=k)
+            if k in ("q", "q_d", "direction", "at_rest", "settle_time"):  # to the bit
+                np.testing.assert_array_equal(got_a[k], v, err_msg=k)
+            elif k in ("q_true", "servo_tau", "friction_tau"):  # the simulator's state
+                np.testing.assert_allclose(got_a[k], v, rtol=0, atol=1e-12, err_msg=k)
+            else:  # functions of the ticks, fused differently: to rounding
+                np.testing.assert_allclose(got_a[k], v, rtol=1e-13, atol=1e-15, err_msg=k)
+        assert got_a["at_rest"].all()
 
 
 def test_planning_grid_drops_configurations_at_the_mounting_surface():

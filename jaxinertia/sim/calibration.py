@@ -112,11 +112,12 @@ def simulate_real_plan(params, plans, key, *, progress: bool = False) -> dict[st
     """Simulates every real file's goals/directions/object; returns the stacked fields."""
     import jax
 
-    from jaxinertia.sim.run import run_plan
+    from jaxinertia.sim.run import run_plans
 
-    parts = [run_plan(params, obj, d.q_d, d.direction, jax.random.fold_in(key, i),
-                      desc=name, progress=progress)
-             for i, (name, obj, d) in enumerate(plans)]
+    parts = run_plans(params, [(obj, d.q_d, d.direction, jax.random.fold_in(key, i))
+                               for i, (_, obj, d) in enumerate(plans)],
+                      descs=[name for name, _, _ in plans], desc="real plans",
+                      progress=progress)
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 

@@ -1,23 +1,23 @@
-"""Running scenarios in chunks with a progress bar, and the default simulated arm."""
+"""Running plans and scenarios (checked, streamed, with a progress bar), and the default
+simulated arm."""
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from tqdm.auto import tqdm
 
 from jaxinertia.robot import open_manipulator_x
 from jaxinertia.sim.friction import FrictionParams
-from jaxinertia.sim.sampling import HeldObject, simulate_samples
+from jaxinertia.sim.sampling import HeldObject
 from jaxinertia.sim.servo import ServoParams
 from jaxinertia.sim.simulator import SimParams
+from jaxinertia.sim.stream import Plan, stream_plans
 
-__all__ = ["SimulationError", "default_chunk", "default_sim_params", "native_fields",
-           "run_plan", "simulate_scenario"]
-
-#: One compiled program per (parameters structure, chunk size); objects are arguments.
-_simulate = jax.jit(simulate_samples, static_argnames=("delta",))
+__all__ = ["SimulationError", "default_sim_params", "native_fields", "run_plan",
+           "run_plans", "ScenarioRequest", "simulate_scenario", "simulate_scenarios"]
 
 #: Reflected rotor inertia of the XM430 gear train [kg m^2] (assumed until calibrated).
 DEFAULT_ARMATURE = 0.01
@@ -40,40 +40,37 @@ def default_sim_params(calibration_file=None) -> SimParams:
     return apply_servo_friction(params, calibration)
 
 
-def default_chunk() -> int:
-    """Samples per compiled call: small on CPU (progress, memory), large on accelerators
-    (a 512-sample batch leaves an H100 mostly idle)."""
-    return 512 if jax.default_backend() == "cpu" else 16384
-
-
 def run_plan(params: SimParams, obj: HeldObject, q_d: np.ndarray, direction: np.ndarray,
-             key: jax.Array, *, chunk: int | None = None, desc: str = "simulating",
+             key: jax.Array, *, lanes: int | None = None, desc: str = "simulating",
              progress: bool = True) -> dict[str, np.ndarray]:
-    """Simulates a plan in chunks of ``chunk`` samples (one compiled program).
+    """Simulates one object's plan; returns the sample fields (numpy, leading axis S).
 
-    Sample i gets the i-th of ``jax.random.split(key, S)``, so the result does not depend
-    on the chunk size (nor on the device's default chunk).
+    Sample i gets the i-th of ``jax.random.split(key, S)``, so the result depends neither
+    on the lane count (nor on the device's default) nor on the scheduling.
     """
-    q_d, direction = _check_plan(params, q_d, direction, desc)
-    S = len(q_d)
-    chunk = min(chunk or default_chunk(), S)
-    keys = jax.random.split(key, S)
-    out: dict[str, list] = {}
-    with tqdm(total=S, desc=desc, unit="sample", disable=not progress) as bar:
-        for start in range(0, S, chunk):
-            q = np.asarray(q_d[start:start + chunk])
-            d = np.asarray(direction[start:start + chunk])
-            k = keys[start:start + chunk]
-            n = len(q)
-            if n < chunk:  # pad to the compiled size
-                q = np.concatenate([q, np.repeat(q[-1:], chunk - n, 0)])
-                d = np.concatenate([d, np.repeat(d[-1:], chunk - n, 0)])
-                k = jnp.concatenate([k, jnp.repeat(k[-1:], chunk - n, 0)])
-            res = _simulate(params, obj, jnp.asarray(q), jnp.asarray(d), k)
-            for name, v in res._asdict().items():
-                out.setdefault(name, []).append(np.asarray(v)[:n])
-            bar.update(n)
-    res = {k: np.concatenate(v) for k, v in out.items()}
+    return run_plans(params, [(obj, q_d, direction, key)], lanes=lanes, descs=[desc],
+                     desc=desc, progress=progress)[0]
+
+
+def run_plans(params: SimParams, plans: list, *, lanes: int | None = None,
+              descs: list[str] | None = None, desc: str = "simulating",
+              progress: bool = True) -> list[dict[str, np.ndarray]]:
+    """Simulates several plans ``(object, q_d, direction, key)`` in one stream of lanes
+    (:mod:`jaxinertia.sim.stream`); every plan is checked first and every result after,
+    errors naming ``descs[i]`` and the sample."""
+    descs = descs or [f"{desc}[{i}]" for i in range(len(plans))]
+    checked = [Plan(obj, *_check_plan(params, q_d, d, name), key)
+               for (obj, q_d, d, key), name in zip(plans, descs)]
+    results = stream_plans(params, checked, lanes=lanes, desc=desc, progress=progress)
+    out = []
+    for plan, res, name in zip(checked, results, descs):
+        res = res._asdict()
+        _check_diverged(res, plan.q_d, name)
+        out.append(res)
+    return out
+
+
+def _check_diverged(res: dict, q_d: np.ndarray, desc: str) -> None:
     # Diverged: a non-finite state, or an arm that ended far from its goal (a settled
     # servo misses by a few ticks; 0.5 rad is a runaway integration).
     with np.errstate(invalid="ignore"):
@@ -82,10 +79,9 @@ def run_plan(params: SimParams, obj: HeldObject, q_d: np.ndarray, direction: np.
     if bad.any():
         i = np.flatnonzero(bad)
         raise SimulationError(f"{desc}: the integration diverged at sample(s) "
-                              f"{i[:10].tolist()}{' ...' if len(i) > 10 else ''} of {S} "
+                              f"{i[:10].tolist()}{' ...' if len(i) > 10 else ''} of {len(q_d)} "
                               f"(non-finite state or more than {DIVERGED_RAD} rad from the "
                               "goal); check the calibration file (gains, dt)")
-    return res
 
 
 #: A sample whose arm ends farther than this from its goal [rad] counts as diverged.
@@ -128,6 +124,7 @@ def _check_plan(params: SimParams, q_d, direction, desc: str):
 
 def simulate_scenario(params: SimParams, scenario: str, *, n: int | None = None,
                       objects: list[str] | None = None, seed: int = 0,
+                      lanes: int | None = None,
                       progress: bool = True) -> dict[str, tuple[HeldObject, dict]]:
     """Runs a scenario; returns ``{object name: (object, fields)}``.
 
@@ -135,6 +132,37 @@ def simulate_scenario(params: SimParams, scenario: str, *, n: int | None = None,
     random: ``n`` (default 1000) random goals and directions per training load;
     test: ``n`` (default 1000) per test object (``objects``: default all four).
     """
+    return simulate_scenarios(params, [ScenarioRequest(scenario, n, objects, seed)],
+                              lanes=lanes, progress=progress)[0]
+
+
+class ScenarioRequest(NamedTuple):
+    scenario: str
+    n: int | None = None
+    objects: list[str] | None = None
+    seed: int = 0
+
+
+def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
+                       lanes: int | None = None,
+                       progress: bool = True) -> list[dict[str, tuple[HeldObject, dict]]]:
+    """Several scenarios in one stream of lanes (one compiled program, one tail); each
+    result is what :func:`simulate_scenario` returns for its request."""
+    jobs, descs, plans = [], [], []
+    for r in requests:
+        named = _scenario_jobs(r.scenario, r.n, r.objects, r.seed)
+        key = jax.random.key(r.seed)
+        for i, (name, obj, (q_d, d)) in enumerate(named):
+            plans.append((obj, q_d, d, jax.random.fold_in(key, i)))
+            descs.append(f"{r.scenario}/{name}")
+        jobs.append(named)
+    results = iter(run_plans(params, plans, lanes=lanes, descs=descs,
+                             desc="+".join(r.scenario for r in requests), progress=progress))
+    return [{name: (obj, next(results)) for name, obj, _ in named} for named in jobs]
+
+
+def _scenario_jobs(scenario: str, n: int | None, objects: list[str] | None, seed: int):
+    """``[(object name, object, (q_d, direction))]`` of a scenario."""
     from jaxinertia.sim import scenarios as sc
 
     if scenario == "test":
@@ -142,9 +170,9 @@ def simulate_scenario(params: SimParams, scenario: str, *, n: int | None = None,
         unknown = [o for o in names if o not in sc.OBJECTS]
         if unknown:
             raise ValueError(f"unknown test object(s) {unknown}; known: {list(sc.OBJECTS)}")
-        jobs = [(o, sc.lbipe_object(o), sc.random_plan(n or 1000, seed + i))
+        return [(o, sc.lbipe_object(o), sc.random_plan(n or 1000, seed + i))
                 for i, o in enumerate(names)]
-    elif scenario in ("planning", "random"):
+    if scenario in ("planning", "random"):
         jobs = []
         for i, m in enumerate(sc.TRAINING_LOADS_KG):
             if scenario == "planning":
@@ -154,12 +182,8 @@ def simulate_scenario(params: SimParams, scenario: str, *, n: int | None = None,
             else:
                 plan = sc.random_plan(n or 1000, seed + i)
             jobs.append((f"{round(m * 1000)}g", sc.training_object(m), plan))
-    else:
-        raise ValueError(f"unknown scenario {scenario!r}")
-    key = jax.random.key(seed)
-    return {name: (obj, run_plan(params, obj, q_d, d, jax.random.fold_in(key, i),
-                                 desc=f"{scenario}/{name}", progress=progress))
-            for i, (name, obj, (q_d, d)) in enumerate(jobs)}
+        return jobs
+    raise ValueError(f"unknown scenario {scenario!r}; known: planning, random, test")
 
 
 def native_fields(results: dict[str, tuple[HeldObject, dict]], params: SimParams, *,

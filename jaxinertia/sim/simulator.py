@@ -40,6 +40,10 @@ class SimParams:
     timeout: float = struct.field(pytree_node=False, default=6.0)  # per move [s]
     profile_velocity: float = struct.field(pytree_node=False, default=0.5)  # [rad/s]
     profile_acceleration: float = struct.field(pytree_node=False, default=2.0)  # [rad/s^2]
+    #: Projected Gauss-Seidel sweeps of the friction solve per step. Warm-started from
+    #: the previous step's friction, 10 reproduce 30 cold sweeps (same encoder ticks on
+    #: 256 random samples, states within 1e-9 rad).
+    friction_sweeps: int = struct.field(pytree_node=False, default=10)
     #: (N,) constant joint torque besides the servo (cables, springs) [N m]; None = 0.
     torque_offset: jnp.ndarray | None = None
 
@@ -89,11 +93,13 @@ def step(params: SimParams, state: SimState, goal: jnp.ndarray) -> SimState:
     M = mass_matrix(robot, state.q) + dt * jnp.diag(damping)
     offset = 0.0 if params.torque_offset is None else params.torque_offset
     rhs = servo.torque + offset - damping * state.qd - bias_forces(robot, state.q, state.qd)
-    v_free = state.qd + dt * cholesky_solve(M, rhs)
     n = state.q.shape[0]
+    # W = dt M~^-1 (columns by unrolled Cholesky solves) serves both the free velocity
+    # and the friction solve.
     W = dt * cholesky_solve(jnp.broadcast_to(M, (n, n, n)), jnp.eye(n, dtype=M.dtype))
+    v_free = state.qd + (W * rhs).sum(-1)
     bound = friction_bound(params.friction, state.q, state.qd, servo.torque)
-    f, v = solve_box_friction(W, v_free, bound)
+    f, v = solve_box_friction(W, v_free, bound, params.friction_sweeps, f0=state.friction)
     return SimState(state.q + dt * v, v, servo, f)
 
 
