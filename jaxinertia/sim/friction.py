@@ -22,6 +22,7 @@ fast for the weakly coupled 4 x 4 case).
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 __all__ = ["FrictionParams", "friction_bound", "solve_box_friction"]
@@ -47,7 +48,7 @@ class FrictionParams:
                     load_coefficient=0.3, ripple_amplitude=0.0, ripple_frequency=1.0,
                     ripple_phase=0.0, jitter=0.0)
         base.update(values)
-        return cls(**{k: jnp.broadcast_to(jnp.asarray(v, jnp.result_type(float)), (n_joints,))
+        return cls(**{k: jnp.asarray(np.broadcast_to(v, (n_joints,)), jnp.result_type(float))
                       for k, v in base.items()})
 
 

@@ -35,7 +35,7 @@ def default_sim_params(calibration_file=None) -> SimParams:
 
     calibration = load_calibration(calibration_file)
     robot = apply_calibration(open_manipulator_x(), calibration)
-    robot = robot.replace(armature=jnp.full(4, DEFAULT_ARMATURE))
+    robot = robot.replace(armature=jnp.asarray(np.full(4, DEFAULT_ARMATURE)))
     params = SimParams(robot, ServoParams.xm430_w350(), FrictionParams.create())
     return apply_servo_friction(params, calibration)
 
@@ -174,11 +174,10 @@ def _scenario_jobs(scenario: str, n: int | None, objects: list[str] | None, seed
                 for i, o in enumerate(names)]
     if scenario in ("planning", "random"):
         jobs = []
+        grid = sc.planning_plan() if scenario == "planning" else None
         for i, m in enumerate(sc.TRAINING_LOADS_KG):
             if scenario == "planning":
-                plan = sc.planning_plan()
-                if n:
-                    plan = tuple(a[:n] for a in plan)
+                plan = tuple(a[:n] for a in grid) if n else grid
             else:
                 plan = sc.random_plan(n or 1000, seed + i)
             jobs.append((f"{round(m * 1000)}g", sc.training_object(m), plan))

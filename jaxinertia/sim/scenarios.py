@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import itertools
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxinertia.kinematics import ee_pose
 from jaxinertia.lbipe import BOUNDING_BOX_DIAGONALS
 from jaxinertia.sim.sampling import HeldObject
 
@@ -77,14 +79,17 @@ MOUNT_CLEARANCE_M = 0.10
 def collides(q: np.ndarray, *, clearance: float = MOUNT_CLEARANCE_M, robot=None) -> np.ndarray:
     """(S,) True where the end effector at goals ``q`` (S, 4) [rad] comes closer than
     ``clearance`` [m] to the mounting surface (z = 0 of the base frame)."""
-    import jax
-
-    from jaxinertia.kinematics import ee_pose
     from jaxinertia.robot import open_manipulator_x
 
     robot = open_manipulator_x() if robot is None else robot
-    _, p = jax.vmap(lambda qi: ee_pose(robot, qi))(jnp.asarray(q))
-    return np.asarray(p[:, 2]) < clearance
+    return np.asarray(_ee_positions(robot, jnp.asarray(q)))[:, 2] < clearance
+
+
+@jax.jit
+def _ee_positions(robot, q):
+    """(S, 3) end-effector positions at goals (S, N): one compiled call (op-by-op, a GPU
+    would compile every small kernel of the kinematics separately)."""
+    return jax.vmap(lambda qi: ee_pose(robot, qi)[1])(q)
 
 
 def planning_plan(step_deg: float = 10.0, *, clearance: float = MOUNT_CLEARANCE_M,

@@ -69,7 +69,7 @@ class ServoParams:
             back_emf=v / no_load_speed, current_limit=3.2, current_noise=2 * CURRENT_LSB_A,
         )
         base.update(overrides)
-        return cls(**{k: jnp.broadcast_to(jnp.asarray(val, jnp.result_type(float)), (n_joints,))
+        return cls(**{k: jnp.asarray(np.broadcast_to(val, (n_joints,)), jnp.result_type(float))
                       for k, val in base.items()})
 
 

@@ -24,6 +24,7 @@ updates the progress bar from the count of recorded samples.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -146,9 +147,9 @@ def _refill(base: SimParams, bare, table: _Table, carry: _Carry) -> _Carry:
     out = jax.tree.map(lambda buf, v: buf.at[where].set(v, mode="drop"), carry.out, r)
 
     free = lanes.phase == 2
-    new_idx = carry.next + jnp.cumsum(free) - 1
+    new_idx = carry.next + jnp.cumsum(free, dtype=jnp.int32) - 1
     take = free & (new_idx < table.count)
-    n_taken = jnp.sum(take)
+    n_taken = jnp.sum(take, dtype=jnp.int32)
     i = jnp.where(take, new_idx, 0)
     q_d, direction, obj_id = table.q_d[i], table.direction[i], table.obj_id[i]
     key_f, key_r = jax.vmap(jax.random.split, out_axes=1)(table.key[i])
@@ -169,18 +170,19 @@ def _refill(base: SimParams, bare, table: _Table, carry: _Carry) -> _Carry:
 
     lanes = jax.tree.map(pick, fresh, lanes)
     lanes = lanes.replace(idx=jnp.where(take, i, jnp.where(free, S_pad, lanes.idx)))
-    return _Carry(lanes, out, carry.next + n_taken, carry.done + jnp.sum(finished))
+    return _Carry(lanes, out, carry.next + n_taken, carry.done + jnp.sum(finished, dtype=jnp.int32))
 
 
 def _advance(base: SimParams, bare, table: _Table, carry: _Carry, *, refill_every: int,
              blocks: int) -> _Carry:
-    """Up to ``blocks`` blocks of ``refill_every`` steps, each followed by a refill; stops
-    early once every sample is recorded."""
+    """Up to ``blocks`` blocks, each a refill (record the lanes that finished, hand out new
+    samples) and ``refill_every`` steps; stops early once every sample is recorded."""
 
     def block(c: _Carry) -> _Carry:
+        c = _refill(base, bare, table, c)
         lanes = jax.lax.fori_loop(
             0, refill_every, lambda _, ln: jax.vmap(_lane_step, (None, 0))(base, ln), c.lanes)
-        return _refill(base, bare, table, c.replace(lanes=lanes))
+        return c.replace(lanes=lanes)
 
     def cond(state):
         b, c = state
@@ -197,32 +199,39 @@ _advance_jit = jax.jit(_advance, static_argnames=("refill_every", "blocks"),
                        donate_argnums=(3,))
 
 
-def _start(params: SimParams, bare, table: _Table, obj: HeldObject, *, lanes: int) -> _Carry:
-    """Every lane idle (phase 2, index S_pad), empty outputs, then the first refill."""
-    S_pad, n = table.q_d.shape
-    dtype = table.q_d.dtype
+@partial(jax.jit, static_argnames=("sizes", "lanes"))
+def _prepare(params: SimParams, q_d, direction, obj_id, objects: HeldObject, plan_keys,
+             *, sizes: tuple[int, ...], lanes: int) -> tuple[_Table, _Carry]:
+    """The sample table (per-sample keys, the loaded arm of every object) and the starting
+    carry (every lane idle: phase 2, index S_pad; empty outputs), in one compiled call (op
+    by op, an accelerator would compile each small kernel separately)."""
+    S_pad, n = q_d.shape
+    pad = S_pad - sum(sizes)
+    keys = jnp.concatenate([jax.random.split(k, m) for k, m in zip(plan_keys, sizes)]
+                           + [jnp.repeat(plan_keys[-1][None], pad, 0)])
+    loaded = jax.vmap(loaded_params, (None, 0))(params, objects)
+    count = jnp.asarray(sum(sizes), jnp.int32)
+    table = _Table(q_d, direction, keys, obj_id, objects, loaded, count)
+    dtype = q_d.dtype
     zeros = jnp.zeros((lanes, n), dtype)
     lane0 = _Lanes(
         state=jax.vmap(SimState.at_rest)(zeros),
         robot=jax.tree.map(lambda a: jnp.broadcast_to(a[0], (lanes,) + a.shape[1:]),
-                           table.loaded.robot),
+                           loaded.robot),
         friction=jax.tree.map(lambda a: jnp.broadcast_to(a, (lanes,) + a.shape),
                               params.friction),
-        pre=zeros, q_d=zeros, direction=zeros, key=table.key[:lanes],
+        pre=zeros, q_d=zeros, direction=zeros, key=keys[:lanes],
         obj_id=jnp.zeros(lanes, jnp.int32), idx=jnp.full(lanes, S_pad, jnp.int32),
         phase=jnp.full(lanes, 2, jnp.int32), k=jnp.zeros(lanes, jnp.int32),
         still=jnp.zeros(lanes, jnp.int32), ok_pre=jnp.zeros(lanes, bool),
         ok=jnp.zeros(lanes, bool), t_settle=jnp.zeros(lanes, dtype))
+    obj = jax.tree.map(lambda a: a[0], objects)
     template = jax.eval_shape(
-        lambda: record(params, bare, obj, zeros[0], zeros[0], SimState.at_rest(zeros[0]),
-                       table.key[0], at_rest=jnp.bool_(True),
+        lambda: record(params, params.robot, obj, zeros[0], zeros[0],
+                       SimState.at_rest(zeros[0]), keys[0], at_rest=jnp.bool_(True),
                        settle_time=jnp.zeros((), dtype)))
     out = jax.tree.map(lambda s: jnp.zeros((S_pad,) + s.shape, s.dtype), template)
-    carry = _Carry(lane0, out, jnp.asarray(0, jnp.int32), jnp.asarray(0, jnp.int32))
-    return _refill(params, bare, table, carry)
-
-
-_start = jax.jit(_start, static_argnames=("lanes",))
+    return table, _Carry(lane0, out, jnp.asarray(0, jnp.int32), jnp.asarray(0, jnp.int32))
 
 
 def _pad(a: np.ndarray, size: int) -> np.ndarray:
@@ -240,32 +249,29 @@ def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = No
     lane count nor on the other plans.
     """
     lanes = int(lanes or default_lanes())
-    sizes = [len(p.q_d) for p in plans]
+    sizes = tuple(len(p.q_d) for p in plans)
     S = sum(sizes)
     S_pad = max(lanes, 1 << (S - 1).bit_length())
     O_pad = -(-len(plans) // 4) * 4
     dtype = jnp.result_type(float)
+    # Host-side assembly (numpy), one transfer, then one compiled preparation.
     q_d = _pad(np.concatenate([np.asarray(p.q_d, np.float64) for p in plans]), S_pad)
     direction = _pad(np.concatenate([np.asarray(p.direction, np.float64) for p in plans]),
                      S_pad)
     obj_id = _pad(np.concatenate([np.full(n, i, np.int32) for i, n in enumerate(sizes)]),
                   S_pad)
-    keys = jnp.concatenate([jax.random.split(p.key, n) for p, n in zip(plans, sizes)])
-    keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], S_pad - S, 0)])
     objs = [p.obj for p in plans] + [plans[-1].obj] * (O_pad - len(plans))
-    objects = jax.tree.map(lambda *a: jnp.stack([jnp.asarray(x, dtype) for x in a]), *objs)
-    loaded = jax.vmap(loaded_params, (None, 0))(params, objects)
-    table = _Table(jnp.asarray(q_d, dtype), jnp.asarray(direction, dtype), keys,
-                   jnp.asarray(obj_id), objects, loaded, jnp.asarray(S))
+    objects = jax.tree.map(lambda *a: np.stack([np.asarray(x, dtype) for x in a]), *objs)
+    table, carry = _prepare(params, q_d.astype(dtype), direction.astype(dtype), obj_id,
+                            objects, [p.key for p in plans], sizes=sizes, lanes=lanes)
 
     bare = params.robot
-    carry = _start(params, bare, table, plans[0].obj, lanes=lanes)
     with tqdm(total=S, desc=desc, unit="sample", disable=not progress) as bar:
         while int(carry.done) < S:
             carry = _advance_jit(params, bare, table, carry, refill_every=refill_every,
                                  blocks=blocks_per_call)
             bar.update(int(carry.done) - bar.n)
     out = jax.tree.map(lambda a: np.asarray(a)[:S], carry.out)
-    bounds = np.cumsum([0] + sizes)
+    bounds = np.cumsum((0,) + sizes)
     return [jax.tree.map(lambda a, lo=lo, hi=hi: a[lo:hi], out)
             for lo, hi in zip(bounds[:-1], bounds[1:])]
