@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -404,8 +405,22 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _compilation_cache() -> None:
+    """Compiled programs persist between runs (the simulator's stream and the training
+    steps take seconds to compile): in ``~/.cache/jaxinertia/xla``, or
+    ``JAXINERTIA_CACHE_DIR``; ``JAXINERTIA_CACHE_DIR=off`` turns it off. Set by the
+    command line only: importing the library changes no JAX setting of its host program."""
+    where = os.environ.get("JAXINERTIA_CACHE_DIR",
+                           str(Path.home() / ".cache" / "jaxinertia" / "xla"))
+    if where.lower() != "off":
+        import jax
+
+        jax.config.update("jax_compilation_cache_dir", where)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    _compilation_cache()
     return int(args.func(args) or 0)
 
 

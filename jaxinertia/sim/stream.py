@@ -55,7 +55,7 @@ class Plan(NamedTuple):
 def default_lanes() -> int:
     """Lanes: a few hundred on a CPU (its throughput is flat beyond that, and fewer lanes
     shorten the tail); tens of thousands on an accelerator."""
-    return 256 if jax.default_backend() == "cpu" else 32768
+    return 256 if jax.default_backend() == "cpu" else 16384
 
 
 @struct.dataclass
