@@ -78,7 +78,6 @@ def simulate_continuous(
     _, t_total = trapezoid(prev, q_d, 0.0, params.profile_velocity,
                            params.profile_acceleration)
     n_steps = int(math.ceil((float(np.max(t_total)) + dwell) / params.dt))
-    bare = params.robot
 
     def per_sample(state, inp):
         q0, q1, o, d, k = inp
@@ -98,8 +97,14 @@ def simulate_continuous(
     keys = jax.random.split(key, len(q_d))
     xs = (jnp.asarray(prev), jnp.asarray(q_d), jnp.asarray(schedule), jnp.asarray(direction),
           keys)
-    run = jax.jit(lambda state, xs: jax.lax.scan(per_sample, state, xs))
     state = SimState.at_rest(jnp.asarray(q_d[0]))
+    # One arm stepped sequentially is latency-bound: a GPU launches kernels every servo
+    # period (the full run's 4,096 samples took 67 s on an H100), so the scan runs on the
+    # host CPU whatever the default backend.
+    cpu = jax.devices("cpu")[0]
+    params, objects, xs, state = jax.device_put((params, objects, xs, state), cpu)
+    bare = params.robot
+    run = jax.jit(lambda state, xs: jax.lax.scan(per_sample, state, xs))
     out = []
     S = len(q_d)
     with tqdm(total=S, desc=desc, unit="sample", disable=not progress) as bar:

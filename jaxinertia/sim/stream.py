@@ -16,7 +16,8 @@ inside a block waits (frozen) for the block's end. The step-by-step arithmetic i
 :func:`jaxinertia.sim.sampling.simulate_samples`, with the same per-sample keys, so both
 give the same samples (tests/test_sim.py checks it); only the scheduling differs. The
 table is padded to a power of two and the objects to a multiple of four, so plans of
-different sizes share one compiled program per lane count.
+different sizes share the stepping program per lane count (only the small preparation,
+:func:`_prepare`, is compiled per set of plan sizes).
 
 The host loop advances ``blocks_per_call`` blocks per jitted call (buffers donated) and
 updates the progress bar from the count of recorded samples.

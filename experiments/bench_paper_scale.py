@@ -1,0 +1,58 @@
+"""Benchmark: wall time to simulate the paper-scale dataset, in a fresh process.
+
+    python experiments/bench_paper_scale.py [--lanes L] [--dtype float32] [--cache DIR]
+
+46,144 planning + 36,000 random (9,000 per training load) + 4,000 test samples (1,000 per
+test object), the sets of ``jaxinertia reproduce --full``, in one stream of lanes. Prints
+one JSON line: import time (Python + JAX + jaxinertia), simulate time (compilation
+included: run it in a fresh process for a cold number; with ``--cache DIR`` a second run
+reads the compiled programs from DIR, as the command line does by default), samples at
+rest and settle-time percentiles.
+"""
+
+from __future__ import annotations
+
+import time
+
+T0 = time.perf_counter()
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--lanes", type=int, help="default: jaxinertia.sim.stream.default_lanes()")
+    ap.add_argument("--dtype", choices=["float32", "float64"], default="float64")
+    ap.add_argument("--cache", help="persistent compilation cache directory (default: none)")
+    ap.add_argument("--random-per-load", type=int, default=9000)
+    ap.add_argument("--test-per-object", type=int, default=1000)
+    args = ap.parse_args()
+    jax.config.update("jax_enable_x64", args.dtype == "float64")
+    if args.cache:
+        jax.config.update("jax_compilation_cache_dir", args.cache)
+    from jaxinertia.sim.run import ScenarioRequest, default_sim_params, simulate_scenarios
+
+    params = default_sim_params()
+    t1 = time.perf_counter()
+    results = simulate_scenarios(params, [
+        ScenarioRequest("test", args.test_per_object, None, 1000),
+        ScenarioRequest("random", args.random_per_load, None, 0),
+        ScenarioRequest("planning", None, None, 0)], lanes=args.lanes)
+    t2 = time.perf_counter()
+    fields = [f for r in results for _, f in r.values()]
+    settle = np.concatenate([f["settle_time"] for f in fields])
+    print(json.dumps({
+        "device": jax.devices()[0].device_kind, "dtype": args.dtype, "lanes": args.lanes,
+        "samples": int(sum(len(f["q"]) for f in fields)),
+        "at_rest": int(sum(f["at_rest"].sum() for f in fields)),
+        "import_s": round(t1 - T0, 2), "simulate_s": round(t2 - t1, 2),
+        "total_s": round(t2 - T0, 2),
+        "settle_p50_p99_max_s": np.percentile(settle, [50, 99, 100]).round(3).tolist()}))
+
+
+if __name__ == "__main__":
+    main()
