@@ -409,7 +409,7 @@ def _compilation_cache() -> None:
     """Compiled programs persist between runs (the simulator's stream and the training
     steps take seconds to compile): in ``~/.cache/jaxinertia/xla``, or
     ``JAXINERTIA_CACHE_DIR``; ``JAXINERTIA_CACHE_DIR=off`` turns it off. Set by the
-    command line only: importing the library changes no JAX setting of its host program."""
+    command line only: importing the library leaves the cache setting to its host program."""
     where = os.environ.get("JAXINERTIA_CACHE_DIR",
                            str(Path.home() / ".cache" / "jaxinertia" / "xla"))
     if where.lower() != "off":
