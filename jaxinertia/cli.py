@@ -416,6 +416,7 @@ def _compilation_cache() -> None:
         import jax
 
         jax.config.update("jax_compilation_cache_dir", where)
+        jax.config.update("jax_compilation_cache_max_size", 512 * 2**20)  # LRU beyond
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -151,9 +151,11 @@ def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
     jobs, descs, plans = [], [], []
     for r in requests:
         named = _scenario_jobs(r.scenario, r.n, r.objects, r.seed)
-        key = jax.random.key(r.seed)
-        for i, (name, obj, (q_d, d)) in enumerate(named):
-            plans.append((obj, q_d, d, jax.random.fold_in(key, i)))
+        with jax.default_device(jax.devices("cpu")[0]):  # tiny: no accelerator kernels
+            key = jax.random.key(r.seed)
+            keys = [jax.random.fold_in(key, i) for i in range(len(named))]
+        for (name, obj, (q_d, d)), k in zip(named, keys):
+            plans.append((obj, q_d, d, k))
             descs.append(f"{r.scenario}/{name}")
         jobs.append(named)
     results = iter(run_plans(params, plans, lanes=lanes, descs=descs,

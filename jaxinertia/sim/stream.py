@@ -201,15 +201,14 @@ _advance_jit = jax.jit(_advance, static_argnames=("refill_every", "blocks"),
 
 
 @partial(jax.jit, static_argnames=("sizes", "lanes"))
-def _prepare(params: SimParams, q_d, direction, obj_id, objects: HeldObject, plan_keys,
+def _prepare(params: SimParams, q_d, direction, obj_id, objects: HeldObject, keys,
              *, sizes: tuple[int, ...], lanes: int) -> tuple[_Table, _Carry]:
     """The sample table (per-sample keys, the loaded arm of every object) and the starting
     carry (every lane idle: phase 2, index S_pad; empty outputs), in one compiled call (op
     by op, an accelerator would compile each small kernel separately)."""
     S_pad, n = q_d.shape
-    pad = S_pad - sum(sizes)
-    keys = jnp.concatenate([jax.random.split(k, m) for k, m in zip(plan_keys, sizes)]
-                           + [jnp.repeat(plan_keys[-1][None], pad, 0)])
+    pad = S_pad - keys.shape[0]
+    keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], pad, 0)])
     loaded = jax.vmap(loaded_params, (None, 0))(params, objects)
     count = jnp.asarray(sum(sizes), jnp.int32)
     table = _Table(q_d, direction, keys, obj_id, objects, loaded, count)
@@ -233,6 +232,18 @@ def _prepare(params: SimParams, q_d, direction, obj_id, objects: HeldObject, pla
                        settle_time=jnp.zeros((), dtype)))
     out = jax.tree.map(lambda s: jnp.zeros((S_pad,) + s.shape, s.dtype), template)
     return table, _Carry(lane0, out, jnp.asarray(0, jnp.int32), jnp.asarray(0, jnp.int32))
+
+
+def _sample_keys(plans: list[Plan]) -> jax.Array:
+    """``jax.random.split(plan.key, S)`` of every plan, concatenated. Split on the host
+    CPU: each distinct S is a separate threefry program, ~0.3 s to compile on a GPU (12
+    plans: ~4 s) and a few milliseconds on the CPU; the keys are the same bits anywhere."""
+    cpu = jax.devices("cpu")[0]
+    data = [jax.random.key_data(jax.random.split(jax.device_put(p.key, cpu), len(p.q_d)))
+            for p in plans]
+    impl = jax.random.key_impl(plans[0].key)
+    return jax.random.wrap_key_data(jnp.asarray(np.concatenate([np.asarray(d) for d in data])),
+                                    impl=impl)
 
 
 def _pad(a: np.ndarray, size: int) -> np.ndarray:
@@ -264,7 +275,7 @@ def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = No
     objs = [p.obj for p in plans] + [plans[-1].obj] * (O_pad - len(plans))
     objects = jax.tree.map(lambda *a: np.stack([np.asarray(x, dtype) for x in a]), *objs)
     table, carry = _prepare(params, q_d.astype(dtype), direction.astype(dtype), obj_id,
-                            objects, [p.key for p in plans], sizes=sizes, lanes=lanes)
+                            objects, _sample_keys(plans), sizes=sizes, lanes=lanes)
 
     bare = params.robot
     with tqdm(total=S, desc=desc, unit="sample", disable=not progress) as bar:
