@@ -1,6 +1,7 @@
 """Benchmark: wall time to simulate the paper-scale dataset, in a fresh process.
 
-    python experiments/bench_paper_scale.py [--lanes L] [--dtype float32] [--cache DIR]
+    python experiments/bench_paper_scale.py [--lanes L] [--tail-lanes T] [--dtype float32]
+                                            [--cache DIR] [--trace]
 
 46,144 planning + 36,000 random (9,000 per training load) + 4,000 test samples (1,000 per
 test object), the sets of ``jaxinertia reproduce --full``, in one stream of lanes. Prints
@@ -18,6 +19,7 @@ T0 = time.perf_counter()
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+import logging  # noqa: E402
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
@@ -26,6 +28,9 @@ import numpy as np  # noqa: E402
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--lanes", type=int, help="default: jaxinertia.sim.stream.default_lanes()")
+    ap.add_argument("--tail-lanes", type=int,
+                    help="lanes for the stream's end (0: off); default: default_tail_lanes()")
+    ap.add_argument("--trace", action="store_true", help="log every stream call (stderr)")
     ap.add_argument("--dtype", choices=["float32", "float64"], default="float64")
     ap.add_argument("--cache", help="persistent compilation cache directory (default: none)")
     ap.add_argument("--random-per-load", type=int, default=9000)
@@ -34,6 +39,9 @@ def main() -> None:
     jax.config.update("jax_enable_x64", args.dtype == "float64")
     if args.cache:
         jax.config.update("jax_compilation_cache_dir", args.cache)
+    if args.trace:
+        logging.basicConfig(format="%(relativeCreated)8.0f ms %(message)s")
+        logging.getLogger("jaxinertia.sim.stream").setLevel(logging.DEBUG)
     from jaxinertia.sim.run import ScenarioRequest, default_sim_params, simulate_scenarios
 
     params = default_sim_params()
@@ -41,12 +49,14 @@ def main() -> None:
     results = simulate_scenarios(params, [
         ScenarioRequest("test", args.test_per_object, None, 1000),
         ScenarioRequest("random", args.random_per_load, None, 0),
-        ScenarioRequest("planning", None, None, 0)], lanes=args.lanes)
+        ScenarioRequest("planning", None, None, 0)], lanes=args.lanes,
+        tail_lanes=args.tail_lanes)
     t2 = time.perf_counter()
     fields = [f for r in results for _, f in r.values()]
     settle = np.concatenate([f["settle_time"] for f in fields])
     print(json.dumps({
         "device": jax.devices()[0].device_kind, "dtype": args.dtype, "lanes": args.lanes,
+        "tail_lanes": args.tail_lanes,
         "samples": int(sum(len(f["q"]) for f in fields)),
         "at_rest": int(sum(f["at_rest"].sum() for f in fields)),
         "import_s": round(t1 - T0, 2), "simulate_s": round(t2 - t1, 2),

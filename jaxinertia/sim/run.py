@@ -53,15 +53,16 @@ def run_plan(params: SimParams, obj: HeldObject, q_d: np.ndarray, direction: np.
 
 
 def run_plans(params: SimParams, plans: list, *, lanes: int | None = None,
-              descs: list[str] | None = None, desc: str = "simulating",
-              progress: bool = True) -> list[dict[str, np.ndarray]]:
+              tail_lanes: int | None = None, descs: list[str] | None = None,
+              desc: str = "simulating", progress: bool = True) -> list[dict[str, np.ndarray]]:
     """Simulates several plans ``(object, q_d, direction, key)`` in one stream of lanes
     (:mod:`jaxinertia.sim.stream`); every plan is checked first and every result after,
     errors naming ``descs[i]`` and the sample."""
     descs = descs or [f"{desc}[{i}]" for i in range(len(plans))]
     checked = [Plan(obj, *_check_plan(params, q_d, d, name), key)
                for (obj, q_d, d, key), name in zip(plans, descs)]
-    results = stream_plans(params, checked, lanes=lanes, desc=desc, progress=progress)
+    results = stream_plans(params, checked, lanes=lanes, tail_lanes=tail_lanes, desc=desc,
+                           progress=progress)
     out = []
     for plan, res, name in zip(checked, results, descs):
         res = res._asdict()
@@ -144,7 +145,7 @@ class ScenarioRequest(NamedTuple):
 
 
 def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
-                       lanes: int | None = None,
+                       lanes: int | None = None, tail_lanes: int | None = None,
                        progress: bool = True) -> list[dict[str, tuple[HeldObject, dict]]]:
     """Several scenarios in one stream of lanes (one compiled program, one tail); each
     result is what :func:`simulate_scenario` returns for its request."""
@@ -158,7 +159,7 @@ def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
             plans.append((obj, q_d, d, k))
             descs.append(f"{r.scenario}/{name}")
         jobs.append(named)
-    results = iter(run_plans(params, plans, lanes=lanes, descs=descs,
+    results = iter(run_plans(params, plans, lanes=lanes, tail_lanes=tail_lanes, descs=descs,
                              desc="+".join(r.scenario for r in requests), progress=progress))
     return [{name: (obj, next(results)) for name, obj, _ in named} for named in jobs]
 

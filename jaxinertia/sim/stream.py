@@ -8,7 +8,7 @@ lane::
 
     phase 0: rest at the pre-position q_d - s delta (hold until at rest, or time out)
     phase 1: profiled move to q_d, hold until at rest (or time out)
-    phase 2: done -> recorded into the output at the sample's index; the lane takes the
+    phase 2: done -> its final state is stored at the sample's index; the lane takes the
              next sample of the table (objects mixed freely) or idles when none is left
 
 Lanes step together in blocks of ``refill_every`` servo periods; a lane that finishes
@@ -20,11 +20,18 @@ different sizes share the stepping program per lane count (only the small prepar
 :func:`_prepare`, is compiled per set of plan sizes).
 
 The host loop advances ``blocks_per_call`` blocks per jitted call (buffers donated) and
-updates the progress bar from the count of recorded samples.
+updates the progress bar from the count of finished samples. What the servos and statics
+report (:func:`jaxinertia.sim.sampling.record`) is computed once for all samples after the
+stream (:func:`_finish`), so the stepping program stays small. The programs are compiled
+ahead of time in background threads, overlapping the preparation and each other; on an
+accelerator the last samples move to a program of fewer lanes (:func:`default_tail_lanes`).
 """
 
 from __future__ import annotations
 
+import logging
+import time
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from typing import NamedTuple
 
@@ -38,7 +45,9 @@ from jaxinertia.sim.sampling import HeldObject, Samples, jitter_friction, loaded
 from jaxinertia.sim.servo import goal_ticks
 from jaxinertia.sim.simulator import SimParams, SimState, step, trapezoid
 
-__all__ = ["Plan", "default_lanes", "stream_plans"]
+__all__ = ["Plan", "default_lanes", "default_tail_lanes", "stream_plans"]
+
+_log = logging.getLogger(__name__)
 
 #: Pre-position offset of the protocol [rad] (``simulate_samples``' default ``delta``).
 DELTA = 3.0 * np.pi / 180.0
@@ -82,7 +91,6 @@ class _Lanes:
     pre: jnp.ndarray  # (L, N)
     q_d: jnp.ndarray
     direction: jnp.ndarray
-    key: jax.Array  # record key
     obj_id: jnp.ndarray
     idx: jnp.ndarray  # sample index, S_pad when idle
     phase: jnp.ndarray  # 0, 1, 2 (done / idle)
@@ -94,9 +102,20 @@ class _Lanes:
 
 
 @struct.dataclass
+class _Ended:
+    """What a finished lane leaves behind (leading axis S_pad); :func:`_finish` turns it
+    into the recorded :class:`Samples` after the stream, so that the stepping program
+    carries no statics."""
+
+    state: SimState
+    at_rest: jnp.ndarray
+    settle_time: jnp.ndarray
+
+
+@struct.dataclass
 class _Carry:
     lanes: _Lanes
-    out: Samples  # leading S_pad
+    out: _Ended  # leading S_pad
     next: jnp.ndarray  # () next sample of the table to hand out
     done: jnp.ndarray  # () samples recorded
 
@@ -132,20 +151,13 @@ def _lane_step(base: SimParams, lane: _Lanes) -> _Lanes:
     )
 
 
-def _refill(base: SimParams, bare, table: _Table, carry: _Carry) -> _Carry:
-    """Records the lanes that finished and hands them the next samples."""
+def _refill(base: SimParams, table: _Table, carry: _Carry) -> _Carry:
+    """Stores the lanes that finished and hands them the next samples."""
     lanes, S_pad = carry.lanes, table.q_d.shape[0]
     finished = (lanes.phase == 2) & (lanes.idx < S_pad)
-
-    def rec(lane):
-        params = base.replace(robot=lane.robot, friction=lane.friction)
-        obj = jax.tree.map(lambda a: a[lane.obj_id], table.objects)
-        return record(params, bare, obj, lane.q_d, lane.direction, lane.state, lane.key,
-                      at_rest=lane.ok_pre & lane.ok, settle_time=lane.t_settle)
-
-    r = jax.vmap(rec)(lanes)
+    ended = _Ended(lanes.state, lanes.ok_pre & lanes.ok, lanes.t_settle)
     where = jnp.where(finished, lanes.idx, S_pad)  # S_pad: dropped
-    out = jax.tree.map(lambda buf, v: buf.at[where].set(v, mode="drop"), carry.out, r)
+    out = jax.tree.map(lambda buf, v: buf.at[where].set(v, mode="drop"), carry.out, ended)
 
     free = lanes.phase == 2
     new_idx = carry.next + jnp.cumsum(free, dtype=jnp.int32) - 1
@@ -153,14 +165,14 @@ def _refill(base: SimParams, bare, table: _Table, carry: _Carry) -> _Carry:
     n_taken = jnp.sum(take, dtype=jnp.int32)
     i = jnp.where(take, new_idx, 0)
     q_d, direction, obj_id = table.q_d[i], table.direction[i], table.obj_id[i]
-    key_f, key_r = jax.vmap(jax.random.split, out_axes=1)(table.key[i])
+    key_f = jax.vmap(lambda k: jax.random.split(k)[0])(table.key[i])
     n = q_d.shape[1]
     friction = jax.vmap(lambda kf: jitter_friction(base, kf, n).friction)(key_f)
     robot = jax.tree.map(lambda a: a[obj_id], table.loaded.robot)
     pre = q_d - direction * DELTA
     fresh = _Lanes(
         state=jax.vmap(SimState.at_rest)(pre), robot=robot, friction=friction, pre=pre,
-        q_d=q_d, direction=direction, key=key_r, obj_id=obj_id,
+        q_d=q_d, direction=direction, obj_id=obj_id,
         idx=i, phase=jnp.zeros_like(lanes.phase), k=jnp.zeros_like(lanes.k),
         still=jnp.zeros_like(lanes.still), ok_pre=jnp.zeros_like(lanes.ok_pre),
         ok=jnp.zeros_like(lanes.ok), t_settle=jnp.zeros_like(lanes.t_settle))
@@ -174,13 +186,13 @@ def _refill(base: SimParams, bare, table: _Table, carry: _Carry) -> _Carry:
     return _Carry(lanes, out, carry.next + n_taken, carry.done + jnp.sum(finished, dtype=jnp.int32))
 
 
-def _advance(base: SimParams, bare, table: _Table, carry: _Carry, *, refill_every: int,
+def _advance(base: SimParams, table: _Table, carry: _Carry, *, refill_every: int,
              blocks: int) -> _Carry:
-    """Up to ``blocks`` blocks, each a refill (record the lanes that finished, hand out new
-    samples) and ``refill_every`` steps; stops early once every sample is recorded."""
+    """Up to ``blocks`` blocks, each a refill (store the lanes that finished, hand out new
+    samples) and ``refill_every`` steps; stops early once every sample is stored."""
 
     def block(c: _Carry) -> _Carry:
-        c = _refill(base, bare, table, c)
+        c = _refill(base, table, c)
         lanes = jax.lax.fori_loop(
             0, refill_every, lambda _, ln: jax.vmap(_lane_step, (None, 0))(base, ln), c.lanes)
         return c.replace(lanes=lanes)
@@ -197,7 +209,22 @@ def _advance(base: SimParams, bare, table: _Table, carry: _Carry, *, refill_ever
 
 
 _advance_jit = jax.jit(_advance, static_argnames=("refill_every", "blocks"),
-                       donate_argnums=(3,))
+                       donate_argnums=(2,))
+
+
+@jax.jit
+def _finish(params: SimParams, table: _Table, ended: _Ended) -> Samples:
+    """The records of every sample (:func:`record`: what the servos and the statics
+    report) from the final states; the current noise uses the second half of the
+    sample's key, as :func:`jaxinertia.sim.sampling.simulate_samples` does."""
+
+    def one(q_d, direction, key, obj_id, state, at_rest, settle_time):
+        obj = jax.tree.map(lambda a: a[obj_id], table.objects)
+        return record(params, params.robot, obj, q_d, direction, state,
+                      jax.random.split(key)[1], at_rest=at_rest, settle_time=settle_time)
+
+    return jax.vmap(one)(table.q_d, table.direction, table.key, table.obj_id, ended.state,
+                         ended.at_rest, ended.settle_time)
 
 
 @partial(jax.jit, static_argnames=("sizes", "lanes"))
@@ -220,17 +247,13 @@ def _prepare(params: SimParams, q_d, direction, obj_id, objects: HeldObject, key
                            loaded.robot),
         friction=jax.tree.map(lambda a: jnp.broadcast_to(a, (lanes,) + a.shape),
                               params.friction),
-        pre=zeros, q_d=zeros, direction=zeros, key=keys[:lanes],
+        pre=zeros, q_d=zeros, direction=zeros,
         obj_id=jnp.zeros(lanes, jnp.int32), idx=jnp.full(lanes, S_pad, jnp.int32),
         phase=jnp.full(lanes, 2, jnp.int32), k=jnp.zeros(lanes, jnp.int32),
         still=jnp.zeros(lanes, jnp.int32), ok_pre=jnp.zeros(lanes, bool),
         ok=jnp.zeros(lanes, bool), t_settle=jnp.zeros(lanes, dtype))
-    obj = jax.tree.map(lambda a: a[0], objects)
-    template = jax.eval_shape(
-        lambda: record(params, params.robot, obj, zeros[0], zeros[0],
-                       SimState.at_rest(zeros[0]), keys[0], at_rest=jnp.bool_(True),
-                       settle_time=jnp.zeros((), dtype)))
-    out = jax.tree.map(lambda s: jnp.zeros((S_pad,) + s.shape, s.dtype), template)
+    out = _Ended(jax.vmap(SimState.at_rest)(jnp.zeros((S_pad, n), dtype)),
+                 jnp.zeros(S_pad, bool), jnp.zeros(S_pad, dtype))
     return table, _Carry(lane0, out, jnp.asarray(0, jnp.int32), jnp.asarray(0, jnp.int32))
 
 
@@ -250,8 +273,66 @@ def _pad(a: np.ndarray, size: int) -> np.ndarray:
     return np.concatenate([a, np.repeat(a[-1:], size - len(a), 0)]) if len(a) < size else a
 
 
+def default_tail_lanes(lanes: int) -> int:
+    """Lanes for the end of a stream on an accelerator (0: none, the CPU's lane count is
+    small already). Once every sample is handed out, the last few hundred samples (a
+    time-out runs 6 s of simulated time per move) would otherwise step all ``lanes``."""
+    return 0 if jax.default_backend() == "cpu" else max(lanes // 16, 1)
+
+
+@partial(jax.jit, static_argnames=("size",))
+def _compact(carry: _Carry, *, size: int) -> _Carry:
+    """The carry on ``size`` lanes: the occupied ones first (every occupied lane is kept
+    when at most ``size`` are occupied), then idle ones."""
+    S_pad = carry.out.at_rest.shape[0]
+    order = jnp.argsort(carry.lanes.idx >= S_pad, stable=True)[:size]
+    return carry.replace(lanes=jax.tree.map(lambda a: a[order], carry.lanes))
+
+
+def _compiled_advance(params, table, carry, refill_every: int, blocks: int):
+    """``_advance`` compiled ahead of time for these (abstract) shapes; run in a thread, it
+    overlaps with the preparation (the compilation releases the GIL)."""
+    return _advance_jit.lower(params, table, carry, refill_every=refill_every,
+                              blocks=blocks).compile()
+
+
+def _tail_programs(params, table, carry, size: int, refill_every: int, blocks: int):
+    small = jax.eval_shape(partial(_compact, size=size), carry)
+    return (_compact.lower(carry, size=size).compile(),
+            _compiled_advance(params, table, small, refill_every, blocks))
+
+
+#: Compiled stream programs per signature (shapes, dtypes, static settings): ahead-of-time
+#: compiled executables are not kept by ``jax.jit``'s own cache.
+_PROGRAMS: dict = {}
+_POOL = ThreadPoolExecutor(max_workers=3, thread_name_prefix="jaxinertia-compile")
+
+
+def _signature(tree) -> tuple:
+    leaves, treedef = jax.tree.flatten(tree)
+    return treedef, tuple((np.shape(x), str(x.dtype if hasattr(x, "dtype") else type(x)))
+                          for x in leaves)
+
+
+def _programs(params: SimParams, table, carry, tail: int, refill_every: int, blocks: int):
+    """Futures of the stream's compiled programs for the (abstract) ``table`` and
+    ``carry``: ``_advance``; ``_finish``; the compaction and ``_advance`` on ``tail`` lanes
+    when ``tail``. They compile in background threads, overlapping the preparation (and
+    the stream itself, for all but the first)."""
+    key = (_signature((params, table, carry)), tail, refill_every, blocks,
+           jax.default_backend())
+    if key not in _PROGRAMS:
+        main = _POOL.submit(_compiled_advance, params, table, carry, refill_every, blocks)
+        finish = _POOL.submit(lambda: _finish.lower(params, table, carry.out).compile())
+        small = (_POOL.submit(_tail_programs, params, table, carry, tail, refill_every, blocks)
+                 if tail else None)
+        _PROGRAMS[key] = main, finish, small
+    return _PROGRAMS[key]
+
+
 def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = None,
-                 refill_every: int = 32, blocks_per_call: int = 16, desc: str = "simulating",
+                 tail_lanes: int | None = None, refill_every: int = 32,
+                 blocks_per_call: int = 16, desc: str = "simulating",
                  progress: bool = True) -> list[Samples]:
     """Simulates every plan's samples (``params.robot``: the bare arm, lbipe convention);
     returns one :class:`Samples` (numpy) per plan, in plan order.
@@ -259,10 +340,18 @@ def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = No
     Sample j of a plan gets ``jax.random.split(plan.key, S)[j]``, as in
     :func:`jaxinertia.sim.run.run_plan`'s reference path, so results depend neither on the
     lane count nor on the other plans.
+
+    ``tail_lanes`` (default :func:`default_tail_lanes`; 0: off): once every sample is
+    handed out and at most this many are still running, they move to a program of that
+    many lanes (compiled in the background while the stream runs), so that the last slow
+    samples do not step every lane. Streams shorter than four lane-fulls do not use it.
     """
+    t_start = time.perf_counter()
     lanes = int(lanes or default_lanes())
     sizes = tuple(len(p.q_d) for p in plans)
     S = sum(sizes)
+    tail = default_tail_lanes(lanes) if tail_lanes is None else int(tail_lanes)
+    tail = tail if 0 < tail < lanes and S >= 4 * lanes else 0
     S_pad = max(lanes, 1 << (S - 1).bit_length())
     O_pad = -(-len(plans) // 4) * 4
     dtype = jnp.result_type(float)
@@ -274,16 +363,33 @@ def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = No
                   S_pad)
     objs = [p.obj for p in plans] + [plans[-1].obj] * (O_pad - len(plans))
     objects = jax.tree.map(lambda *a: np.stack([np.asarray(x, dtype) for x in a]), *objs)
-    table, carry = _prepare(params, q_d.astype(dtype), direction.astype(dtype), obj_id,
-                            objects, _sample_keys(plans), sizes=sizes, lanes=lanes)
-
-    bare = params.robot
+    args = (params, q_d.astype(dtype), direction.astype(dtype), obj_id, objects,
+            _sample_keys(plans))
+    prepare = partial(_prepare, sizes=sizes, lanes=lanes)
+    main, finish, small = _programs(params, *jax.eval_shape(prepare, *args), tail,
+                                    refill_every, blocks_per_call)
+    table, carry = prepare(*args)
+    try:
+        advance = main.result()
+    except Exception:
+        _PROGRAMS.clear()  # do not keep a failed compilation
+        raise
+    _log.debug("stream: programs ready after %.3f s", time.perf_counter() - t_start)
+    t0 = time.perf_counter()
     with tqdm(total=S, desc=desc, unit="sample", disable=not progress) as bar:
-        while int(carry.done) < S:
-            carry = _advance_jit(params, bare, table, carry, refill_every=refill_every,
-                                 blocks=blocks_per_call)
-            bar.update(int(carry.done) - bar.n)
-    out = jax.tree.map(lambda a: np.asarray(a)[:S], carry.out)
+        done = 0
+        while done < S:
+            carry = advance(params, table, carry)
+            done, handed = int(carry.done), int(carry.next)
+            bar.update(done - bar.n)
+            _log.debug("stream: %.3f s, %d done, %d handed out, %d lanes",
+                       time.perf_counter() - t0, done, handed, carry.lanes.idx.shape[0])
+            if (small is not None and handed >= S and handed - done <= tail
+                    and small.done()):
+                compact, advance = small.result()
+                carry, small = compact(carry), None
+    out = jax.tree.map(lambda a: np.asarray(a)[:S], finish.result()(params, table, carry.out))
+    _log.debug("stream: recorded after %.3f s", time.perf_counter() - t0)
     bounds = np.cumsum((0,) + sizes)
     return [jax.tree.map(lambda a, lo=lo, hi=hi: a[lo:hi], out)
             for lo, hi in zip(bounds[:-1], bounds[1:])]
