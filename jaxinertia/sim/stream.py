@@ -19,8 +19,9 @@ table is padded to a power of two and the objects to a multiple of four, so plan
 different sizes share the stepping program per lane count (only the small preparation,
 :func:`_prepare`, is compiled per set of plan sizes).
 
-The host loop advances ``blocks_per_call`` blocks per jitted call (buffers donated) and
-updates the progress bar from the count of finished samples. What the servos and statics
+The host loop dispatches ``blocks_per_call`` blocks (a refill program, then a steps
+program; buffers donated) before it reads the count of finished samples for the progress
+bar. What the servos and statics
 report (:func:`jaxinertia.sim.sampling.record`) is computed once for all samples after the
 stream (:func:`_finish`), so the stepping program stays small. The programs are compiled
 ahead of time in background threads, overlapping the preparation and each other; on an
@@ -31,7 +32,7 @@ from __future__ import annotations
 
 import logging
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from functools import partial
 from typing import NamedTuple
 
@@ -48,6 +49,7 @@ from jaxinertia.sim.simulator import SimParams, SimState, step, trapezoid
 __all__ = ["Plan", "default_lanes", "default_tail_lanes", "stream_plans"]
 
 _log = logging.getLogger(__name__)
+_T_IMPORT = time.perf_counter()
 
 #: Pre-position offset of the protocol [rad] (``simulate_samples``' default ``delta``).
 DELTA = 3.0 * np.pi / 180.0
@@ -186,30 +188,19 @@ def _refill(base: SimParams, table: _Table, carry: _Carry) -> _Carry:
     return _Carry(lanes, out, carry.next + n_taken, carry.done + jnp.sum(finished, dtype=jnp.int32))
 
 
-def _advance(base: SimParams, table: _Table, carry: _Carry, *, refill_every: int,
-             blocks: int) -> _Carry:
-    """Up to ``blocks`` blocks, each a refill (store the lanes that finished, hand out new
-    samples) and ``refill_every`` steps; stops early once every sample is stored."""
-
-    def block(c: _Carry) -> _Carry:
-        c = _refill(base, table, c)
-        lanes = jax.lax.fori_loop(
-            0, refill_every, lambda _, ln: jax.vmap(_lane_step, (None, 0))(base, ln), c.lanes)
-        return c.replace(lanes=lanes)
-
-    def cond(state):
-        b, c = state
-        return (b < blocks) & (c.done < table.count)
-
-    def body(state):
-        b, c = state
-        return b + 1, block(c)
-
-    return jax.lax.while_loop(cond, body, (0, carry))[1]
+def _steps(base: SimParams, lanes: _Lanes, *, n: int) -> _Lanes:
+    """``n`` servo periods of every lane (none when no lane is running)."""
+    return jax.lax.cond(
+        jnp.any(lanes.phase < 2),
+        lambda ln: jax.lax.fori_loop(
+            0, n, lambda _, x: jax.vmap(_lane_step, (None, 0))(base, x), ln),
+        lambda ln: ln, lanes)
 
 
-_advance_jit = jax.jit(_advance, static_argnames=("refill_every", "blocks"),
-                       donate_argnums=(2,))
+# Two programs, not one: they compile in parallel (compilation is most of a cold run's
+# time on an accelerator) and the host loop dispatches them asynchronously.
+_refill_jit = jax.jit(_refill, donate_argnums=(2,))
+_steps_jit = jax.jit(_steps, static_argnames=("n",), donate_argnums=(1,))
 
 
 @jax.jit
@@ -289,23 +280,68 @@ def _compact(carry: _Carry, *, size: int) -> _Carry:
     return carry.replace(lanes=jax.tree.map(lambda a: a[order], carry.lanes))
 
 
-def _compiled_advance(params, table, carry, refill_every: int, blocks: int):
-    """``_advance`` compiled ahead of time for these (abstract) shapes; run in a thread, it
-    overlaps with the preparation (the compilation releases the GIL)."""
-    return _advance_jit.lower(params, table, carry, refill_every=refill_every,
-                              blocks=blocks).compile()
+class _Compiler:
+    """Compiles programs ahead of time in the background, for abstract arguments.
+
+    Lowering (tracing to StableHLO) is Python and holds the GIL: one thread lowers the
+    programs one at a time, in the order submitted, so that concurrent lowerings do not
+    starve each other or the stream's host loop. Compilation (XLA, which releases the
+    GIL) runs in a pool, programs in parallel.
+    """
+
+    def __init__(self, workers: int = 4):
+        self._lowering = ThreadPoolExecutor(1, thread_name_prefix="jaxinertia-lower")
+        self._compiling = ThreadPoolExecutor(workers, thread_name_prefix="jaxinertia-compile")
+
+    def submit(self, fn, *args, untimed: bool = False, **static) -> Future:
+        """A future of ``fn.lower(*args, **static).compile()``.
+
+        ``untimed``: on a GPU, compile without XLA's autotuner, which times candidate
+        kernels on the device: for programs compiled while the stream runs on it (timing
+        against the stream slowed both ~2x on an H100) and that run little.
+        """
+        out: Future = Future()
+        options = {"xla_gpu_autotune_level": 0} if untimed and _on_gpu() else None
+        name = getattr(fn, "__name__", str(fn))
+
+        def compile_(lowered, t_lowered):
+            try:
+                t0 = time.perf_counter()
+                out.set_result(lowered.compile(compiler_options=options))
+                _log.debug("stream: %s lowered in %.2f s, compiled in %.2f s (done at %.2f s)",
+                           name, t_lowered, time.perf_counter() - t0,
+                           time.perf_counter() - _T_IMPORT)
+            except BaseException as e:  # noqa: BLE001 - handed to the waiting thread
+                out.set_exception(e)
+
+        def lower():
+            try:
+                t0 = time.perf_counter()
+                lowered = fn.lower(*args, **static)
+            except BaseException as e:  # noqa: BLE001
+                out.set_exception(e)
+                return
+            self._compiling.submit(compile_, lowered, time.perf_counter() - t0)
+
+        self._lowering.submit(lower)
+        return out
 
 
-def _tail_programs(params, table, carry, size: int, refill_every: int, blocks: int):
-    small = jax.eval_shape(partial(_compact, size=size), carry)
-    return (_compact.lower(carry, size=size).compile(),
-            _compiled_advance(params, table, small, refill_every, blocks))
+def _on_gpu() -> bool:
+    return jax.default_backend() == "gpu"
+
+
+class _Block(NamedTuple):
+    """The compiled programs of one lane count."""
+
+    refill: object
+    steps: object
 
 
 #: Compiled stream programs per signature (shapes, dtypes, static settings): ahead-of-time
 #: compiled executables are not kept by ``jax.jit``'s own cache.
 _PROGRAMS: dict = {}
-_POOL = ThreadPoolExecutor(max_workers=3, thread_name_prefix="jaxinertia-compile")
+_COMPILER = _Compiler()
 
 
 def _signature(tree) -> tuple:
@@ -314,20 +350,35 @@ def _signature(tree) -> tuple:
                           for x in leaves)
 
 
-def _programs(params: SimParams, table, carry, tail: int, refill_every: int, blocks: int):
+def _programs(params: SimParams, table, carry, tail: int, refill_every: int) -> dict:
     """Futures of the stream's compiled programs for the (abstract) ``table`` and
-    ``carry``: ``_advance``; ``_finish``; the compaction and ``_advance`` on ``tail`` lanes
-    when ``tail``. They compile in background threads, overlapping the preparation (and
-    the stream itself, for all but the first)."""
-    key = (_signature((params, table, carry)), tail, refill_every, blocks,
-           jax.default_backend())
+    ``carry``, in the order they are needed: ``main`` (steps, the largest, first; then
+    refill), ``finish`` and, when ``tail``, ``tail`` (compaction, refill and steps on
+    ``tail`` lanes). The last two compile while the stream runs."""
+    key = (_signature((params, table, carry)), tail, refill_every, jax.default_backend())
     if key not in _PROGRAMS:
-        main = _POOL.submit(_compiled_advance, params, table, carry, refill_every, blocks)
-        finish = _POOL.submit(lambda: _finish.lower(params, table, carry.out).compile())
-        small = (_POOL.submit(_tail_programs, params, table, carry, tail, refill_every, blocks)
-                 if tail else None)
-        _PROGRAMS[key] = main, finish, small
+        c = _COMPILER
+        steps = c.submit(_steps_jit, params, carry.lanes, n=refill_every)
+        refill = c.submit(_refill_jit, params, table, carry)
+        programs = dict(main=(refill, steps),
+                        finish=c.submit(_finish, params, table, carry.out, untimed=True),
+                        tail=None)
+        if tail:
+            small = jax.eval_shape(partial(_compact, size=tail), carry)
+            compact = c.submit(_compact, carry, size=tail, untimed=True)
+            steps = c.submit(_steps_jit, params, small.lanes, n=refill_every, untimed=True)
+            refill = c.submit(_refill_jit, params, table, small, untimed=True)
+            programs["tail"] = (compact, refill, steps)
+        _PROGRAMS[key] = programs
     return _PROGRAMS[key]
+
+
+def _result(futures):
+    try:
+        return tuple(f.result() for f in futures)
+    except Exception:
+        _PROGRAMS.clear()  # do not keep a failed compilation
+        raise
 
 
 def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = None,
@@ -366,29 +417,27 @@ def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = No
     args = (params, q_d.astype(dtype), direction.astype(dtype), obj_id, objects,
             _sample_keys(plans))
     prepare = partial(_prepare, sizes=sizes, lanes=lanes)
-    main, finish, small = _programs(params, *jax.eval_shape(prepare, *args), tail,
-                                    refill_every, blocks_per_call)
+    programs = _programs(params, *jax.eval_shape(prepare, *args), tail, refill_every)
     table, carry = prepare(*args)
-    try:
-        advance = main.result()
-    except Exception:
-        _PROGRAMS.clear()  # do not keep a failed compilation
-        raise
+    block = _Block(*_result(programs["main"]))
     _log.debug("stream: programs ready after %.3f s", time.perf_counter() - t_start)
     t0 = time.perf_counter()
     with tqdm(total=S, desc=desc, unit="sample", disable=not progress) as bar:
-        done = 0
+        done, small = 0, programs["tail"]
         while done < S:
-            carry = advance(params, table, carry)
+            for _ in range(blocks_per_call):  # dispatched asynchronously
+                carry = block.refill(params, table, carry)
+                carry = carry.replace(lanes=block.steps(params, carry.lanes))
             done, handed = int(carry.done), int(carry.next)
             bar.update(done - bar.n)
             _log.debug("stream: %.3f s, %d done, %d handed out, %d lanes",
                        time.perf_counter() - t0, done, handed, carry.lanes.idx.shape[0])
-            if (small is not None and handed >= S and handed - done <= tail
-                    and small.done()):
-                compact, advance = small.result()
-                carry, small = compact(carry), None
-    out = jax.tree.map(lambda a: np.asarray(a)[:S], finish.result()(params, table, carry.out))
+            if (small and handed >= S and handed - done <= tail
+                    and all(f.done() for f in small)):
+                compact, *programs_small = _result(small)
+                carry, block, small = compact(carry), _Block(*programs_small), None
+    finish, = _result([programs["finish"]])
+    out = jax.tree.map(lambda a: np.asarray(a)[:S], finish(params, table, carry.out))
     _log.debug("stream: recorded after %.3f s", time.perf_counter() - t0)
     bounds = np.cumsum((0,) + sizes)
     return [jax.tree.map(lambda a, lo=lo, hi=hi: a[lo:hi], out)
