@@ -8,6 +8,9 @@ torques, 1 ms Euler steps, vmapped over a batch of arms with random start states
   * jax-rigid:    jaxinertia.dynamics.euler_step (the same physics as MJX here);
   * jax-servo:    jaxinertia.sim.simulator.step: the XM430 servo law from registers and
                   the sticking-friction solve (what the simulator actually runs).
+  * jax-servo-batched: the same step, same law, written batch-last without vmap
+                  (jaxinertia.sim.batched.step_batched; the scan carries (N, B) arrays,
+                  converted from and to (B, N) outside the scan).
 Reports compile time and arm-steps/s (batch x steps / wall time after compilation), and
 the ratio of each to MJX measured in the same run.
 """
@@ -54,6 +57,7 @@ def main() -> None:
 
     from jaxinertia.dynamics import euler_step
     from jaxinertia.robot import compile_mujoco, data_path, open_manipulator_x
+    from jaxinertia.sim.batched import state_batch_first, state_batch_last, step_batched
     from jaxinertia.sim.run import default_sim_params
     from jaxinertia.sim.servo import goal_ticks
     from jaxinertia.sim.simulator import SimState, step
@@ -108,18 +112,29 @@ def main() -> None:
 
             return jax.lax.scan(body, s0, None, length=args.steps)[0].q
 
+        @jax.jit
+        def run_servo_batched(q0, goal):
+            s0 = state_batch_last(jax.vmap(SimState.at_rest)(q0))
+            g = goal_ticks(goal).T
+
+            def body(s, _):
+                return step_batched(sim, s, g), None
+
+            return state_batch_first(jax.lax.scan(body, s0, None, length=args.steps)[0]).q
+
         res = {"batch": B}
         for name, fn, n in (("mjx", run_mjx, args.mjx_steps), ("jax-rigid", run_rigid, args.steps),
-                            ("jax-servo", run_servo, args.steps)):
+                            ("jax-servo", run_servo, args.steps),
+                            ("jax-servo-batched", run_servo_batched, args.steps)):
             c, t = _timed(fn, q0, goal)
             res[name] = {"compile_s": c, "steps": n, "arm_steps_per_s": B * n / t}
-        for name in ("jax-rigid", "jax-servo"):
+        for name in ("jax-rigid", "jax-servo", "jax-servo-batched"):
             res[name]["vs_mjx"] = res[name]["arm_steps_per_s"] / res["mjx"]["arm_steps_per_s"]
         rows.append(res)
         print(f"batch {B}: " + ", ".join(
             f"{k} {res[k]['arm_steps_per_s']:.3g} arm-steps/s (compile {res[k]['compile_s']:.1f} s"
             + (f", {res[k]['vs_mjx']:.1f}x MJX)" if k != "mjx" else ")")
-            for k in ("mjx", "jax-rigid", "jax-servo")))
+            for k in ("mjx", "jax-rigid", "jax-servo", "jax-servo-batched")))
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"device": f"{dev.device_kind} ({dev.platform})", "rows": rows}, f, indent=2)

@@ -53,16 +53,17 @@ def run_plan(params: SimParams, obj: HeldObject, q_d: np.ndarray, direction: np.
 
 
 def run_plans(params: SimParams, plans: list, *, lanes: int | None = None,
-              tail_lanes: int | None = None, descs: list[str] | None = None,
-              desc: str = "simulating", progress: bool = True) -> list[dict[str, np.ndarray]]:
+              tail_lanes: int | None = None, batch_last: bool | None = None,
+              descs: list[str] | None = None, desc: str = "simulating",
+              progress: bool = True) -> list[dict[str, np.ndarray]]:
     """Simulates several plans ``(object, q_d, direction, key)`` in one stream of lanes
     (:mod:`jaxinertia.sim.stream`); every plan is checked first and every result after,
     errors naming ``descs[i]`` and the sample."""
     descs = descs or [f"{desc}[{i}]" for i in range(len(plans))]
     checked = [Plan(obj, *_check_plan(params, q_d, d, name), key)
                for (obj, q_d, d, key), name in zip(plans, descs)]
-    results = stream_plans(params, checked, lanes=lanes, tail_lanes=tail_lanes, desc=desc,
-                           progress=progress)
+    results = stream_plans(params, checked, lanes=lanes, tail_lanes=tail_lanes,
+                           batch_last=batch_last, desc=desc, progress=progress)
     out = []
     for plan, res, name in zip(checked, results, descs):
         res = res._asdict()

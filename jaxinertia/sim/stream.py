@@ -42,11 +42,13 @@ import numpy as np
 from flax import struct
 from tqdm.auto import tqdm
 
+from jaxinertia.sim.batched import step_batched
 from jaxinertia.sim.sampling import HeldObject, Samples, jitter_friction, loaded_params, record
 from jaxinertia.sim.servo import goal_ticks
 from jaxinertia.sim.simulator import SimParams, SimState, step, trapezoid
 
-__all__ = ["Plan", "default_lanes", "default_tail_lanes", "stream_plans"]
+__all__ = ["Plan", "batch_last_default", "default_lanes", "default_tail_lanes",
+           "stream_plans"]
 
 _log = logging.getLogger(__name__)
 _T_IMPORT = time.perf_counter()
@@ -122,9 +124,12 @@ class _Carry:
     done: jnp.ndarray  # () samples recorded
 
 
-def _lane_step(base: SimParams, lane: _Lanes) -> _Lanes:
-    """One servo period of one lane (``move_and_settle``'s loop body and condition)."""
+def _lane_step(base: SimParams, lane: _Lanes, *, batch_last: bool = False) -> _Lanes:
+    """One servo period (``move_and_settle``'s loop body and condition) of one lane, or of
+    all lanes at once when ``batch_last`` (every leaf with the lanes as its last axis,
+    stepped by :func:`jaxinertia.sim.batched.step_batched`)."""
     params = base.replace(robot=lane.robot, friction=lane.friction)
+    joints = 0 if batch_last else -1  # the joint axis of (N,) or (N, L) arrays
     dt = base.dt
     hold_steps = int(round(base.hold_time / dt))
     max_steps = int(round(base.timeout / dt))
@@ -133,8 +138,9 @@ def _lane_step(base: SimParams, lane: _Lanes) -> _Lanes:
     t = lane.k * dt
     q_goal, t_total = trapezoid(lane.pre, end, t, base.profile_velocity,
                                 base.profile_acceleration)
-    s = step(params, lane.state, goal_ticks(q_goal))
-    resting = (t >= jnp.max(t_total)) & jnp.all(jnp.abs(s.qd) < base.rest_velocity)
+    s = (step_batched if batch_last else step)(params, lane.state, goal_ticks(q_goal))
+    resting = ((t >= jnp.max(t_total, axis=joints))
+               & jnp.all(jnp.abs(s.qd) < base.rest_velocity, axis=joints))
     still = jnp.where(resting, lane.still + 1, 0)
     k = lane.k + 1
     ended = active & ((still >= hold_steps) | (k >= max_steps))
@@ -188,19 +194,35 @@ def _refill(base: SimParams, table: _Table, carry: _Carry) -> _Carry:
     return _Carry(lanes, out, carry.next + n_taken, carry.done + jnp.sum(finished, dtype=jnp.int32))
 
 
-def _steps(base: SimParams, lanes: _Lanes, *, n: int) -> _Lanes:
-    """``n`` servo periods of every lane (none when no lane is running)."""
-    return jax.lax.cond(
-        jnp.any(lanes.phase < 2),
-        lambda ln: jax.lax.fori_loop(
-            0, n, lambda _, x: jax.vmap(_lane_step, (None, 0))(base, x), ln),
-        lambda ln: ln, lanes)
+def _steps(base: SimParams, lanes: _Lanes, *, n: int, batch_last: bool) -> _Lanes:
+    """``n`` servo periods of every lane (none when no lane is running), batch-last
+    (:mod:`jaxinertia.sim.batched`) or by ``vmap`` of the one-arm step."""
+    if batch_last:
+        to_last = partial(jax.tree.map, lambda a: jnp.moveaxis(a, 0, -1))
+        to_first = partial(jax.tree.map, lambda a: jnp.moveaxis(a, -1, 0))
+
+        def run(ln):
+            ln = jax.lax.fori_loop(
+                0, n, lambda _, x: _lane_step(base, x, batch_last=True), to_last(ln))
+            return to_first(ln)
+    else:
+        def run(ln):
+            return jax.lax.fori_loop(
+                0, n, lambda _, x: jax.vmap(_lane_step, (None, 0))(base, x), ln)
+    return jax.lax.cond(jnp.any(lanes.phase < 2), run, lambda ln: ln, lanes)
+
+
+def batch_last_default() -> bool:
+    """Whether the stream steps its lanes batch-last by default: on a CPU, where it is
+    3-9x faster (no tiny batched ``dot``s; docs/benchmarks.md). Elsewhere the lanes step by
+    ``vmap``, the form measured on the H100 (the batch-last step is not, yet)."""
+    return jax.default_backend() == "cpu"
 
 
 # Two programs, not one: they compile in parallel (compilation is most of a cold run's
 # time on an accelerator) and the host loop dispatches them asynchronously.
 _refill_jit = jax.jit(_refill, donate_argnums=(2,))
-_steps_jit = jax.jit(_steps, static_argnames=("n",), donate_argnums=(1,))
+_steps_jit = jax.jit(_steps, static_argnames=("n", "batch_last"), donate_argnums=(1,))
 
 
 @jax.jit
@@ -350,15 +372,18 @@ def _signature(tree) -> tuple:
                           for x in leaves)
 
 
-def _programs(params: SimParams, table, carry, tail: int, refill_every: int) -> dict:
+def _programs(params: SimParams, table, carry, tail: int, refill_every: int,
+              batch_last: bool) -> dict:
     """Futures of the stream's compiled programs for the (abstract) ``table`` and
     ``carry``, in the order they are needed: ``main`` (steps, the largest, first; then
     refill), ``finish`` and, when ``tail``, ``tail`` (compaction, refill and steps on
     ``tail`` lanes). The last two compile while the stream runs."""
-    key = (_signature((params, table, carry)), tail, refill_every, jax.default_backend())
+    key = (_signature((params, table, carry)), tail, refill_every, batch_last,
+           jax.default_backend())
     if key not in _PROGRAMS:
         c = _COMPILER
-        steps = c.submit(_steps_jit, params, carry.lanes, n=refill_every)
+        steps = c.submit(_steps_jit, params, carry.lanes, n=refill_every,
+                         batch_last=batch_last)
         refill = c.submit(_refill_jit, params, table, carry)
         programs = dict(main=(refill, steps),
                         finish=c.submit(_finish, params, table, carry.out, untimed=True),
@@ -366,7 +391,8 @@ def _programs(params: SimParams, table, carry, tail: int, refill_every: int) -> 
         if tail:
             small = jax.eval_shape(partial(_compact, size=tail), carry)
             compact = c.submit(_compact, carry, size=tail, untimed=True)
-            steps = c.submit(_steps_jit, params, small.lanes, n=refill_every, untimed=True)
+            steps = c.submit(_steps_jit, params, small.lanes, n=refill_every,
+                             batch_last=batch_last, untimed=True)
             refill = c.submit(_refill_jit, params, table, small, untimed=True)
             programs["tail"] = (compact, refill, steps)
         _PROGRAMS[key] = programs
@@ -382,7 +408,8 @@ def _result(futures):
 
 
 def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = None,
-                 tail_lanes: int | None = None, refill_every: int = 32,
+                 tail_lanes: int | None = None, batch_last: bool | None = None,
+                 refill_every: int = 32,
                  blocks_per_call: int = 16, desc: str = "simulating",
                  progress: bool = True) -> list[Samples]:
     """Simulates every plan's samples (``params.robot``: the bare arm, lbipe convention);
@@ -396,6 +423,10 @@ def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = No
     handed out and at most this many are still running, they move to a program of that
     many lanes (compiled in the background while the stream runs), so that the last slow
     samples do not step every lane. Streams shorter than four lane-fulls do not use it.
+
+    ``batch_last`` (default :func:`batch_last_default`): step the lanes with
+    :func:`jaxinertia.sim.batched.step_batched` rather than ``vmap`` of
+    :func:`jaxinertia.sim.simulator.step`; the same physics, rounded differently.
     """
     t_start = time.perf_counter()
     lanes = int(lanes or default_lanes())
@@ -417,7 +448,9 @@ def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = No
     args = (params, q_d.astype(dtype), direction.astype(dtype), obj_id, objects,
             _sample_keys(plans))
     prepare = partial(_prepare, sizes=sizes, lanes=lanes)
-    programs = _programs(params, *jax.eval_shape(prepare, *args), tail, refill_every)
+    batch_last = batch_last_default() if batch_last is None else bool(batch_last)
+    programs = _programs(params, *jax.eval_shape(prepare, *args), tail, refill_every,
+                         batch_last)
     table, carry = prepare(*args)
     block = _Block(*_result(programs["main"]))
     _log.debug("stream: programs ready after %.3f s", time.perf_counter() - t_start)
