@@ -14,7 +14,9 @@ lane::
 Lanes step together in blocks of ``refill_every`` servo periods; a lane that finishes
 inside a block waits (frozen) for the block's end. The step-by-step arithmetic is that of
 :func:`jaxinertia.sim.sampling.simulate_samples`, with the same per-sample keys, so both
-give the same samples (tests/test_sim.py checks it); only the scheduling differs. The
+give the same samples (tests/test_sim.py checks it); only the scheduling differs. On a
+CPU the lanes step batch-last (:mod:`jaxinertia.sim.batched`: the same physics, rounded
+differently; the same ticks). The
 table is padded to a power of two and the objects to a multiple of four, so plans of
 different sizes share the stepping program per lane count (only the small preparation,
 :func:`_prepare`, is compiled per set of plan sizes).
@@ -417,7 +419,8 @@ def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = No
 
     Sample j of a plan gets ``jax.random.split(plan.key, S)[j]``, as in
     :func:`jaxinertia.sim.run.run_plan`'s reference path, so results depend neither on the
-    lane count nor on the other plans.
+    lane count nor on the other plans (stepped batch-last, the simulator's true state may
+    differ in its last bits between lane counts; the recorded ticks do not).
 
     ``tail_lanes`` (default :func:`default_tail_lanes`; 0: off): once every sample is
     handed out and at most this many are still running, they move to a program of that
