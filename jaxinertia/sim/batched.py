@@ -67,6 +67,8 @@ from jaxinertia.sim.servo import servo_step
 from jaxinertia.sim.simulator import SimParams, SimState
 
 __all__ = [
+    "batch_first",
+    "batch_last",
     "params_batch_last",
     "state_batch_first",
     "state_batch_last",
@@ -79,14 +81,24 @@ _ROBOT_NDIM = dict(body_pos=2, body_rot=3, joint_axis=2, joint_pos=2, mass=1, co
                    gravity=1)
 
 
+def batch_last(tree):
+    """Every leaf of ``tree`` with its leading (batch) axis moved last."""
+    return jax.tree_util.tree_map(lambda a: jnp.moveaxis(jnp.asarray(a), 0, -1), tree)
+
+
+def batch_first(tree):
+    """The inverse of :func:`batch_last`: every leaf's last axis moved first."""
+    return jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, -1, 0), tree)
+
+
 def state_batch_last(state: SimState) -> SimState:
     """A batch-first ``SimState`` (leaves (B, N)) in the batch-last layout (N, B)."""
-    return jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, 0, -1), state)
+    return batch_last(state)
 
 
 def state_batch_first(state: SimState) -> SimState:
     """The inverse of :func:`state_batch_last`: (N, B) leaves back to (B, N)."""
-    return jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, -1, 0), state)
+    return batch_first(state)
 
 
 def params_batch_last(params: SimParams, per_arm: bool = True) -> SimParams:
@@ -94,9 +106,7 @@ def params_batch_last(params: SimParams, per_arm: bool = True) -> SimParams:
     as ``jax.vmap(step, (0, 0, 0))`` takes them) in the batch-last layout of
     :func:`step_batched` (the batch axis moved last). ``per_arm=False`` returns ``params``
     (shared parameters need no conversion)."""
-    if not per_arm:
-        return params
-    return jax.tree_util.tree_map(lambda a: jnp.moveaxis(jnp.asarray(a), 0, -1), params)
+    return batch_last(params) if per_arm else params
 
 
 def _lane(x, ndim: int):

@@ -44,7 +44,7 @@ import numpy as np
 from flax import struct
 from tqdm.auto import tqdm
 
-from jaxinertia.sim.batched import step_batched
+from jaxinertia.sim import batched
 from jaxinertia.sim.sampling import HeldObject, Samples, jitter_friction, loaded_params, record
 from jaxinertia.sim.servo import goal_ticks
 from jaxinertia.sim.simulator import SimParams, SimState, step, trapezoid
@@ -140,7 +140,7 @@ def _lane_step(base: SimParams, lane: _Lanes, *, batch_last: bool = False) -> _L
     t = lane.k * dt
     q_goal, t_total = trapezoid(lane.pre, end, t, base.profile_velocity,
                                 base.profile_acceleration)
-    s = (step_batched if batch_last else step)(params, lane.state, goal_ticks(q_goal))
+    s = (batched.step_batched if batch_last else step)(params, lane.state, goal_ticks(q_goal))
     resting = ((t >= jnp.max(t_total, axis=joints))
                & jnp.all(jnp.abs(s.qd) < base.rest_velocity, axis=joints))
     still = jnp.where(resting, lane.still + 1, 0)
@@ -200,13 +200,10 @@ def _steps(base: SimParams, lanes: _Lanes, *, n: int, batch_last: bool) -> _Lane
     """``n`` servo periods of every lane (none when no lane is running), batch-last
     (:mod:`jaxinertia.sim.batched`) or by ``vmap`` of the one-arm step."""
     if batch_last:
-        to_last = partial(jax.tree.map, lambda a: jnp.moveaxis(a, 0, -1))
-        to_first = partial(jax.tree.map, lambda a: jnp.moveaxis(a, -1, 0))
-
         def run(ln):
-            ln = jax.lax.fori_loop(
-                0, n, lambda _, x: _lane_step(base, x, batch_last=True), to_last(ln))
-            return to_first(ln)
+            return batched.batch_first(jax.lax.fori_loop(
+                0, n, lambda _, x: _lane_step(base, x, batch_last=True),
+                batched.batch_last(ln)))
     else:
         def run(ln):
             return jax.lax.fori_loop(
