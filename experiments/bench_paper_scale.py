@@ -1,7 +1,8 @@
 """Benchmark: wall time to simulate the paper-scale dataset, in a fresh process.
 
     python experiments/bench_paper_scale.py [--lanes L] [--tail-lanes T] [--dtype float32]
-                                            [--cache DIR] [--trace]
+                                            [--cache DIR] [--trace] [--no-planning]
+                                            [--batch-last {auto,on,off}] [--save-q FILE]
 
 46,144 planning + 36,000 random (9,000 per training load) + 4,000 test samples (1,000 per
 test object), the sets of ``jaxinertia reproduce --full``, in one stream of lanes. Prints
@@ -35,6 +36,12 @@ def main() -> None:
     ap.add_argument("--cache", help="persistent compilation cache directory (default: none)")
     ap.add_argument("--random-per-load", type=int, default=9000)
     ap.add_argument("--test-per-object", type=int, default=1000)
+    ap.add_argument("--no-planning", action="store_true",
+                    help="random and test sets only (--random-per-load 800 --test-per-object "
+                    "300 --no-planning: the quick demo's sets)")
+    ap.add_argument("--batch-last", choices=["auto", "on", "off"], default="auto",
+                    help="lanes stepped batch-last (auto: on a CPU; see jaxinertia.sim.stream)")
+    ap.add_argument("--save-q", help="write every sample's Present Position (npz) here")
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", args.dtype == "float64")
     if args.cache:
@@ -46,17 +53,21 @@ def main() -> None:
 
     params = default_sim_params()
     t1 = time.perf_counter()
-    results = simulate_scenarios(params, [
-        ScenarioRequest("test", args.test_per_object, None, 1000),
-        ScenarioRequest("random", args.random_per_load, None, 0),
-        ScenarioRequest("planning", None, None, 0)], lanes=args.lanes,
-        tail_lanes=args.tail_lanes)
+    requests = [ScenarioRequest("test", args.test_per_object, None, 1000),
+                ScenarioRequest("random", args.random_per_load, None, 0)]
+    if not args.no_planning:
+        requests.append(ScenarioRequest("planning", None, None, 0))
+    batch_last = {"auto": None, "on": True, "off": False}[args.batch_last]
+    results = simulate_scenarios(params, requests, lanes=args.lanes,
+                                 tail_lanes=args.tail_lanes, batch_last=batch_last)
     t2 = time.perf_counter()
     fields = [f for r in results for _, f in r.values()]
+    if args.save_q:
+        np.savez(args.save_q, q=np.concatenate([f["q"] for f in fields]))
     settle = np.concatenate([f["settle_time"] for f in fields])
     print(json.dumps({
         "device": jax.devices()[0].device_kind, "dtype": args.dtype, "lanes": args.lanes,
-        "tail_lanes": args.tail_lanes,
+        "tail_lanes": args.tail_lanes, "batch_last": args.batch_last,
         "samples": int(sum(len(f["q"]) for f in fields)),
         "at_rest": int(sum(f["at_rest"].sum() for f in fields)),
         "import_s": round(t1 - T0, 2), "simulate_s": round(t2 - t1, 2),

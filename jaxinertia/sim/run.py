@@ -147,6 +147,7 @@ class ScenarioRequest(NamedTuple):
 
 def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
                        lanes: int | None = None, tail_lanes: int | None = None,
+                       batch_last: bool | None = None,
                        progress: bool = True) -> list[dict[str, tuple[HeldObject, dict]]]:
     """Several scenarios in one stream of lanes (one compiled program, one tail); each
     result is what :func:`simulate_scenario` returns for its request."""
@@ -160,7 +161,8 @@ def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
             plans.append((obj, q_d, d, k))
             descs.append(f"{r.scenario}/{name}")
         jobs.append(named)
-    results = iter(run_plans(params, plans, lanes=lanes, tail_lanes=tail_lanes, descs=descs,
+    results = iter(run_plans(params, plans, lanes=lanes, tail_lanes=tail_lanes,
+                             batch_last=batch_last, descs=descs,
                              desc="+".join(r.scenario for r in requests), progress=progress))
     return [{name: (obj, next(results)) for name, obj, _ in named} for named in jobs]
 
