@@ -40,7 +40,8 @@ def main() -> None:
                     help="random and test sets only (--random-per-load 800 --test-per-object "
                     "300 --no-planning: the quick demo's sets)")
     ap.add_argument("--batch-last", choices=["auto", "on", "off"], default="auto",
-                    help="lanes stepped batch-last (auto: on a CPU; see jaxinertia.sim.stream)")
+                    help="lanes stepped batch-last or by vmap (auto: the library's default, "
+                    "jaxinertia.sim.stream.batch_last_default())")
     ap.add_argument("--save-q", help="write every sample's Present Position (npz) here")
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", args.dtype == "float64")

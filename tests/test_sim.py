@@ -156,8 +156,8 @@ def test_streamed_lanes_give_the_samples_of_the_plain_vmap(batch_last):
     arithmetic as ``simulate_samples`` (one vmapped protocol per sample) with the same
     per-sample keys, so the samples agree; and they do not depend on the lane count.
 
-    Stepped by ``vmap`` of the one-arm step (the accelerator default), everything agrees
-    to the bit across lane counts. Stepped batch-last (the CPU default,
+    Stepped by ``vmap`` of the one-arm step, everything agrees to the bit across lane
+    counts. Stepped batch-last (the default,
     ``jaxinertia.sim.batched``: the same physics, organised and so rounded differently),
     the ticks, rest flags and settle times still agree to the bit and the true state to
     1e-12; across lane counts only the state may differ, in its last bits (the compiled
@@ -189,6 +189,28 @@ def test_streamed_lanes_give_the_samples_of_the_plain_vmap(batch_last):
             else:  # functions of the ticks, fused differently: to rounding
                 np.testing.assert_allclose(got_a[k], v, rtol=1e-13, atol=1e-15, err_msg=k)
         assert got_a["at_rest"].all()
+
+
+def test_the_stream_runs_the_stepping_program_precompiled_before_its_plans():
+    """``precompile`` (what ``simulate_scenarios`` calls before building its plans) submits
+    the stepping program for the same abstract lanes as the stream builds from real plans:
+    the stream then compiles no second one."""
+    from jaxinertia.sim import stream
+    from jaxinertia.sim.run import default_sim_params, run_plans
+    from jaxinertia.sim.scenarios import lbipe_object, random_plan
+
+    def steps_programs():
+        return {k for k in stream._PROGRAMS if k[0] == "steps"}
+
+    p = default_sim_params()
+    before = steps_programs()
+    stream.precompile(p, lbipe_object("red"), lanes=5, batch_last=True)
+    precompiled = steps_programs() - before
+    assert len(precompiled) == 1
+    out, = run_plans(p, [(lbipe_object("cube"), *random_plan(3, 2), jax.random.key(1))],
+                     lanes=5, tail_lanes=0, batch_last=True, progress=False)
+    assert steps_programs() == before | precompiled
+    assert out["at_rest"].all()
 
 
 def test_planning_grid_drops_configurations_at_the_mounting_surface():

@@ -2,8 +2,10 @@
 
 :func:`jaxinertia.sim.simulator.step` is written for one arm and vmapped. Under ``vmap``
 the 3 x 3 products of the kinematics become batched tiny ``dot``s, which XLA:CPU runs
-slowly. Here every array keeps the batch as its LAST (minor, contiguous) axis, so every
-contraction over a small axis is an elementwise multiply-add vectorised over the batch:
+slowly and XLA:GPU compiles into Triton kernels (an H100 steps the batch-last form 1.9x
+faster in float32 and 5.5x in float64: docs/benchmarks.md). Here every array keeps the
+batch as its LAST (minor, contiguous) axis, so every contraction over a small axis is an
+elementwise multiply-add vectorised over the batch:
 
     joint quantities   (N, B)         q, qd, servo state, friction, goal
     rotations          (3, 3, B)      one per body (Python list over the static chain)

@@ -10,13 +10,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxinertia.robot import open_manipulator_x
+from jaxinertia.sim import scenarios as sc
 from jaxinertia.sim.friction import FrictionParams
 from jaxinertia.sim.sampling import HeldObject
 from jaxinertia.sim.servo import ServoParams
 from jaxinertia.sim.simulator import SimParams
-from jaxinertia.sim.stream import Plan, stream_plans
+from jaxinertia.sim.stream import Plan, precompile, stream_plans
 
-__all__ = ["SimulationError", "default_sim_params", "native_fields", "run_plan",
+__all__ = ["SimulationError", "as_float64", "default_sim_params", "native_fields", "run_plan",
            "run_plans", "ScenarioRequest", "simulate_scenario", "simulate_scenarios"]
 
 #: Reflected rotor inertia of the XM430 gear train [kg m^2] (assumed until calibrated).
@@ -151,6 +152,8 @@ def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
                        progress: bool = True) -> list[dict[str, tuple[HeldObject, dict]]]:
     """Several scenarios in one stream of lanes (one compiled program, one tail); each
     result is what :func:`simulate_scenario` returns for its request."""
+    # The stepping program needs no plans: it compiles while they are built.
+    precompile(params, sc.training_object(0.0), lanes=lanes, batch_last=batch_last)
     jobs, descs, plans = [], [], []
     for r in requests:
         named = _scenario_jobs(r.scenario, r.n, r.objects, r.seed)
@@ -169,8 +172,6 @@ def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
 
 def _scenario_jobs(scenario: str, n: int | None, objects: list[str] | None, seed: int):
     """``[(object name, object, (q_d, direction))]`` of a scenario."""
-    from jaxinertia.sim import scenarios as sc
-
     if scenario == "test":
         names = objects or list(sc.OBJECTS)
         unknown = [o for o in names if o not in sc.OBJECTS]
@@ -191,18 +192,25 @@ def _scenario_jobs(scenario: str, n: int | None, objects: list[str] | None, seed
     raise ValueError(f"unknown scenario {scenario!r}; known: planning, random, test")
 
 
+def as_float64(a: np.ndarray) -> np.ndarray:
+    """Floating arrays as float64 (files store float64 whatever the simulation's precision)."""
+    return a.astype(np.float64) if np.issubdtype(a.dtype, np.floating) else a
+
+
 def native_fields(results: dict[str, tuple[HeldObject, dict]], params: SimParams, *,
                   scenario: str, seed: int, version: str) -> tuple[dict, dict]:
     """Concatenates per-object results into native-format fields and metadata."""
     names = list(results)
-    fields = {k: np.concatenate([results[n][1][k] for n in names]) for k in results[names[0]][1]}
+    fields = {k: as_float64(np.concatenate([results[n][1][k] for n in names]))
+              for k in results[names[0]][1]}
     fields["object_id"] = np.concatenate(
         [np.full(len(results[n][1]["q"]), i) for i, n in enumerate(names)])
     fields["x"] = np.stack([np.asarray(results[n][0].x) for n in names])
     meta = {
         "version": version, "scenario": scenario, "seed": seed, "source": "simulator",
         "objects": names, "robot": params.robot.name,
-        "simulator": {"dt": params.dt, "armature": np.asarray(params.robot.armature).tolist(),
+        "simulator": {"precision": str(jnp.dtype(jnp.result_type(float))), "dt": params.dt,
+                      "armature": np.asarray(params.robot.armature).tolist(),
                       "servo": {k: np.asarray(v).tolist()
                                 for k, v in params.servo.__dict__.items()},
                       "friction": {k: np.asarray(v).tolist()

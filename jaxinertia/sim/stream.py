@@ -14,12 +14,11 @@ lane::
 Lanes step together in blocks of ``refill_every`` servo periods; a lane that finishes
 inside a block waits (frozen) for the block's end. The step-by-step arithmetic is that of
 :func:`jaxinertia.sim.sampling.simulate_samples`, with the same per-sample keys, so both
-give the same samples (tests/test_sim.py checks it); only the scheduling differs. On a
-CPU the lanes step batch-last (:mod:`jaxinertia.sim.batched`: the same physics, rounded
-differently; the same ticks). The
-table is padded to a power of two and the objects to a multiple of four, so plans of
-different sizes share the stepping program per lane count (only the small preparation,
-:func:`_prepare`, is compiled per set of plan sizes).
+give the same samples (tests/test_sim.py checks it); only the scheduling differs. By
+default the lanes step batch-last (:mod:`jaxinertia.sim.batched`: the same physics, rounded
+differently; the same ticks). The table is padded to a power of two and the objects to a
+multiple of four, so plans of different sizes share the stepping program per lane count
+(only the small preparation, :func:`_prepare`, is compiled per set of plan sizes).
 
 The host loop dispatches ``blocks_per_call`` blocks (a refill program, then a steps
 program; buffers donated) before it reads the count of finished samples for the progress
@@ -49,7 +48,7 @@ from jaxinertia.sim.sampling import HeldObject, Samples, jitter_friction, loaded
 from jaxinertia.sim.servo import goal_ticks
 from jaxinertia.sim.simulator import SimParams, SimState, step, trapezoid
 
-__all__ = ["Plan", "batch_last_default", "default_lanes", "default_tail_lanes",
+__all__ = ["Plan", "batch_last_default", "default_lanes", "default_tail_lanes", "precompile",
            "stream_plans"]
 
 _log = logging.getLogger(__name__)
@@ -212,10 +211,15 @@ def _steps(base: SimParams, lanes: _Lanes, *, n: int, batch_last: bool) -> _Lane
 
 
 def batch_last_default() -> bool:
-    """Whether the stream steps its lanes batch-last by default: on a CPU, where it is
-    3-9x faster (no tiny batched ``dot``s; docs/benchmarks.md). Elsewhere the lanes step by
-    ``vmap``, the form measured on the H100 (the batch-last step is not, yet)."""
-    return jax.default_backend() == "cpu"
+    """Whether the stream steps its lanes batch-last by default: yes, on every backend.
+
+    Measured (docs/benchmarks.md): on a 2-core CPU the batch-last step is 3-9x faster than
+    ``vmap`` (no tiny batched ``dot``s); on an H100 it steps 1.9x (float32) and 5.5x
+    (float64) faster, and the paper-scale set simulates cold in 6.7-7.9 s instead of 9.3 s
+    in float64. (In float32 the vmapped step's shorter compile makes a cold paper-scale run
+    ~1.4 s shorter; the stepping itself is slower.)
+    """
+    return True
 
 
 # Two programs, not one: they compile in parallel (compilation is most of a cold run's
@@ -270,15 +274,29 @@ def _prepare(params: SimParams, q_d, direction, obj_id, objects: HeldObject, key
 
 
 def _sample_keys(plans: list[Plan]) -> jax.Array:
-    """``jax.random.split(plan.key, S)`` of every plan, concatenated. Split on the host
-    CPU: each distinct S is a separate threefry program, ~0.3 s to compile on a GPU (12
-    plans: ~4 s) and a few milliseconds on the CPU; the keys are the same bits anywhere."""
+    """``jax.random.split(plan.key, S)`` of every plan, concatenated, from one program on
+    the host CPU (on a GPU each threefry program takes ~0.3 s to compile).
+
+    With partitionable threefry (JAX's default) key j of a split does not depend on how
+    many keys are split, so every plan is split to the same power-of-two count and cut:
+    one compiled program for any set of plan sizes. Otherwise one split per plan size.
+    """
     cpu = jax.devices("cpu")[0]
-    data = [jax.random.key_data(jax.random.split(jax.device_put(p.key, cpu), len(p.q_d)))
-            for p in plans]
-    impl = jax.random.key_impl(plans[0].key)
-    return jax.random.wrap_key_data(jnp.asarray(np.concatenate([np.asarray(d) for d in data])),
-                                    impl=impl)
+    sizes = [len(p.q_d) for p in plans]
+    keys = jax.device_put(jnp.stack([p.key for p in plans]), cpu)
+    if jax.config.jax_threefry_partitionable:
+        n = 1 << (max(sizes) - 1).bit_length()
+        data = np.asarray(_split_all(keys, n))
+        data = np.concatenate([d[:s] for d, s in zip(data, sizes)])
+    else:
+        data = np.concatenate([np.asarray(jax.random.key_data(jax.random.split(k, s)))
+                               for k, s in zip(keys, sizes)])
+    return jax.random.wrap_key_data(jnp.asarray(data), impl=jax.random.key_impl(keys))
+
+
+@partial(jax.jit, static_argnums=1)
+def _split_all(keys: jax.Array, n: int) -> jax.Array:
+    return jax.vmap(lambda k: jax.random.key_data(jax.random.split(k, n)))(keys)
 
 
 def _pad(a: np.ndarray, size: int) -> np.ndarray:
@@ -371,18 +389,30 @@ def _signature(tree) -> tuple:
                           for x in leaves)
 
 
+def _steps_program(params: SimParams, lanes, n: int, batch_last: bool,
+                   untimed: bool = False) -> Future:
+    """A future of the compiled :func:`_steps` for the (abstract) ``lanes``; submitted
+    once per signature (:func:`precompile` may have submitted it already)."""
+    key = ("steps", _signature((params, lanes)), n, batch_last, untimed,
+           jax.default_backend())
+    if key not in _PROGRAMS:
+        _PROGRAMS[key] = _COMPILER.submit(_steps_jit, params, lanes, n=n,
+                                          batch_last=batch_last, untimed=untimed)
+    return _PROGRAMS[key]
+
+
 def _programs(params: SimParams, table, carry, tail: int, refill_every: int,
               batch_last: bool) -> dict:
     """Futures of the stream's compiled programs for the (abstract) ``table`` and
-    ``carry``, in the order they are needed: ``main`` (steps, the largest, first; then
-    refill), ``finish`` and, when ``tail``, ``tail`` (compaction, refill and steps on
-    ``tail`` lanes). The last two compile while the stream runs."""
+    ``carry``, in the order they are needed: ``main`` (refill, steps: the largest,
+    submitted first unless :func:`precompile` did already), ``finish`` and, when
+    ``tail``, ``tail`` (compaction, refill and steps on ``tail`` lanes). The last two
+    compile while the stream runs."""
     key = (_signature((params, table, carry)), tail, refill_every, batch_last,
            jax.default_backend())
     if key not in _PROGRAMS:
         c = _COMPILER
-        steps = c.submit(_steps_jit, params, carry.lanes, n=refill_every,
-                         batch_last=batch_last)
+        steps = _steps_program(params, carry.lanes, refill_every, batch_last)
         refill = c.submit(_refill_jit, params, table, carry)
         programs = dict(main=(refill, steps),
                         finish=c.submit(_finish, params, table, carry.out, untimed=True),
@@ -390,8 +420,8 @@ def _programs(params: SimParams, table, carry, tail: int, refill_every: int,
         if tail:
             small = jax.eval_shape(partial(_compact, size=tail), carry)
             compact = c.submit(_compact, carry, size=tail, untimed=True)
-            steps = c.submit(_steps_jit, params, small.lanes, n=refill_every,
-                             batch_last=batch_last, untimed=True)
+            steps = _steps_program(params, small.lanes, refill_every, batch_last,
+                                   untimed=True)
             refill = c.submit(_refill_jit, params, table, small, untimed=True)
             programs["tail"] = (compact, refill, steps)
         _PROGRAMS[key] = programs
@@ -404,6 +434,46 @@ def _result(futures):
     except Exception:
         _PROGRAMS.clear()  # do not keep a failed compilation
         raise
+
+
+def _assemble(params: SimParams, plans: list[Plan], lanes: int, *, keys: bool = True):
+    """The arguments of :func:`_prepare` (host-side assembly in numpy, one transfer):
+    samples padded to a power of two (at least ``lanes``), objects to a multiple of four.
+    ``keys=False``: the sample keys only as a shape (for :func:`jax.eval_shape`)."""
+    sizes = tuple(len(p.q_d) for p in plans)
+    S_pad = max(lanes, 1 << (sum(sizes) - 1).bit_length())
+    O_pad = -(-len(plans) // 4) * 4
+    dtype = jnp.result_type(float)
+
+    def column(field, dt=np.float64):
+        return _pad(np.concatenate([np.asarray(getattr(p, field), dt) for p in plans]), S_pad)
+
+    obj_id = _pad(np.concatenate([np.full(n, i, np.int32) for i, n in enumerate(sizes)]),
+                  S_pad)
+    objs = [p.obj for p in plans] + [plans[-1].obj] * (O_pad - len(plans))
+    objects = jax.tree.map(lambda *a: np.stack([np.asarray(x, dtype) for x in a]), *objs)
+    args = (params, column("q_d").astype(dtype), column("direction").astype(dtype), obj_id,
+            objects, _sample_keys(plans) if keys else
+            jax.ShapeDtypeStruct((sum(sizes),), jax.random.key(0).dtype))
+    return args, sizes
+
+
+def precompile(params: SimParams, obj: HeldObject, *, lanes: int | None = None,
+               batch_last: bool | None = None, refill_every: int = 32) -> None:
+    """Starts compiling the stream's stepping program for ``lanes`` lanes in the background
+    and returns at once; a later :func:`stream_plans` with the same settings uses it.
+
+    The stepping program is the largest and depends on neither the plans nor the objects
+    (``obj``: any held object, for the shapes), so a caller can start it before building
+    its plans: on a GPU its compilation is most of a cold paper-scale run.
+    """
+    lanes = int(lanes or default_lanes())
+    batch_last = batch_last_default() if batch_last is None else bool(batch_last)
+    n = params.robot.n_joints
+    dummy = Plan(obj, np.zeros((1, n)), np.ones((1, n)), jax.random.key(0))
+    args, sizes = _assemble(params, [dummy], lanes, keys=False)
+    _, carry = jax.eval_shape(partial(_prepare, sizes=sizes, lanes=lanes), *args)
+    _steps_program(params, carry.lanes, refill_every, batch_last)
 
 
 def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = None,
@@ -430,23 +500,10 @@ def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = No
     """
     t_start = time.perf_counter()
     lanes = int(lanes or default_lanes())
-    sizes = tuple(len(p.q_d) for p in plans)
+    args, sizes = _assemble(params, plans, lanes)
     S = sum(sizes)
     tail = default_tail_lanes(lanes) if tail_lanes is None else int(tail_lanes)
     tail = tail if 0 < tail < lanes and S >= 4 * lanes else 0
-    S_pad = max(lanes, 1 << (S - 1).bit_length())
-    O_pad = -(-len(plans) // 4) * 4
-    dtype = jnp.result_type(float)
-    # Host-side assembly (numpy), one transfer, then one compiled preparation.
-    q_d = _pad(np.concatenate([np.asarray(p.q_d, np.float64) for p in plans]), S_pad)
-    direction = _pad(np.concatenate([np.asarray(p.direction, np.float64) for p in plans]),
-                     S_pad)
-    obj_id = _pad(np.concatenate([np.full(n, i, np.int32) for i, n in enumerate(sizes)]),
-                  S_pad)
-    objs = [p.obj for p in plans] + [plans[-1].obj] * (O_pad - len(plans))
-    objects = jax.tree.map(lambda *a: np.stack([np.asarray(x, dtype) for x in a]), *objs)
-    args = (params, q_d.astype(dtype), direction.astype(dtype), obj_id, objects,
-            _sample_keys(plans))
     prepare = partial(_prepare, sizes=sizes, lanes=lanes)
     batch_last = batch_last_default() if batch_last is None else bool(batch_last)
     programs = _programs(params, *jax.eval_shape(prepare, *args), tail, refill_every,
