@@ -2,8 +2,9 @@
 
 Native (``.npz``): one named array per field of :class:`jaxinertia.sim.sampling.Samples`
 (leading axis S), plus ``object_id`` (S,) indexing ``metadata["objects"]``, ``x`` (O, 4)
-per object, and ``metadata``: a JSON string with the robot, simulator parameters, seeds,
-scenario and the package version. SI units throughout.
+per object, and ``metadata``: a JSON string with the robot, simulator parameters (and
+``simulator.precision``, the arithmetic simulated in), seeds, scenario and the package
+version. SI units throughout; floating arrays are float64 whatever the precision.
 
 lbipe (``data_<split>_<object>.npz``, the authors' layout, one file per object):
 ``joint_data`` (S, 9, N) rows q_d, q, q_d - q, 0, current torque, direction, tau, tau_g,

@@ -153,6 +153,7 @@ def simulate_continuous_run(params: SimParams, *, n: int, objects: list[str],
     fields["x"] = np.stack([np.asarray(o.x) for o in objs])
     meta = {"scenario": "continuous", "seed": seed, "source": "simulator", "objects": objects,
             "switch_every": switch_every, "robot": params.robot.name,
+            "simulator": {"precision": str(jnp.dtype(jnp.result_type(float)))},
             "request": {"scenario": "continuous", "seed": seed, "n": n,
                         "objects": objects, "switch_every": switch_every}}
     return fields, meta

@@ -205,7 +205,7 @@ def native_fields(results: dict[str, tuple[HeldObject, dict]], params: SimParams
               for k in results[names[0]][1]}
     fields["object_id"] = np.concatenate(
         [np.full(len(results[n][1]["q"]), i) for i, n in enumerate(names)])
-    fields["x"] = np.stack([np.asarray(results[n][0].x) for n in names])
+    fields["x"] = as_float64(np.stack([np.asarray(results[n][0].x) for n in names]))
     meta = {
         "version": version, "scenario": scenario, "seed": seed, "source": "simulator",
         "objects": names, "robot": params.robot.name,

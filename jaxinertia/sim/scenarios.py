@@ -51,7 +51,7 @@ def make_object(mass: float, com_tag, *, l_max: float = 0.07) -> HeldObject:
     side = l_max / np.sqrt(3.0)
     inertia = mass * side**2 / 6.0 * np.eye(3)
     R, p = TAG_IN_EE
-    return HeldObject(jnp.asarray(mass, jnp.float64), jnp.asarray(com_tag, jnp.float64),
+    return HeldObject(jnp.asarray(mass, float), jnp.asarray(com_tag, float),
                       jnp.asarray(R), jnp.asarray(p), jnp.asarray(inertia))
 
 
