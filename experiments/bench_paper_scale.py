@@ -3,6 +3,7 @@
     python experiments/bench_paper_scale.py [--lanes L] [--tail-lanes T] [--dtype float32]
                                             [--cache DIR] [--trace] [--no-planning]
                                             [--batch-last {auto,on,off}] [--save-q FILE]
+                                            [--compare-q FILE] [--no-jitter]
 
 46,144 planning + 36,000 random (9,000 per training load) + 4,000 test samples (1,000 per
 test object), the sets of ``jaxinertia reproduce --full``, in one stream of lanes. Prints
@@ -43,6 +44,11 @@ def main() -> None:
                     help="lanes stepped batch-last or by vmap (auto: the library's default, "
                     "jaxinertia.sim.stream.batch_last_default())")
     ap.add_argument("--save-q", help="write every sample's Present Position (npz) here")
+    ap.add_argument("--compare-q", help="count the samples whose ticks differ from this "
+                    "--save-q file (e.g. of another --dtype or --batch-last)")
+    ap.add_argument("--no-jitter", action="store_true",
+                    help="friction jitter off: no random draws in the physics, so float32 "
+                    "and float64 runs simulate the same samples")
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", args.dtype == "float64")
     if args.cache:
@@ -53,6 +59,8 @@ def main() -> None:
     from jaxinertia.sim.run import ScenarioRequest, default_sim_params, simulate_scenarios
 
     params = default_sim_params()
+    if args.no_jitter:
+        params = params.replace(friction=params.friction.replace(jitter=0 * params.friction.jitter))
     t1 = time.perf_counter()
     requests = [ScenarioRequest("test", args.test_per_object, None, 1000),
                 ScenarioRequest("random", args.random_per_load, None, 0)]
@@ -65,6 +73,12 @@ def main() -> None:
     fields = [f for r in results for _, f in r.values()]
     if args.save_q:
         np.savez(args.save_q, q=np.concatenate([f["q"] for f in fields]))
+    compare = {}
+    if args.compare_q:
+        q = np.concatenate([f["q"] for f in fields]).astype(np.float64)
+        ticks = np.rint((q - np.load(args.compare_q)["q"]) / (2 * np.pi / 4096)).astype(int)
+        compare = {"samples_differing": int((ticks != 0).any(axis=1).sum()),
+                   "joint_values_differing_by_ticks": np.bincount(abs(ticks).ravel()).tolist()}
     settle = np.concatenate([f["settle_time"] for f in fields])
     print(json.dumps({
         "device": jax.devices()[0].device_kind, "dtype": args.dtype, "lanes": args.lanes,
@@ -73,7 +87,8 @@ def main() -> None:
         "at_rest": int(sum(f["at_rest"].sum() for f in fields)),
         "import_s": round(t1 - T0, 2), "simulate_s": round(t2 - t1, 2),
         "total_s": round(t2 - T0, 2),
-        "settle_p50_p99_max_s": np.percentile(settle, [50, 99, 100]).round(3).tolist()}))
+        "settle_p50_p99_max_s": np.percentile(settle, [50, 99, 100]).round(3).tolist(),
+        **compare}))
 
 
 if __name__ == "__main__":
