@@ -215,9 +215,9 @@ def batch_last_default() -> bool:
 
     Measured (docs/benchmarks.md): on a 2-core CPU the batch-last step is 3-9x faster than
     ``vmap`` (no tiny batched ``dot``s); on an H100 it steps 1.9x (float32) and 5.5x
-    (float64) faster, and the paper-scale set simulates cold in 6.7-7.9 s instead of 9.3 s
-    in float64. (In float32 the vmapped step's shorter compile makes a cold paper-scale run
-    ~1.4 s shorter; the stepping itself is slower.)
+    (float64) faster, and the paper-scale set simulates cold in 6.7-9.3 s in float64
+    (vmapped: 9.3-11.7 s). (In float32 the vmapped step's shorter compile makes a cold
+    paper-scale run 1.5-3 s shorter; the stepping itself is slower.)
     """
     return True
 
