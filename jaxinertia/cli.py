@@ -335,9 +335,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--calibration", type=Path,
                    help="simulator parameter file (default: the shipped calibration)")
     s.add_argument("--precision", choices=["float64", "float32"], default="float64",
-                   help="arithmetic of the simulation (default: %(default)s). float32 steps "
-                   "2-3x faster on a CPU; a few %% of the samples then rest a tick apart "
-                   "(docs/benchmarks.md); the file stores float64 either way")
+                   help="arithmetic of the simulation (default: %(default)s). float32 runs "
+                   "~1.8x faster on a CPU; its random friction jitter differs, so its samples "
+                   "are another draw of the same distribution (docs/benchmarks.md); the file "
+                   "stores float64 either way")
     s.set_defaults(func=cmd_simulate)
 
     c = sub.add_parser(

@@ -270,6 +270,18 @@ def test_bad_plans_and_diverging_integration_name_the_scenario_and_sample():
     with pytest.raises(SimulationError, match="test/cube: the integration diverged at sample"):
         run(params.replace(dt=0.05), q, d)
 
+    # An unknown object or scenario is refused before anything is compiled.
+    from jaxinertia.sim import stream
+    from jaxinertia.sim.run import ScenarioRequest, simulate_scenarios
+
+    before = set(stream._PROGRAMS)
+    with pytest.raises(ValueError, match=r"unknown test object\(s\) \['teapot'\]"):
+        simulate_scenarios(params, [ScenarioRequest("random", 4),
+                                    ScenarioRequest("test", 4, ["cube", "teapot"])], lanes=7)
+    with pytest.raises(ValueError, match="unknown scenario 'grid'"):
+        simulate_scenarios(params, [ScenarioRequest("grid")], lanes=7)
+    assert set(stream._PROGRAMS) == before
+
 
 def test_continuous_run_switches_objects_and_keeps_the_statics_of_each():
     """The switching-load scenario: the schedule and the random walk are recorded as

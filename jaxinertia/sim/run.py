@@ -152,6 +152,8 @@ def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
                        progress: bool = True) -> list[dict[str, tuple[HeldObject, dict]]]:
     """Several scenarios in one stream of lanes (one compiled program, one tail); each
     result is what :func:`simulate_scenario` returns for its request."""
+    for r in requests:  # bad requests fail before anything compiles
+        _check_request(r.scenario, r.objects)
     # The stepping program needs no plans: it compiles while they are built.
     precompile(params, sc.training_object(0.0), lanes=lanes, batch_last=batch_last)
     jobs, descs, plans = [], [], []
@@ -170,26 +172,30 @@ def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
     return [{name: (obj, next(results)) for name, obj, _ in named} for named in jobs]
 
 
+def _check_request(scenario: str, objects: list[str] | None) -> None:
+    if scenario not in ("planning", "random", "test"):
+        raise ValueError(f"unknown scenario {scenario!r}; known: planning, random, test")
+    unknown = [o for o in objects or [] if o not in sc.OBJECTS]
+    if scenario == "test" and unknown:
+        raise ValueError(f"unknown test object(s) {unknown}; known: {list(sc.OBJECTS)}")
+
+
 def _scenario_jobs(scenario: str, n: int | None, objects: list[str] | None, seed: int):
     """``[(object name, object, (q_d, direction))]`` of a scenario."""
+    _check_request(scenario, objects)
     if scenario == "test":
         names = objects or list(sc.OBJECTS)
-        unknown = [o for o in names if o not in sc.OBJECTS]
-        if unknown:
-            raise ValueError(f"unknown test object(s) {unknown}; known: {list(sc.OBJECTS)}")
         return [(o, sc.lbipe_object(o), sc.random_plan(n or 1000, seed + i))
                 for i, o in enumerate(names)]
-    if scenario in ("planning", "random"):
-        jobs = []
-        grid = sc.planning_plan() if scenario == "planning" else None
-        for i, m in enumerate(sc.TRAINING_LOADS_KG):
-            if scenario == "planning":
-                plan = tuple(a[:n] for a in grid) if n else grid
-            else:
-                plan = sc.random_plan(n or 1000, seed + i)
-            jobs.append((f"{round(m * 1000)}g", sc.training_object(m), plan))
-        return jobs
-    raise ValueError(f"unknown scenario {scenario!r}; known: planning, random, test")
+    jobs = []  # planning or random
+    grid = sc.planning_plan() if scenario == "planning" else None
+    for i, m in enumerate(sc.TRAINING_LOADS_KG):
+        if scenario == "planning":
+            plan = tuple(a[:n] for a in grid) if n else grid
+        else:
+            plan = sc.random_plan(n or 1000, seed + i)
+        jobs.append((f"{round(m * 1000)}g", sc.training_object(m), plan))
+    return jobs
 
 
 def as_float64(a: np.ndarray) -> np.ndarray:
