@@ -24,6 +24,13 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxinertia.xm430 import (
+    CURRENT_LSB_A,
+    NOMINAL_TORQUE_CONSTANT,
+    PWM_FULL_SCALE,
+    RAD_PER_TICK,
+)
+
 __all__ = [
     "RAD_PER_TICK",
     "CURRENT_LSB_A",
@@ -35,12 +42,6 @@ __all__ = [
     "goal_ticks",
 ]
 
-TICKS_PER_REV = 4096
-RAD_PER_TICK = 2.0 * np.pi / TICKS_PER_REV
-CURRENT_LSB_A = 2.69e-3  # Present Current unit
-#: Datasheet torque constant (4.1 N m / 2.3 A): what a current-based torque assumes.
-NOMINAL_TORQUE_CONSTANT = 4.1 / 2.3
-PWM_FULL_SCALE = 885.0  # PWM register value for 100 % duty
 
 
 @struct.dataclass

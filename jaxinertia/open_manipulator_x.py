@@ -1,0 +1,84 @@
+"""The OpenMANIPULATOR-X as the paper mounts and uses it: every constant of the arm in one
+place (as MuJoCo Playground keeps ``<robot>_constants.py``).
+
+A second arm gets a module like this one (its description file, workspace, tag mount and
+calibration file) and a loader in :mod:`jaxinertia.robot`; nothing else in the library
+assumes four joints.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxinertia.errors import ConfigError
+from jaxinertia.robot import Robot, data_path, open_manipulator_x
+
+__all__ = [
+    "CALIBRATION_FILE",
+    "DEFAULT_ARMATURE",
+    "JOINT_IDS",
+    "MOUNT_CLEARANCE_M",
+    "NAME",
+    "TAG_IN_EE",
+    "WORKSPACE_DEG",
+    "calibrated_robot",
+    "load_calibration",
+]
+
+#: ``Robot.name`` of the embedded description (sample files and model folders record it).
+NAME = "open_manipulator_x"
+
+#: DYNAMIXEL IDs of joints 1-4 (the ROBOTIS default) and of the gripper servo.
+JOINT_IDS = (11, 12, 13, 14)
+GRIPPER_ID = 15
+
+#: The authors' workspace per joint [deg] (planning grid and random goals).
+WORKSPACE_DEG = ((-30.0, 30.0), (-50.0, -10.0), (10.0, 50.0), (-20.0, 20.0))
+
+#: Tag frame in the end-effector frame: the offset fitted on the real cube data
+#: (lbipe README: about [9.3, -0.4, 23.2] mm), orientation identity.
+TAG_IN_EE = (np.eye(3), np.array([0.00925, -0.00043, 0.0232]))
+
+#: Clearance of the end-effector point from the mounting surface (the plane z = 0 of the
+#: base frame, vertical on the paper's wall-mounted arm) below which a planning
+#: configuration counts as colliding: gripper and held object (up to ~70 mm) need it.
+#: Any value between 97.8 and 102.5 mm removes the same 22 of the 125 (q2, q3, q4) grid
+#: points and leaves 721 configurations, i.e. the paper's 46,144 planning samples.
+MOUNT_CLEARANCE_M = 0.10
+
+#: Reflected rotor inertia of the XM430 gear train [kg m^2] (until a calibration sets it).
+DEFAULT_ARMATURE = 0.01
+
+#: The shipped calibration: link gravity fitted to the real ``tau_g``, servo and friction
+#: parameters of the simulated arm (``jaxinertia calibrate`` writes it).
+CALIBRATION_FILE = "open_manipulator_x_sim.json"
+
+
+def load_calibration(path: str | os.PathLike | None = None) -> dict:
+    """The calibration file at ``path`` (default: the shipped one) as a dict."""
+    path = Path(path) if path else data_path(CALIBRATION_FILE)
+    try:
+        cal = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise ConfigError(path, None, f"not a readable calibration file ({e})") from e
+    if "link_gravity" not in cal:
+        raise ConfigError(path, "link_gravity", "missing")
+    return cal
+
+
+def calibrated_robot(calibration: dict | str | os.PathLike | None = None) -> Robot:
+    """The bare arm with the link masses and first moments fitted to the real ``tau_g``
+    (the robot that ``A`` and ``tau_g`` of samples are computed with) and the default
+    armature; ``calibration`` is a loaded dict, a path, or None for the shipped file."""
+    if not isinstance(calibration, dict):
+        calibration = load_calibration(calibration)
+    robot = open_manipulator_x()
+    g = calibration["link_gravity"]
+    return robot.replace(mass=jnp.asarray(g["link_mass"], robot.mass.dtype),
+                         com=jnp.asarray(g["link_com"], robot.com.dtype),
+                         armature=jnp.full(robot.n_joints, DEFAULT_ARMATURE))
