@@ -10,6 +10,7 @@ estimate x by least squares with identity weights.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
@@ -45,8 +46,6 @@ class Baselines:
 
 
 def _x64() -> bool:
-    import jax
-
     return bool(jax.config.jax_enable_x64)
 
 

@@ -18,19 +18,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxinertia.baselines import Baselines
+from jaxinertia.errors import ModelFolderError, RobotMismatchError
 from jaxinertia.estimation import ModelPair
 from jaxinertia.features import FeatureConfig
 from jaxinertia.networks import AttentionModel, TorqueModel
 
-__all__ = ["CheckpointError", "file_sha256", "load_models", "save_models"]
+__all__ = ["file_sha256", "load_models", "save_models"]
 
 CONFIG = "config.json"
 FORMAT = "jaxinertia-models"
 FORMAT_VERSION = 1
-
-
-class CheckpointError(ValueError):
-    """A model folder that is missing, unreadable, or made for another robot."""
 
 
 def file_sha256(path: str | os.PathLike) -> str:
@@ -50,7 +47,7 @@ def _arch(model) -> dict:
 def save_models(directory: str | os.PathLike, pair: ModelPair, baselines: Baselines,
                 features: FeatureConfig, *, robot: str, extra: dict | None = None) -> Path:
     """Writes ``directory/checkpoint`` (orbax) and ``directory/config.json``."""
-    import orbax.checkpoint as ocp
+    import orbax.checkpoint as ocp  # heavy (~1 s): only when models are written or read
 
     directory = Path(directory).absolute()
     directory.mkdir(parents=True, exist_ok=True)
@@ -77,21 +74,21 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None):
 
     ``robot``: the robot the caller's samples come from; another robot is an error.
     """
-    import orbax.checkpoint as ocp
+    import orbax.checkpoint as ocp  # heavy (~1 s): only when models are written or read
 
     directory = Path(directory).absolute()
     cfg_path = directory / CONFIG
     if not cfg_path.is_file():
-        raise CheckpointError(f"{directory}: no {CONFIG}: not a jaxinertia model folder "
+        raise ModelFolderError(f"{directory}: no {CONFIG}: not a jaxinertia model folder "
                               "(make one with `jaxinertia train`)")
     try:
         config = json.loads(cfg_path.read_text())
     except (OSError, json.JSONDecodeError) as e:
-        raise CheckpointError(f"{cfg_path}: unreadable ({e})") from e
+        raise ModelFolderError(f"{cfg_path}: unreadable ({e})") from e
     if config.get("format") != FORMAT:
-        raise CheckpointError(f"{cfg_path}: not a jaxinertia model config")
+        raise ModelFolderError(f"{cfg_path}: not a jaxinertia model config")
     if robot is not None and config.get("robot") != robot:
-        raise CheckpointError(f"{directory}: models trained for robot {config.get('robot')!r}, "
+        raise RobotMismatchError(f"{directory}: models trained for robot {config.get('robot')!r}, "
                               f"the samples come from {robot!r}")
     tm = TorqueModel(**{k: tuple(v) if isinstance(v, list) else v
                         for k, v in config["torque_model"].items()})
@@ -111,7 +108,7 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None):
         with ocp.StandardCheckpointer() as loader:
             state = loader.restore(directory / "checkpoint", target)
     except Exception as e:  # orbax raises many types for missing or mismatched files
-        raise CheckpointError(f"{directory / 'checkpoint'}: cannot restore the models "
+        raise ModelFolderError(f"{directory / 'checkpoint'}: cannot restore the models "
                               f"({type(e).__name__}: {str(e).splitlines()[0][:200]})") from e
     pair = ModelPair(torque_vars=state["torque"], attention_vars=state["attention"],
                      tau_scale=jnp.asarray(np.asarray(features.tau_scale), jnp.float32),

@@ -54,12 +54,14 @@ class RobotMismatchError(JaxinertiaError, ValueError):
     """Data, models or parameters made for another robot than the one asked for."""
 
 
-class ModelFolderError(FileFormatError):
-    """A model folder (orbax checkpoint + ``config.json``) that cannot be used."""
+class ModelFolderError(JaxinertiaError, ValueError):
+    """A model folder (orbax checkpoint + ``config.json``) that cannot be used; the message
+    names the folder or file."""
 
 
-class WeightsError(FileFormatError):
-    """Released network weights (``.npz`` or PyTorch ``.pt``) that cannot be used."""
+class WeightsError(JaxinertiaError, ValueError):
+    """Network weights (``.npz`` or PyTorch ``.pt``) that cannot be used; the message names
+    the file."""
 
 
 class ConfigError(FileFormatError):

@@ -1,77 +1,137 @@
-"""The paper's evaluation (Tables I-III) for trained models and the two baselines.
+"""The one evaluator: the paper's Tables I-III for any models on any known objects.
 
-One jitted call per method family evaluates O objects x K model pairs x B sets of M samples:
-the torque and attention models through :func:`jaxinertia.estimation.estimate_sets`, the
-baselines (Sensor, PE: identity weights) through :func:`jaxinertia.identification.solve_sets`
-vmapped over objects. The same code runs on simulated test objects and on the real lbipe
-files (both are lists of :class:`jaxinertia.lbipe.LbipeDataset`).
+``evaluate(objects, sets, pair=..., baselines=...)`` evaluates O objects x K model pairs x B
+sets of M samples: the torque and attention models in one jitted call
+(:func:`jaxinertia.estimation.estimate_sets`), the baselines (Sensor, PE: identity weights)
+in one more (:func:`jaxinertia.identification.solve_sets` vmapped over objects). The same
+code serves the released models on the real files, trained models on simulated or real
+objects, the estimate of an unknown object and the switching-load run; each object is a
+:class:`jaxinertia.samples.Samples` of one object. Sets are chosen by :func:`choose_sets`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import os
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxinertia.baselines import Baselines
+from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.estimation import Estimates, ModelPair, estimate_sets
 from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.identification import WLSResult, solve_sets
-from jaxinertia.lbipe import LbipeDataset
 from jaxinertia.metrics import inertial_metrics, torque_metrics
+from jaxinertia.objects import bounding_box_diagonal
+from jaxinertia.samples import Samples
 
-__all__ = ["METHODS", "ObjectBatch", "evaluate", "stack_objects"]
+__all__ = [
+    "METHODS",
+    "Stacked",
+    "average",
+    "choose_sets",
+    "continuous_force",
+    "evaluate",
+    "l_max_of",
+    "mean_filter",
+    "random_sets",
+    "sliding_windows",
+    "stack",
+]
 
 METHODS = ("Sensor", "PE", "T", "T-A")
 
 
-@dataclass
-class ObjectBatch:
-    """Test objects padded to a common sample count, ready for one batched call."""
+# ---- sets -------------------------------------------------------------------------------
 
-    datasets: list[LbipeDataset]
-    l_max: list[float]
-    sets: list[np.ndarray]  # per object (B, M) indices into its own samples
-    features: jnp.ndarray  # (O, S, N, 4) float32
+
+def random_sets(n_samples: int, *, n_sets: int = 1000, set_size: int = 64, seed: int = 0):
+    """(n_sets, set_size) indices: each set drawn without replacement, sets independent."""
+    if set_size > n_samples:
+        raise UsageError(f"set size {set_size} exceeds the {n_samples} samples available")
+    rng = np.random.default_rng(seed)
+    return np.stack([rng.choice(n_samples, set_size, replace=False) for _ in range(n_sets)])
+
+
+def choose_sets(objects: Sequence[Samples], *, n_sets: int = 1000, set_size: int = 64,
+                seed: int = 0,
+                golden: Callable[[Samples], np.ndarray | None] | None = None,
+                ) -> tuple[list[np.ndarray], list[str]]:
+    """The evaluation sets of each object and where they came from: ``golden(obj)`` when it
+    gives sets (the authors' golden files), else ``n_sets`` random sets of ``set_size``
+    drawn with seed ``seed + i`` for the i-th object."""
+    sets, sources = [], []
+    for i, obj in enumerate(objects):
+        g = golden(obj) if golden is not None else None
+        if g is not None:
+            sets.append(np.asarray(g, np.int64))
+            sources.append("golden")
+        else:
+            sets.append(random_sets(obj.n_samples, n_sets=n_sets, set_size=set_size,
+                                    seed=seed + i))
+            sources.append(f"random (seed {seed + i})")
+    return sets, sources
+
+
+def l_max_of(objects: Sequence[Samples], overrides: dict[str, float] | None = None,
+             *, path: str | os.PathLike | None = None) -> list[float]:
+    """Each known object's bounding-box diagonal (the COM error normaliser); an object
+    without one is an error naming it (``--l-max NAME=METRES`` supplies it)."""
+    out = []
+    for obj in objects:
+        d = bounding_box_diagonal(obj.name, overrides)
+        if d is None and obj.known:
+            msg = (f"no bounding-box diagonal for object {obj.name!r}: pass "
+                   f"--l-max {obj.name}=METRES")
+            raise FileFormatError(path, None, msg) if path else UsageError(msg)
+        out.append(np.nan if d is None else d)
+    return out
+
+
+# ---- stacking ---------------------------------------------------------------------------
+
+
+class Stacked(NamedTuple):
+    """Objects padded to a common sample count for one batched call (sets index the
+    real samples; the padding repeats the last sample and is never selected)."""
+
+    features: jnp.ndarray | None  # (O, S, N, 4) float32; None without a feature config
     A: jnp.ndarray  # (O, S, N, 4)
     tau_g: jnp.ndarray  # (O, S, N)
-    sets_padded: jnp.ndarray  # (O, B, M)
-
-    @property
-    def names(self) -> list[str]:
-        return [d.name for d in self.datasets]
-
-    def padded(self, per_object: list[np.ndarray]) -> jnp.ndarray:
-        return jnp.asarray(np.stack([_pad(a, self.features.shape[1]) for a in per_object]))
+    sets: jnp.ndarray  # (O, B, M)
 
 
 def _pad(a: np.ndarray, n: int) -> np.ndarray:
+    a = np.asarray(a)
     return np.concatenate([a, np.repeat(a[-1:], n - a.shape[0], axis=0)], axis=0)
 
 
-def stack_objects(datasets: list[LbipeDataset], l_max: list[float], sets: list[np.ndarray],
-                  fc: FeatureConfig) -> ObjectBatch:
-    """Pads every object's arrays to the largest sample count (sets index real samples)."""
+def stack(objects: Sequence[Samples], sets: Sequence[np.ndarray],
+          fc: FeatureConfig | None) -> Stacked:
+    """Pads every object's arrays to the largest sample count (features only with ``fc``)."""
     if len({np.shape(s) for s in sets}) != 1:
-        raise ValueError(f"sample sets differ in shape across objects: "
+        raise UsageError(f"sample sets differ in shape across objects: "
                          f"{[np.shape(s) for s in sets]}")
-    for d, s in zip(datasets, sets):
-        if np.max(s) >= d.n_samples:
-            raise ValueError(f"{d.name}: a set indexes sample {np.max(s)} of {d.n_samples}")
-    n = max(d.n_samples for d in datasets)
+    for obj, s in zip(objects, sets):
+        if np.max(s) >= obj.n_samples or np.min(s) < 0:
+            raise UsageError(f"{obj.name}: a set indexes sample {np.max(s)} of "
+                             f"{obj.n_samples}")
+    n = max(obj.n_samples for obj in objects)
     f64 = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
     # Features in float64 then float32, the precision the networks were trained with.
-    feats = [np.asarray(featurize(fc, jnp.asarray(d.q, f64), d.q_d, d.direction), np.float32)
-             for d in datasets]
-    return ObjectBatch(
-        datasets=list(datasets), l_max=list(l_max), sets=list(sets),
-        features=jnp.asarray(np.stack([_pad(f, n) for f in feats])),
-        A=jnp.asarray(np.stack([_pad(d.A, n) for d in datasets])),
-        tau_g=jnp.asarray(np.stack([_pad(d.tau_g, n) for d in datasets])),
-        sets_padded=jnp.asarray(np.stack(sets)),
-    )
+    feats = None if fc is None else jnp.asarray(np.stack([
+        _pad(np.asarray(featurize(fc, jnp.asarray(o.q, f64), o.q_d, o.direction), np.float32), n)
+        for o in objects]))
+    return Stacked(features=feats,
+                   A=jnp.asarray(np.stack([_pad(o.A, n) for o in objects])),
+                   tau_g=jnp.asarray(np.stack([_pad(o.tau_g, n) for o in objects])),
+                   sets=jnp.asarray(np.stack(sets)))
+
+
+# ---- evaluation -------------------------------------------------------------------------
 
 
 @jax.jit
@@ -81,68 +141,83 @@ def _solve_identity(A, y, tau_g, sets) -> WLSResult:
         A, y.astype(A.dtype), tau_g, sets)
 
 
-def baseline_torques(baselines: Baselines, d: LbipeDataset) -> dict[str, np.ndarray]:
-    s = jnp.asarray(d.direction)
-    return {"Sensor": np.asarray(baselines.sensor(jnp.asarray(d.current_tau), s)),
-            "PE": np.asarray(baselines.pe(jnp.asarray(d.q_d), jnp.asarray(d.q), s))}
+def baseline_torques(baselines: Baselines, obj: Samples) -> dict[str, np.ndarray]:
+    """(S, N) torques [N m] of the Sensor and PE baselines."""
+    s = jnp.asarray(obj.direction)
+    return {"Sensor": np.asarray(baselines.sensor(jnp.asarray(obj.current_tau), s)),
+            "PE": np.asarray(baselines.pe(jnp.asarray(obj.q_d), jnp.asarray(obj.q), s))}
 
 
 def _finite(x: np.ndarray) -> np.ndarray:
     return x[np.all(np.isfinite(x), axis=-1)]
 
 
-def evaluate(batch: ObjectBatch, pair: ModelPair | None, baselines: Baselines | None) -> dict:
-    """Tables I-III and diagnostics.
+def _diagnostics(res: WLSResult, o: int) -> dict:
+    return {"rank_deficient": int(np.sum(np.asarray(res.rank_deficient[o]))),
+            "ill_conditioned": int(np.sum(np.asarray(res.ill_conditioned[o]))),
+            "max_condition": float(np.nanmax(np.asarray(res.condition[o]))),
+            "n_solves": int(np.asarray(res.condition[o]).size)}
+
+
+def evaluate(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
+             pair: ModelPair | None = None, baselines: Baselines | None = None,
+             fc: FeatureConfig | None = None, l_max: Sequence[float] | None = None) -> dict:
+    """Tables I-III and diagnostics of ``pair`` (features ``fc``) and ``baselines`` on
+    ``objects`` (one object each), over each object's ``sets`` (B, M).
 
     Returns ``{"objects": {name: {method: Table I metrics, "mean_attention_weight": [...],
-    "L_max_m": ...}}, "torque": {method: Table II metrics}, "diagnostics": {...},
-    "estimates": {method: (O, [K,] B, 4) arrays}}``. Metrics of the K model pairs are
-    computed over all their sets together (as the paper's ten repeats).
+    "L_max_m": ...}}, "torque": {method: Table II metrics}, "diagnostics": {name: {method:
+    flagged sets}}, "estimates": {method: (O, [K,] B, 4)}, "model_estimates": Estimates}``.
+    Metrics of the K model pairs are computed over all their sets together (as the paper's
+    ten repeats); unknown objects get estimates but no metrics.
     """
-    results: dict[str, dict] = {}
-    estimates: dict[str, np.ndarray] = {}
-    flagged: dict[str, list[int]] = {}
+    if pair is not None and fc is None:
+        raise UsageError("evaluating models needs their feature configuration")
+    l_max = list(l_max) if l_max is not None else l_max_of(objects)
+    names = [o.name for o in objects]
+    batch = stack(objects, sets, fc)
+    solves: dict[str, WLSResult] = {}
     tau_hat: dict[str, list[np.ndarray]] = {}
     if baselines is not None:
-        per_obj = [baseline_torques(baselines, d) for d in batch.datasets]
+        per_obj = [baseline_torques(baselines, o) for o in objects]
         for m in ("Sensor", "PE"):
             tau_hat[m] = [p[m] for p in per_obj]
-            res = _solve_identity(batch.A, batch.padded(tau_hat[m]), batch.tau_g,
-                                  batch.sets_padded)
-            estimates[m] = np.asarray(res.x)
-            flagged[m] = np.sum(~np.asarray(res.ok), axis=-1).tolist()
+            y = jnp.asarray(np.stack([_pad(t, batch.A.shape[1]) for t in tau_hat[m]]))
+            solves[m] = _solve_identity(batch.A, y, batch.tau_g, batch.sets)
     est: Estimates | None = None
     if pair is not None:
-        est = estimate_sets(pair, batch.features, batch.A, batch.tau_g, batch.sets_padded)
-        estimates["T"], estimates["T-A"] = np.asarray(est.T.x), np.asarray(est.TA.x)
-        for m, r in (("T", est.T), ("T-A", est.TA)):
-            flagged[m] = np.sum(~np.asarray(r.ok), axis=(1, 2)).tolist()
-        tau_hat["T"] = [np.asarray(est.tau_hat[o, :, : d.n_samples])
-                        for o, d in enumerate(batch.datasets)]
-    for o, d in enumerate(batch.datasets):
+        est = estimate_sets(pair, batch.features, batch.A, batch.tau_g, batch.sets)
+        solves["T"], solves["T-A"] = est.T, est.TA
+        tau_hat["T"] = [np.asarray(est.tau_hat[o, :, : obj.n_samples])
+                        for o, obj in enumerate(objects)]
+    estimates = {m: np.asarray(r.x) for m, r in solves.items()}
+    results: dict[str, dict] = {}
+    for o, obj in enumerate(objects):
         entry: dict = {}
         for m in METHODS:
-            if m in estimates and np.all(np.isfinite(d.x)):  # unknown objects: no metrics
-                entry[m] = inertial_metrics(_finite(estimates[m][o].reshape(-1, 4)), d.x,
-                                            batch.l_max[o])
+            if m in estimates and obj.known:
+                entry[m] = inertial_metrics(_finite(estimates[m][o].reshape(-1, 4)), obj.x[0],
+                                            l_max[o])
         if est is not None:
-            w = np.asarray(est.weights[o][:, : d.n_samples], np.float64)
+            w = np.asarray(est.weights[o][:, : obj.n_samples], np.float64)
             entry["mean_attention_weight"] = w.reshape(-1, w.shape[-1]).mean(axis=0).tolist()
-        entry["L_max_m"] = batch.l_max[o]
-        results[d.name] = entry
-    tau = np.concatenate([d.tau for d in batch.datasets])
+        entry["L_max_m"] = l_max[o]
+        results[obj.name] = entry
     torque = {}
-    for m, per in tau_hat.items():
-        if m == "T":  # (K, S, N) per object: metrics per model, then the mean over models
-            per_model = [torque_metrics(np.concatenate([p[k] for p in per]), tau)
-                         for k in range(per[0].shape[0])]
-            torque[m] = {key: np.mean([pm[key] for pm in per_model], axis=0).tolist()
-                         for key in per_model[0]}
-        else:
-            torque[m] = torque_metrics(np.concatenate(per), tau)
+    if all(o.known for o in objects):
+        tau = np.concatenate([o.tau for o in objects])
+        for m, per in tau_hat.items():
+            if m == "T":  # (K, S, N) per object: metrics per model, then the mean over models
+                per_model = [torque_metrics(np.concatenate([p[k] for p in per]), tau)
+                             for k in range(per[0].shape[0])]
+                torque[m] = {key: np.mean([pm[key] for pm in per_model], axis=0).tolist()
+                             for key in per_model[0]}
+            else:
+                torque[m] = torque_metrics(np.concatenate(per), tau)
     return {"objects": results, "torque": torque,
-            "diagnostics": {m: dict(zip(batch.names, v)) for m, v in flagged.items()},
-            "estimates": estimates}
+            "diagnostics": {n: {m: _diagnostics(r, o) for m, r in solves.items()}
+                            for o, n in enumerate(names)},
+            "estimates": estimates, "model_estimates": est}
 
 
 def average(objects: dict) -> dict[str, dict[str, float]]:
@@ -155,55 +230,13 @@ def average(objects: dict) -> dict[str, dict[str, float]]:
     return out
 
 
-def format_table1(objects: dict, title: str) -> str:
-    """Table I (per object and average) as a markdown table."""
-    cols = ["mass_MAE_g", "mass_NMAE_pct", "mass_NRMSE_pct", "com_MAE_mm", "com_NMAE_pct",
-            "com_NRMSE_pct"]
-    lines = [f"**{title}**", "", "| object | method | mass MAE [g] | mass NMAE [%] | "
-             "mass NRMSE [%] | COM MAE [mm] | COM NMAE [%] | COM NRMSE [%] |",
-             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
-    rows = dict(objects)
-    if len(objects) > 1:
-        rows["average"] = average(objects)
-    for name, e in rows.items():
-        for m in METHODS:
-            if m in e:
-                lines.append(f"| {name} | {m} | " + " | ".join(f"{e[m][c]:.2f}" for c in cols)
-                             + " |")
-    return "\n".join(lines)
-
-
-def format_table2(torque: dict, title: str) -> str:
-    n = len(next(iter(torque.values()))["MAE_Nmm"])
-    lines = [f"**{title}**", "", "| method | metric | " +
-             " | ".join(f"joint {j + 1}" for j in range(n)) + " |",
-             "| --- | --- |" + " ---: |" * n]
-    for m in METHODS:
-        if m in torque:
-            for key, label in (("MAE_Nmm", "MAE [N mm]"), ("NMAE_pct", "NMAE [%]"),
-                               ("NRMSE_pct", "NRMSE [%]")):
-                lines.append(f"| {m} | {label} | " +
-                             " | ".join(f"{v:.2f}" for v in torque[m][key]) + " |")
-    return "\n".join(lines)
-
-
-def format_table3(objects: dict, title: str) -> str:
-    have = {k: e for k, e in objects.items() if "mean_attention_weight" in e}
-    if not have:
-        return ""
-    n = len(next(iter(have.values()))["mean_attention_weight"])
-    lines = [f"**{title}**", "", "| object | " +
-             " | ".join(f"joint {j + 1}" for j in range(n)) + " |", "| --- |" + " ---: |" * n]
-    for name, e in have.items():
-        lines.append(f"| {name} | " + " | ".join(f"{w:.4f}" for w in e["mean_attention_weight"])
-                     + " |")
-    return "\n".join(lines)
+# ---- the switching-load run -------------------------------------------------------------
 
 
 def sliding_windows(n_samples: int, width: int) -> np.ndarray:
     """(n - width + 1, width) indices of consecutive samples."""
     if n_samples < width:
-        raise ValueError(f"{n_samples} samples are fewer than one window of {width}")
+        raise UsageError(f"{n_samples} samples are fewer than one window of {width}")
     return np.arange(n_samples - width + 1)[:, None] + np.arange(width)[None]
 
 
@@ -217,20 +250,25 @@ def mean_filter(x: np.ndarray, width: int) -> np.ndarray:
     return (c[hi] - c[lo]) / (hi - lo).reshape((-1,) + (1,) * (x.ndim - 1))
 
 
-def continuous_force(batch: ObjectBatch, pair: ModelPair, baselines: Baselines,
-                     true_mass: np.ndarray, *, width: int = 128, g: float = 9.81) -> dict:
+def continuous_force(run: Samples, pair: ModelPair, baselines: Baselines, fc: FeatureConfig,
+                     *, width: int = 128, g: float = 9.81) -> dict:
     """The switching-load experiment: vertical force ``m_hat g`` from windows of ``width``
-    consecutive samples (``batch`` holds one object: the trajectory, with sliding windows as
-    its sets), averaged over the K model pairs, then a ``width``-wide mean filter.
+    consecutive samples of the trajectory ``run`` (several objects, switching), averaged
+    over the K model pairs, then a ``width``-wide mean filter.
 
-    Each window's estimate is placed at its centre sample; the truth there is
-    ``true_mass * g``. Returns per method the raw and filtered force, the MAE of the
-    filtered force [N], and the per-sample torque estimates.
+    Each window's estimate is placed at its centre sample; the truth there is the mass of
+    the object held at that sample times ``g``. Returns per method the raw and filtered
+    force, the MAE of the filtered force [N], and the per-sample torque estimates.
     """
-    res = evaluate(batch, pair, baselines)
-    n = batch.datasets[0].n_samples
-    centre = np.arange(batch.sets[0].shape[0]) + width // 2
-    truth = np.asarray(true_mass, np.float64)[centre] * g
+    if not run.known:
+        raise UsageError("the switching-load run needs the held objects' masses")
+    true_mass = np.asarray(run.x)[np.asarray(run.object_id), 0]
+    traj = run.without_truth().replace(object_id=np.zeros(run.n_samples, np.int64),
+                                       names=("continuous",))
+    windows = sliding_windows(run.n_samples, width)
+    res = evaluate([traj], [windows], pair=pair, baselines=baselines, fc=fc, l_max=[np.nan])
+    centre = np.arange(windows.shape[0]) + width // 2
+    truth = true_mass[centre] * g
     out = {"sample": centre, "truth_N": truth, "methods": {}}
     for m, x in res["estimates"].items():
         mass = np.asarray(x)[0, ..., 0]  # (B,) or (K, B)
@@ -238,12 +276,11 @@ def continuous_force(batch: ObjectBatch, pair: ModelPair, baselines: Baselines,
         force = mean_filter(mass * g, width)
         out["methods"][m] = {"force_N": force, "raw_N": mass * g,
                              "MAE_N": float(np.nanmean(np.abs(force - truth)))}
-    d = batch.datasets[0]
-    torques = {"truth": d.tau}
-    torques.update({m: v for m, v in baseline_torques(baselines, d).items()})
+    torques = {"truth": run.tau}
+    torques.update(baseline_torques(baselines, traj))
     if pair is not None:
-        tau_hat = estimate_sets(pair, batch.features, batch.A, batch.tau_g,
-                                batch.sets_padded[:, :1]).tau_hat
-        torques["T"] = np.asarray(tau_hat[0, :, :n]).mean(axis=0)
+        batch = stack([traj], [windows[:1]], fc)
+        tau_hat = estimate_sets(pair, batch.features, batch.A, batch.tau_g, batch.sets).tau_hat
+        torques["T"] = np.asarray(tau_hat[0, :, : run.n_samples]).mean(axis=0)
     out["torques"] = torques
     return out

@@ -22,6 +22,7 @@ __all__ = [
     "axis_angle_to_matrix",
     "forward_kinematics",
     "ee_pose",
+    "jacobian_at",
     "joint_axes",
     "point_jacobian",
     "ee_jacobian",
@@ -98,7 +99,8 @@ def ee_pose(robot: Robot, q: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
     return R_b @ robot.ee_rot, R_b @ robot.ee_pos + p_b
 
 
-def _jacobian_at(robot: Robot, poses: Poses, body: int, p_base: jnp.ndarray) -> jnp.ndarray:
+def jacobian_at(robot: Robot, poses: Poses, body: int, p_base: jnp.ndarray) -> jnp.ndarray:
+    """:func:`point_jacobian` from body poses already computed (one FK pass, many points)."""
     z, anchor = joint_axes(robot, poses)
     mask = jnp.asarray(robot.ancestors(body), dtype=z.dtype)[:, None]
     jv = jnp.cross(z, p_base - anchor) * mask
@@ -116,7 +118,7 @@ def point_jacobian(robot: Robot, q: jnp.ndarray, body: int, p_base: jnp.ndarray)
       q: (N,) joint angles [rad].
       p_base: (3,) the point's current position in the base frame [m].
     """
-    return _jacobian_at(robot, forward_kinematics(robot, q), body, p_base)
+    return jacobian_at(robot, forward_kinematics(robot, q), body, p_base)
 
 
 def ee_jacobian(robot: Robot, q: jnp.ndarray) -> jnp.ndarray:

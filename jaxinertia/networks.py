@@ -23,6 +23,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxinertia.errors import WeightsError
+from jaxinertia.torch_state_dict import StateDictError
+from jaxinertia.torch_state_dict import load_state_dict as load_pt
+
 __all__ = [
     "AttentionModel",
     "JointEmbedding",
@@ -97,17 +101,10 @@ class AttentionModel(nn.Module):
         return jax.nn.softmax(self.scores(features), axis=-1)
 
 
-class WeightsError(ValueError):
-    """A weight file that is unreadable or does not match the architecture."""
-
-
 def load_state_dict(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """Reads a state dict from ``.npz`` or a PyTorch ``.pt`` (without importing torch)."""
     path = Path(path)
     if path.suffix == ".pt":
-        from jaxinertia.torch_state_dict import StateDictError
-        from jaxinertia.torch_state_dict import load_state_dict as load_pt
-
         try:
             return load_pt(path)
         except StateDictError as e:

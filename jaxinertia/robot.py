@@ -14,9 +14,13 @@ import importlib.resources
 import os
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 from flax import struct
+
+from jaxinertia.errors import JaxinertiaError
 
 __all__ = [
     "Robot",
@@ -30,7 +34,7 @@ __all__ = [
 OPEN_MANIPULATOR_X_XML = "open_manipulator_x.xml"
 
 
-class RobotDescriptionError(ValueError):
+class RobotDescriptionError(JaxinertiaError, ValueError):
     """A robot description that is not a serial chain of revolute joints, or unreadable."""
 
 
@@ -94,8 +98,6 @@ class Robot:
 
     def astype(self, dtype) -> Robot:
         """The same robot with every array leaf cast to ``dtype`` (e.g. float32 for speed)."""
-        import jax
-
         return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=dtype), self)
 
     def with_gravity(self, gravity) -> Robot:
@@ -126,8 +128,6 @@ def from_mujoco(
     The end-effector frame is a site (``ee_site``) or a body's frame (``ee_body``); by default
     the first site, else the last body. Every moving body must hang on exactly one hinge.
     """
-    import mujoco
-
     m = model
     hinge = mujoco.mjtJoint.mjJNT_HINGE
     if m.njnt == 0:
@@ -221,8 +221,6 @@ def from_mujoco(
         raise RobotDescriptionError(f"{name or 'model'}: the end-effector is not on a moving body")
 
     if dtype is None:  # float64 when JAX allows it (jax_enable_x64), else float32
-        import jax
-
         dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
     a = lambda x: jnp.asarray(x, dtype=dtype)  # noqa: E731
     return Robot(
@@ -254,8 +252,6 @@ def compile_mujoco(path: str | os.PathLike):
     URDF links are kept as separate bodies (``fusestatic="false"``) so that massless frames
     such as an ``end_effector_link`` survive compilation.
     """
-    import mujoco
-
     path = Path(path)
     try:
         text = path.read_text()

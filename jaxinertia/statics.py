@@ -20,12 +20,13 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.linalg
 
 from jaxinertia.kinematics import (
-    _jacobian_at,
     axis_angle_to_matrix,
     ee_pose,
     forward_kinematics,
+    jacobian_at,
     skew,
 )
 from jaxinertia.robot import Robot
@@ -45,7 +46,7 @@ __all__ = [
 
 
 def _regressor_on_body(robot, poses, body, R_base_f, p_base_f):
-    jac = _jacobian_at(robot, poses, body, p_base_f)
+    jac = jacobian_at(robot, poses, body, p_base_f)
     g = robot.gravity
     col_m = jac[:3].T @ g
     col_mp = jac[3:].T @ (skew(g).T @ R_base_f)
@@ -130,8 +131,6 @@ def gravity_base_parameters(
     Stacks the regressor at random configurations and keeps the columns a pivoted QR
     declares independent (structural identifiability does not depend on the samples).
     """
-    import scipy.linalg
-
     rng = np.random.default_rng(seed)
     q = rng.uniform(-np.pi, np.pi, size=(n_samples, robot.n_joints))
     r64 = robot.astype(jnp.float64) if jax.config.jax_enable_x64 else robot

@@ -21,10 +21,12 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from jaxinertia.errors import WeightsError
+
 __all__ = ["StateDictError", "UnsupportedPickleError", "load_state_dict"]
 
 
-class StateDictError(ValueError):
+class StateDictError(WeightsError):
     """The file is not a state dict of tensors that this module can read."""
 
 
@@ -269,7 +271,7 @@ def _read_byteorder(archive: zipfile.ZipFile, path: str, prefix: str) -> str:
 def _numpy_dtype(dtype: _TorchDtype, path: str, key: str) -> np.dtype:
     if not dtype.from_ml_dtypes:
         return np.dtype(dtype.name)
-    try:
+    try:  # optional: only the bfloat16/float8 tensors need it (it ships with jax)
         import ml_dtypes
     except ImportError:
         raise StateDictError(

@@ -3,24 +3,22 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
+import matplotlib
 import numpy as np
+
+from jaxinertia.samples import Samples
+
+matplotlib.use("Agg")  # headless: files only, before pyplot is imported
+import matplotlib.pyplot as plt  # noqa: E402
 
 __all__ = ["plot_calibration", "plot_continuous", "plot_lbipe_estimates", "plot_table1",
            "plot_training"]
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(plt, fig, path: str | os.PathLike, dpi: int) -> Path:
+def _save(fig, path: str | os.PathLike, dpi: int) -> Path:
     """Lays out, writes (creating the folder) and closes a figure."""
     fig.tight_layout()
     path = Path(path)
@@ -30,19 +28,19 @@ def _save(plt, fig, path: str | os.PathLike, dpi: int) -> Path:
     return path
 
 
-def plot_lbipe_estimates(res: dict, path: str | os.PathLike) -> Path:
+def plot_lbipe_estimates(objects: Sequence[Samples], estimates: dict, path: str | os.PathLike,
+                         ) -> Path:
     """Per object: the distribution of mass estimates and of COM errors over every model
-    pair and set, T beside T-A, with the truth marked. ``res`` from ``run_lbipe_benchmark``.
-    """
-    plt = _pyplot()
-    inputs, est = res["inputs"], res["estimates"]
-    n = len(inputs.names)
+    pair and set, T beside T-A, with the truth marked. ``estimates``: ``{"T": (O, K, B, 4),
+    "T-A": ...}`` as :func:`jaxinertia.evaluation.evaluate` returns them."""
+    n = len(objects)
     fig, axes = plt.subplots(2, n, figsize=(4.2 * n, 6.4), squeeze=False)
     colors = {"T": "tab:orange", "T-A": "tab:blue"}
-    for o, (name, ds) in enumerate(zip(inputs.names, inputs.datasets)):
-        m_true, p_true = ds.mass, ds.com
-        for key, r in (("T", est.T), ("T-A", est.TA)):
-            x = np.asarray(r.x[o]).reshape(-1, 4)
+    for o, obj in enumerate(objects):
+        name, x_true = obj.name, np.asarray(obj.x[0])
+        m_true, p_true = x_true[0], x_true[1:] / x_true[0]
+        for key in ("T", "T-A"):
+            x = np.asarray(estimates[key][o]).reshape(-1, 4)
             x = x[np.all(np.isfinite(x), axis=-1)]
             m = x[:, 0]
             com_err = np.linalg.norm(x[:, 1:] / x[:, :1] - p_true, axis=-1)
@@ -58,16 +56,15 @@ def plot_lbipe_estimates(res: dict, path: str | os.PathLike) -> Path:
         for ax in axes[:, o]:
             ax.legend(fontsize=8)
             ax.grid(alpha=0.3)
-    fig.suptitle("Released lbipe models on the real OpenMANIPULATOR-X data "
-                 f"({est.T.x.shape[1]} model pairs x {est.T.x.shape[2]} sets of "
-                 f"{inputs.sets[0].shape[1]})")
-    return _save(plt, fig, path, dpi=120)
+    K, B = np.shape(estimates["T"])[1:3]
+    fig.suptitle(f"Released lbipe models on the real OpenMANIPULATOR-X data ({K} model pairs "
+                 f"x {B} sets)")
+    return _save(fig, path, dpi=120)
 
 
 def plot_calibration(real: dict, sim: dict, path: str | os.PathLike) -> Path:
     """Per joint: q_d - q against tau by direction, real beside simulated, and the
     residual histograms of the position-error baseline fit on each."""
-    plt = _pyplot()
     n = real["q"].shape[1]
     fig, axes = plt.subplots(3, n, figsize=(3.6 * n, 9.6), squeeze=False)
     for col, (label, d) in enumerate((("real", real), ("simulated", sim))):
@@ -93,7 +90,7 @@ def plot_calibration(real: dict, sim: dict, path: str | os.PathLike) -> Path:
                     label=f"{label}: MAE {np.mean(np.abs(r)):.0f}")
         ax.set(title=f"PE-fit residual, joint {j + 1}", xlabel="[N mm]")
         ax.legend(fontsize=8)
-    return _save(plt, fig, path, dpi=110)
+    return _save(fig, path, dpi=110)
 
 
 _METHOD_COLORS = {"Sensor": "tab:gray", "PE": "tab:green", "T": "tab:orange", "T-A": "tab:blue",
@@ -102,7 +99,6 @@ _METHOD_COLORS = {"Sensor": "tab:gray", "PE": "tab:green", "T": "tab:orange", "T
 
 def plot_training(history: dict, path: str | os.PathLike) -> Path:
     """Validation loss per epoch of every model (torque MSE; attention loss)."""
-    plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
     for ax, (name, label) in zip(axes, (("torque", "torque model: MSE (normalised)"),
                                         ("attention", "attention model: loss [SI]"))):
@@ -115,12 +111,11 @@ def plot_training(history: dict, path: str | os.PathLike) -> Path:
         ax.plot([], [], color="tab:gray", label="training")
         ax.plot([], [], color="tab:blue", label="validation")
         ax.legend()
-    return _save(plt, fig, path, 120)
+    return _save(fig, path, 120)
 
 
 def plot_table1(objects: dict, path: str | os.PathLike, title: str = "") -> Path:
     """Mass and COM NMAE per object and method (Table I as bars)."""
-    plt = _pyplot()
     names = list(objects)
     methods = [m for m in ("Sensor", "PE", "T", "T-A") if m in objects[names[0]]]
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
@@ -139,13 +134,12 @@ def plot_table1(objects: dict, path: str | os.PathLike, title: str = "") -> Path
     axes[0].legend()
     if title:
         fig.suptitle(title)
-    return _save(plt, fig, path, 120)
+    return _save(fig, path, 120)
 
 
 def plot_continuous(res: dict, path: str | os.PathLike, joints=(0, 1, 2, 3)) -> Path:
     """Switching-load run: filtered vertical force per method against the truth, and the
     joint torques along the trajectory."""
-    plt = _pyplot()
     n_j = len(joints)
     fig, axes = plt.subplots(1 + n_j, 1, figsize=(10, 2.4 * (1 + n_j)), sharex=True)
     ax = axes[0]
@@ -165,4 +159,4 @@ def plot_continuous(res: dict, path: str | os.PathLike, joints=(0, 1, 2, 3)) -> 
         ax.set_ylabel(f"joint {j + 1} [N m]")
     axes[1].legend(fontsize=8, ncol=4)
     axes[-1].set_xlabel("sample")
-    return _save(plt, fig, path, 110)
+    return _save(fig, path, 110)

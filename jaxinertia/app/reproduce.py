@@ -20,8 +20,18 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import jax
-import numpy as np
 
+from jaxinertia import __version__
+from jaxinertia.app import plots
+from jaxinertia.app.pipeline import evaluate_samples, sim_to_real, train, write_json
+from jaxinertia.app.report import table1, table2, table3
+from jaxinertia.checkpoints import load_models
+from jaxinertia.evaluation import continuous_force
+from jaxinertia.lbipe import default_lbipe_dir
+from jaxinertia.samples import Samples, load_native, load_samples, save_native
+from jaxinertia.sim.continuous import simulate_continuous_run
+from jaxinertia.sim.params import default_sim_params
+from jaxinertia.sim.run import ScenarioRequest, native_fields, simulate_scenarios
 from jaxinertia.training import TrainConfig
 
 __all__ = ["FULL", "QUICK", "Scale", "reproduce"]
@@ -57,8 +67,6 @@ def _machine() -> str:
 
 def _reusable(path: Path, request: dict) -> bool:
     """Whether the file at ``path`` was made by the same request (a re-run reuses it)."""
-    from jaxinertia.datasets import load_native
-
     try:
         return path.exists() and load_native(path)[1].get("request") == request
     except ValueError:
@@ -66,11 +74,8 @@ def _reusable(path: Path, request: dict) -> bool:
 
 
 def _save(path: Path, request: dict, fields: dict, meta: dict) -> Path:
-    from jaxinertia import __version__
-    from jaxinertia.datasets import save_native
-
     meta.update(request=request, version=__version__)
-    save_native(path, fields, meta)
+    save_native(path, Samples.from_fields(fields, meta["objects"], need_truth=True), meta)
     return path
 
 
@@ -86,9 +91,6 @@ def _cached(path: Path, request: dict, make) -> Path:
 def _simulate(params, wanted: list[tuple[Path, str, int | None, int]]) -> list[Path]:
     """Simulates the scenarios ``(path, scenario, n, seed)`` whose files are not there yet,
     all in one stream (one compiled program, one settling tail)."""
-    from jaxinertia import __version__
-    from jaxinertia.sim.run import ScenarioRequest, native_fields, simulate_scenarios
-
     def request(scenario, n, seed):
         return {"scenario": scenario, "seed": seed, "n": n}
 
@@ -112,8 +114,6 @@ CONTINUOUS_OBJECTS = ["empty", "cube", "white", "black"]
 
 
 def _continuous(params, path: Path, scale: Scale, seed: int) -> Path:
-    from jaxinertia.sim.continuous import simulate_continuous_run
-
     kw = dict(n=scale.continuous_samples, objects=CONTINUOUS_OBJECTS,
               switch_every=scale.switch_every, seed=seed)
 
@@ -130,20 +130,6 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
               lbipe_dir: str | os.PathLike | None = None, scale: Scale | None = None,
               progress: bool = True) -> dict:
     """Runs every stage into the folder ``out``; returns the results (also in tables.json)."""
-    from jaxinertia import plots
-    from jaxinertia.datasets import load_samples
-    from jaxinertia.evaluation import (
-        continuous_force,
-        format_table1,
-        format_table2,
-        format_table3,
-        sliding_windows,
-        stack_objects,
-    )
-    from jaxinertia.lbipe import LbipeDataset, default_lbipe_dir
-    from jaxinertia.pipeline import evaluate_samples, train, write_json
-    from jaxinertia.sim.run import default_sim_params
-
     scale = scale or (FULL if full else QUICK)
     out = Path(out)
     data_dir = out / "data"
@@ -176,18 +162,11 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
     with stage("evaluate"):
         sim = evaluate_samples(out / "models", test_file, n_sets=scale.n_sets, seed=seed)
     with stage("continuous"):
-        from jaxinertia.checkpoints import load_models
-
         pair, baselines, fc, _ = load_models(out / "models")
-        r, _ = load_samples(cont_file, only_at_rest=False)
-        cont_mass = r.x[r.object_id, 0]
-        cont_names = [CONTINUOUS_OBJECTS[i] for i in r.object_id]
-        traj = LbipeDataset(name="continuous", q_d=r.q_d, q=r.q, current_tau=r.current_tau,
-                            direction=r.direction, tau=r.tau, tau_g=r.tau_g, A=r.A,
-                            x=np.full(4, np.nan))
-        windows = sliding_windows(len(r.q), 128)
-        cres = continuous_force(stack_objects([traj], [np.nan], [windows], fc), pair, baselines,
-                                cont_mass)
+        run, _ = load_samples(cont_file, only_at_rest=False)
+        cont_mass = run.x[run.object_id, 0]
+        cont_names = [run.names[i] for i in run.object_id]
+        cres = continuous_force(run, pair, baselines, fc)
     real = None
     lbipe_dir = Path(lbipe_dir) if lbipe_dir else default_lbipe_dir()
     with stage("sim-to-real"):
@@ -221,9 +200,9 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
         f"samples per object, {scale.n_sets} sets of {scale.train.set_size} per object and "
         "model.", "",
         "## Simulated test objects", "",
-        format_table1(sim["objects"], "Table I: mass and COM"), "",
-        format_table2(sim["torque"], "Table II: joint torque (all test samples)"), "",
-        format_table3(sim["objects"], "Table III: mean attention weights"), "",
+        table1(sim["objects"], "Table I: mass and COM"), "",
+        table2(sim["torque"], "Table II: joint torque (all test samples)"), "",
+        table3(sim["objects"], "Table III: mean attention weights"), "",
         f"![Table I]({figs['table1'].name})", "",
         "## Switching loads (continuous run)", "",
         f"{len(cont_mass)} consecutive samples, held object switching every "
@@ -237,10 +216,10 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
         lines += [f"Skipped: no real data at {lbipe_dir} (see README: shared/lbipe)."]
     else:
         lines += [real.get("note", ""), "",
-                  format_table1(real["ours"]["objects"], "Models trained on the simulator, "
+                  table1(real["ours"]["objects"], "Models trained on the simulator, "
                                 "real test files"), ""]
         if real.get("released"):
-            lines += [format_table1(real["released"], "The authors' released models, same "
+            lines += [table1(real["released"], "The authors' released models, same "
                                     "files and sets"), ""]
         lines += [f"![real]({figs['real'].name})", ""]
     lines += ["## Training", "", f"Best epochs: torque {info['best_epoch']['torque']}, "
@@ -249,49 +228,3 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
     (out / "report.md").write_text("\n".join(lines))
     print(f"wrote {out / 'report.md'}, {out / 'tables.json'} and {len(figs)} plots")
     return results
-
-
-def sim_to_real(models: str | os.PathLike, lbipe_dir: str | os.PathLike, *, seed: int = 0,
-                n_sets: int = 1000) -> dict | None:
-    """Trained models on every real test file in ``lbipe_dir`` (the golden sets when the
-    folder has them, else seeded random sets), beside the released models on the same sets.
-    None when the folder is absent."""
-    from jaxinertia.lbipe import (
-        BOUNDING_BOX_DIAGONALS,
-        find_layout,
-        load_golden,
-        load_test_file,
-    )
-    from jaxinertia.lbipe_benchmark import random_sets, run_lbipe_benchmark
-    from jaxinertia.pipeline import evaluate_datasets
-
-    lbipe_dir = Path(lbipe_dir)
-    if not lbipe_dir.is_dir():
-        return None
-    layout = find_layout(lbipe_dir)
-    datasets, sets, sources = [], [], []
-    for name, path in layout.test_files.items():
-        if name not in BOUNDING_BOX_DIAGONALS:
-            continue
-        d = load_test_file(path, name)
-        g = layout.golden_dir / f"golden_{name}.npz" if layout.golden_dir else None
-        if g is not None and g.exists():
-            sets.append(load_golden(g, d.n_samples)["sets"])
-            sources.append("golden")
-        else:
-            sets.append(random_sets(d.n_samples, n_sets=n_sets, seed=seed))
-            sources.append(f"random seed {seed}")
-        datasets.append(d)
-    ours = evaluate_datasets(models, datasets, sets=sets)
-    out = {"ours": {"objects": ours["objects"], "torque": ours["torque"]},
-           "files": {d.name: str(p) for d, p in zip(datasets, layout.test_files.values())},
-           "sets": dict(zip([d.name for d in datasets], sources))}
-    try:
-        released = run_lbipe_benchmark(lbipe_dir, seed=seed)["metrics"]
-        out["released"] = {k: {m: v[m] for m in ("T", "T-A")} for k, v in released.items()}
-    except (ValueError, OSError) as e:
-        out["released_error"] = str(e)
-    out["note"] = ("Real files: " + ", ".join(f"{k} ({v} sets)" for k, v in out["sets"].items())
-                   + ". The released models were trained on the authors' real training set.")
-    return out
-
