@@ -3,6 +3,8 @@
 Both trainings are jit-compiled per epoch (a ``lax.scan`` over the minibatches) and run K
 model pairs with different seeds in parallel under ``vmap``: K small MLPs make one wider
 program instead of K sequential runs. Keys are explicit; the same seed gives the same models.
+One epoch skeleton (:func:`make_epoch`, state in :class:`TrainState`) serves both; each
+trainer gives its loss, its minibatches and its validation loss.
 
 Torque model: MSE between the predicted and the true normalised joint torques (tau divided
 by ``tau_scale``, the training set's max |tau| per joint), Adam, batch 256, 300 epochs,
@@ -21,13 +23,15 @@ attention model's validation sets are drawn from them).
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from flax import struct
 from tqdm.auto import tqdm
 
 from jaxinertia.features import FeatureConfig, featurize
@@ -35,11 +39,14 @@ from jaxinertia.identification import solve_normal
 from jaxinertia.networks import AttentionModel, TorqueModel
 
 __all__ = [
+    "Epoch",
     "SampleSet",
     "TrainConfig",
+    "TrainState",
     "attention_loss",
     "draw_sets",
     "feature_config_from",
+    "make_epoch",
     "train_attention_models",
     "train_torque_models",
 ]
@@ -136,18 +143,86 @@ def _init_stacked(model, keys, example):
     return jax.vmap(lambda k: model.init(k, example))(keys)
 
 
+@struct.dataclass
+class TrainState:
+    """K models trained together: every field but ``epoch`` is stacked (K, ...)."""
+
+    params: Any  # the current parameters
+    opt_state: Any  # the optimiser's state
+    best_params: Any  # the parameters of the best validation epoch so far
+    best_loss: jax.Array  # (K,) their validation loss (inf before the first epoch)
+    best_epoch: jax.Array  # (K,) int32, the epoch they come from
+    epoch: jax.Array  # () int32, the epochs run
+
+
+class Epoch(NamedTuple):
+    """A training epoch of K models in the optax style: ``state = init(params, loss_dtype)``,
+    ``state, train_loss, val_loss = update(state, key, data, val_data)`` (jitted; losses (K,))."""
+
+    init: Callable[..., TrainState]
+    update: Callable[..., tuple[TrainState, jax.Array, jax.Array]]
+
+
+def make_epoch(tx: optax.GradientTransformation, loss_fn, batches_fn, val_fn) -> Epoch:
+    """One epoch: per model (``vmap``), a ``lax.scan`` of ``tx`` steps over its minibatches,
+    then the validation loss and keep-best.
+
+    ``data`` and ``val_data`` are pairs ``(shared, own)``: ``shared`` is the same for every
+    model, ``own`` is stacked (K, ...) (``None`` when the models share all data).
+    ``batches_fn(key)`` gives one model's (steps, ...) minibatches of the epoch (the leading
+    axis is scanned), ``loss_fn(params, shared, own, batch)`` one model's minibatch loss and
+    ``val_fn(params, shared, own)`` its validation loss.
+    """
+
+    def init(params, loss_dtype) -> TrainState:
+        K = jax.tree_util.tree_leaves(params)[0].shape[0]
+        return TrainState(params, jax.vmap(tx.init)(params), params,
+                          jnp.full(K, jnp.inf, loss_dtype), jnp.zeros(K, jnp.int32),
+                          jnp.int32(0))
+
+    @jax.jit
+    def update(state: TrainState, key, data, val_data):
+        (shared, own), (v_shared, v_own) = data, val_data
+
+        def one_model(p, o, own_k, k):
+            def step(carry, batch):
+                p, o = carry
+                loss, g = jax.value_and_grad(loss_fn)(p, shared, own_k, batch)
+                upd, o = tx.update(g, o, p)
+                return (optax.apply_updates(p, upd), o), loss
+
+            (p, o), losses = jax.lax.scan(step, (p, o), batches_fn(k))
+            return p, o, jnp.mean(losses)
+
+        K = state.best_loss.shape[0]
+        params, opt_state, train_loss = jax.vmap(one_model)(state.params, state.opt_state, own,
+                                                            jax.random.split(key, K))
+        val_loss = jax.vmap(lambda p, o: val_fn(p, v_shared, o))(params, v_own)
+        improved = val_loss < state.best_loss
+        state = TrainState(
+            params, opt_state, _keep_best(state.best_params, params, improved),
+            jnp.where(improved, val_loss, state.best_loss),
+            jnp.where(improved, state.epoch, state.best_epoch), state.epoch + 1)
+        return state, train_loss, val_loss
+
+    return Epoch(init, update)
+
+
 def _keep_best(best, new, improved):
     return jax.tree_util.tree_map(
         lambda b, n: jnp.where(improved.reshape((-1,) + (1,) * (n.ndim - 1)), n, b), best, new)
 
 
-def _run_epochs(epoch_fn, state, n_epochs, key, desc, progress, on_epoch=None):
-    """Calls the jitted ``epoch_fn`` n_epochs times with a progress bar; returns the state
-    and the (n_epochs, 2, K) history of training and validation losses."""
+def _run_epochs(epoch: Epoch, state: TrainState, data, val_data, n_epochs, key, desc,
+                progress, on_epoch=None) -> tuple[TrainState, np.ndarray]:
+    """Runs ``epoch.update`` n_epochs times with a progress bar, then calls
+    ``on_epoch(e, (train_loss, val_loss))`` if given; returns the state and the
+    (n_epochs, 2, K) history of training and validation losses."""
     history = []
     with tqdm(total=n_epochs, desc=desc, unit="epoch", disable=not progress) as bar:
         for e in range(n_epochs):
-            state, train_loss, val_loss = epoch_fn(state, jax.random.fold_in(key, e))
+            state, train_loss, val_loss = epoch.update(state, jax.random.fold_in(key, e), data,
+                                                       val_data)
             history.append((np.asarray(train_loss), np.asarray(val_loss)))
             bar.set_postfix(val=f"{float(np.min(history[-1][1])):.3g}")
             bar.update()
@@ -172,8 +247,10 @@ def train_torque_models(
     *,
     model: TorqueModel | None = None,
     progress: bool = True,
+    on_epoch: Callable[[int, tuple], None] | None = None,
 ) -> TrainedTorque:
-    """K torque models (``cfg.n_models``) trained in parallel, best epoch by validation."""
+    """K torque models (``cfg.n_models``) trained in parallel, best epoch by validation;
+    ``on_epoch(e, (train_loss, val_loss))`` after each epoch if given."""
     model = model or TorqueModel(n_joints=train.q.shape[1])
     X, Xv = _features(fc, train), _features(fc, val)
     scale = jnp.asarray(fc.tau_scale, jnp.float32)
@@ -182,44 +259,21 @@ def train_torque_models(
     S = X.shape[0]
     batch = min(cfg.torque_batch, S)
     steps = S // batch
-    tx = optax.adam(cfg.torque_lr)
-    K = cfg.n_models
     k_init, k_epochs = jax.random.split(key)
-    params = _init_stacked(model, jax.random.split(k_init, K), X[:1])
-    opt = jax.vmap(tx.init)(params)
 
     def mse(p, x, y):
         return jnp.mean((model.apply(p, x) - y) ** 2)
 
-    @jax.jit
-    def epoch(state, key, X, Y, Xv, Yv):
-        params, opt, best, best_loss, best_epoch, e = state
-
-        def one_model(p, o, k):
-            perm = jax.random.permutation(k, S)[: steps * batch].reshape(steps, batch)
-
-            def step(carry, idx):
-                p, o = carry
-                loss, g = jax.value_and_grad(mse)(p, X[idx], Y[idx])
-                upd, o = tx.update(g, o, p)
-                return (optax.apply_updates(p, upd), o), loss
-
-            (p, o), losses = jax.lax.scan(step, (p, o), perm)
-            return p, o, jnp.mean(losses)
-
-        params, opt, train_loss = jax.vmap(one_model)(params, opt, jax.random.split(key, K))
-        val_loss = jax.vmap(mse, (0, None, None))(params, Xv, Yv)
-        improved = val_loss < best_loss
-        best = _keep_best(best, params, improved)
-        best_loss = jnp.where(improved, val_loss, best_loss)
-        best_epoch = jnp.where(improved, e, best_epoch)
-        return (params, opt, best, best_loss, best_epoch, e + 1), train_loss, val_loss
-
-    state = (params, opt, params, jnp.full(K, jnp.inf, jnp.float32), jnp.zeros(K, jnp.int32),
-             jnp.int32(0))
-    state, hist = _run_epochs(lambda s, k: epoch(s, k, X, Y, Xv, Yv), state, cfg.torque_epochs,
-                              k_epochs, "torque model", progress)
-    return TrainedTorque(model, state[2], hist, np.asarray(state[4]))
+    epoch = make_epoch(
+        optax.adam(cfg.torque_lr),
+        loss_fn=lambda p, XY, _, idx: mse(p, XY[0][idx], XY[1][idx]),
+        batches_fn=lambda k: jax.random.permutation(k, S)[: steps * batch].reshape(steps, batch),
+        val_fn=lambda p, XYv, _: mse(p, *XYv))
+    state = epoch.init(_init_stacked(model, jax.random.split(k_init, cfg.n_models), X[:1]),
+                       jnp.float32)
+    state, hist = _run_epochs(epoch, state, ((X, Y), None), ((Xv, Yv), None), cfg.torque_epochs,
+                              k_epochs, "torque model", progress, on_epoch)
+    return TrainedTorque(model, state.best_params, hist, np.asarray(state.best_epoch))
 
 
 def attention_loss(weights, A, y, x_true, *, w_mass: float, w_com: float):
@@ -275,8 +329,10 @@ def train_attention_models(
     *,
     model: AttentionModel | None = None,
     progress: bool = True,
+    on_epoch: Callable[[int, tuple], None] | None = None,
 ) -> TrainedAttention:
-    """K attention models, model k trained through the WLS on torque model k's outputs."""
+    """K attention models, model k trained through the WLS on torque model k's outputs;
+    ``on_epoch`` as in :func:`train_torque_models`."""
     model = model or AttentionModel(n_joints=train.q.shape[1])
     K = cfg.n_models
     dtype = jnp.result_type(float)
@@ -292,48 +348,24 @@ def train_attention_models(
         return (_features(fc, d), jnp.asarray(d.A, dtype), y,
                 jnp.asarray(d.x, dtype)[jnp.asarray(d.object_id)])
 
-    data, vdata = arrays(train), arrays(val)
-    tx = optax.adam(cfg.attention_lr)
+    (feats, A, y, x_obj), (vf, vA, vy, vx) = arrays(train), arrays(val)
     k_init, k_epochs = jax.random.split(key)
-    params = _init_stacked(model, jax.random.split(k_init, K), data[0][:1])
-    opt = jax.vmap(tx.init)(params)
 
-    def loss_fn(p, feats, A, y, x_obj, idx):
+    def loss_fn(p, shared, y, idx):
+        feats, A, x_obj = shared
         w = model.apply(p, feats[idx])
         loss, _ = attention_loss(w, A[idx], y[idx], x_obj[idx[:, 0]], w_mass=cfg.w_mass,
                                  w_com=cfg.w_com)
         return loss
 
-    @jax.jit
-    def epoch(state, key, data, vdata):
-        params, opt, best, best_loss, best_epoch, e = state
-        feats, A, y, x_obj = data
+    def batches(k):
+        perm = jax.random.permutation(k, sets.shape[0])[: steps * B]
+        return sets[perm].reshape(steps, B, -1)
 
-        def one_model(p, o, y_k, k):
-            perm = jax.random.permutation(k, sets.shape[0])[: steps * B]
-            batches = sets[perm].reshape(steps, B, -1)
-
-            def step(carry, idx):
-                p, o = carry
-                loss, g = jax.value_and_grad(loss_fn)(p, feats, A, y_k, x_obj, idx)
-                upd, o = tx.update(g, o, p)
-                return (optax.apply_updates(p, upd), o), loss
-
-            (p, o), losses = jax.lax.scan(step, (p, o), batches)
-            return p, o, jnp.mean(losses)
-
-        params, opt, train_loss = jax.vmap(one_model)(params, opt, y,
-                                                      jax.random.split(key, K))
-        vf, vA, vy, vx = vdata
-        val_loss = jax.vmap(lambda p, y_k: loss_fn(p, vf, vA, y_k, vx, vsets))(params, vy)
-        improved = val_loss < best_loss
-        best = _keep_best(best, params, improved)
-        best_loss = jnp.where(improved, val_loss, best_loss)
-        best_epoch = jnp.where(improved, e, best_epoch)
-        return (params, opt, best, best_loss, best_epoch, e + 1), train_loss, val_loss
-
-    state = (params, opt, params, jnp.full(K, jnp.inf, dtype), jnp.zeros(K, jnp.int32),
-             jnp.int32(0))
-    state, hist = _run_epochs(lambda s, k: epoch(s, k, data, vdata), state,
-                              cfg.attention_epochs, k_epochs, "attention model", progress)
-    return TrainedAttention(model, state[2], hist, np.asarray(state[4]))
+    epoch = make_epoch(optax.adam(cfg.attention_lr), loss_fn, batches,
+                       val_fn=lambda p, shared, y_k: loss_fn(p, shared, y_k, vsets))
+    state = epoch.init(_init_stacked(model, jax.random.split(k_init, K), feats[:1]), dtype)
+    state, hist = _run_epochs(epoch, state, ((feats, A, x_obj), y), ((vf, vA, vx), vy),
+                              cfg.attention_epochs, k_epochs, "attention model", progress,
+                              on_epoch)
+    return TrainedAttention(model, state.best_params, hist, np.asarray(state.best_epoch))

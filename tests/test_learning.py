@@ -97,9 +97,14 @@ def test_torque_training_learns_and_keeps_the_best_validation_epoch():
     assert not set(map(tuple, train.q)) & set(map(tuple, val.q))
     fc = feature_config_from(train)
     cfg = TrainConfig(n_models=2, torque_epochs=60, torque_lr=3e-3)
-    res = train_torque_models(cfg, fc, train, val, jax.random.key(0), progress=False)
+    seen = []
+    res = train_torque_models(cfg, fc, train, val, jax.random.key(0), progress=False,
+                              on_epoch=lambda e, losses: seen.append((e, losses)))
     hist = res.history  # (epochs, 2, K)
     assert hist.shape == (60, 2, 2)
+    # on_epoch sees every epoch's (train, validation) losses, in order.
+    assert [e for e, _ in seen] == list(range(60))
+    np.testing.assert_array_equal(np.asarray([losses for _, losses in seen]), hist)
     assert np.all(hist[-1, 1] < 0.05 * hist[0, 1])  # validation MSE falls 20-fold
     best = np.argmin(hist[:, 1], axis=0)
     np.testing.assert_array_equal(res.best_epoch, best)
