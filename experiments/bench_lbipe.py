@@ -18,7 +18,9 @@ import argparse
 import json
 import platform
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -28,9 +30,15 @@ import jaxinertia  # noqa: F401  (XLA settings before JAX starts)
 
 jax.config.update("jax_enable_x64", True)
 
+from jaxinertia.app.pipeline import load_real  # noqa: E402
 from jaxinertia.estimation import estimate_sets  # noqa: E402
-from jaxinertia.lbipe import default_lbipe_dir  # noqa: E402
-from jaxinertia.lbipe_benchmark import prepare, reference_loop  # noqa: E402
+from jaxinertia.evaluation import stack  # noqa: E402
+from jaxinertia.features import LBIPE_FEATURES  # noqa: E402
+from jaxinertia.lbipe import default_lbipe_dir, load_released_models  # noqa: E402
+
+# The per-set numpy reference lives with the tests (tests/support/reference.py).
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from support.reference import reference_loop  # noqa: E402
 
 
 def _time_batched(pair, feats, A, tau_g, sets, repeats):
@@ -62,28 +70,31 @@ def main() -> None:
     print(f"device: {dev.device_kind} ({dev.platform}); jax {jax.__version__}; "
           f"{platform.processor() or platform.machine()}")
     t = time.perf_counter()
-    inputs, pair = prepare(args.lbipe_dir)
+    real = load_real(args.lbipe_dir)
+    pair = load_released_models(real.layout.weights_dir, prefer=real.layout.prefer)
+    inputs = stack(real.objects, real.sets, LBIPE_FEATURES)
     load_s = time.perf_counter() - t
-    O = len(inputs.names)
-    K, B, M = pair.n_models, inputs.sets_padded.shape[1], inputs.sets_padded.shape[2]
-    print(f"objects {inputs.names}, {K} model pairs x {B} sets of {M}; load {load_s:.2f} s")
+    names = [o.name for o in real.objects]
+    O = len(names)
+    K, B, M = pair.n_models, inputs.sets.shape[1], inputs.sets.shape[2]
+    print(f"objects {names}, {K} model pairs x {B} sets of {M}; load {load_s:.2f} s")
 
     res = {"device": f"{dev.device_kind} ({dev.platform})", "jax": jax.__version__,
-           "objects": inputs.names, "models": K, "sets": B, "set_size": M}
-    res["batched"] = _time_batched(pair, inputs.features, inputs.A, inputs.tau_g,
-                                   inputs.sets_padded, args.repeats)
+           "objects": names, "models": K, "sets": B, "set_size": M}
+    res["batched"] = _time_batched(pair, *inputs, args.repeats)
     reps = -(-4 // O)  # four objects: repeat the present ones
-    four = [jnp.concatenate([a] * reps)[:4] for a in
-            (inputs.features, inputs.A, inputs.tau_g, inputs.sets_padded)]
+    four = [jnp.concatenate([a] * reps)[:4] for a in inputs]
     res["batched_4_objects"] = _time_batched(pair, *four, args.repeats)
 
     n_ref = O if args.reference_objects is None else min(O, args.reference_objects)
     ref_times = []
     for o in range(n_ref):
+        S = real.objects[o].n_samples
         t = time.perf_counter()
-        reference_loop(pair, inputs, o)
+        reference_loop(pair, inputs.features[o][:S], inputs.A[o][:S], inputs.tau_g[o][:S],
+                       real.sets[o])
         ref_times.append(time.perf_counter() - t)
-        print(f"reference loop, {inputs.names[o]}: {ref_times[-1]:.2f} s")
+        print(f"reference loop, {names[o]}: {ref_times[-1]:.2f} s")
     ref_per_object = float(np.mean(ref_times))
     res["reference_per_object_s"] = ref_per_object
 

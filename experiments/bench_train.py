@@ -25,10 +25,9 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from jaxinertia.datasets import load_samples  # noqa: E402
 from jaxinertia.features import featurize  # noqa: E402
+from jaxinertia.samples import Samples, load_samples  # noqa: E402
 from jaxinertia.training import (  # noqa: E402
-    SampleSet,
     TrainConfig,
     feature_config_from,
     split_validation,
@@ -39,7 +38,7 @@ from jaxinertia.training import (  # noqa: E402
 PAPER_SAMPLES = 82144
 
 
-def synthetic(n: int, seed: int = 0) -> SampleSet:
+def synthetic(n: int, seed: int = 0) -> Samples:
     """Arrays of the right shapes and plausible ranges (throughput does not depend on the
     values); four objects as the paper's training loads."""
     rng = np.random.default_rng(seed)
@@ -50,8 +49,8 @@ def synthetic(n: int, seed: int = 0) -> SampleSet:
     oid = np.arange(n) % 4
     tau_g = rng.normal(size=(n, 4)) * 0.3
     tau = tau_g + np.einsum("snp,sp->sn", A, x[oid])
-    return SampleSet(q_d=q + tau / 17.0, q=q, direction=s, current_tau=tau, tau=tau,
-                     tau_g=tau_g, A=A, object_id=oid, x=x)
+    return Samples(q_d=q + tau / 17.0, q=q, direction=s, current_tau=tau, tau=tau,
+                   tau_g=tau_g, A=A, object_id=oid, x=x, names=("0g", "50g", "100g", "150g"))
 
 
 def time_epochs(fn, n_epochs: int) -> float:
@@ -64,7 +63,7 @@ def time_epochs(fn, n_epochs: int) -> float:
     return (stamps[-1] - stamps[0]) / n_epochs
 
 
-def torch_reference(train: SampleSet, fc, n_epochs: int) -> tuple[float, str] | None:
+def torch_reference(train: Samples, fc, n_epochs: int) -> tuple[float, str] | None:
     """Seconds per torque-model epoch in PyTorch (on CUDA when it has a GPU, as the authors
     would train), or None without PyTorch."""
     try:  # PyTorch is optional (the reference only)

@@ -37,10 +37,10 @@ from tqdm.auto import tqdm
 from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.identification import solve_normal
 from jaxinertia.networks import AttentionModel, TorqueModel
+from jaxinertia.samples import Samples
 
 __all__ = [
     "Epoch",
-    "SampleSet",
     "TrainConfig",
     "TrainState",
     "attention_loss",
@@ -80,28 +80,7 @@ class TrainConfig:
         return dataclasses.asdict(self)
 
 
-class SampleSet(NamedTuple):
-    """Samples of known objects as the trainer needs them (S samples, N joints, SI)."""
-
-    q_d: np.ndarray  # (S, N)
-    q: np.ndarray  # (S, N)
-    direction: np.ndarray  # (S, N)
-    current_tau: np.ndarray  # (S, N)
-    tau: np.ndarray  # (S, N) true joint torque
-    tau_g: np.ndarray  # (S, N)
-    A: np.ndarray  # (S, N, 4)
-    object_id: np.ndarray  # (S,) index into x
-    x: np.ndarray  # (O, 4) [m, m p] of each object
-
-    def take(self, idx: np.ndarray) -> SampleSet:
-        return self._replace(**{k: getattr(self, k)[idx] for k in self._fields if k != "x"})
-
-    @property
-    def n_samples(self) -> int:
-        return int(self.q.shape[0])
-
-
-def feature_config_from(data: SampleSet) -> FeatureConfig:
+def feature_config_from(data: Samples) -> FeatureConfig:
     """Min-max bounds of q and the scales of q_d - q and tau (max |.|) from training data."""
     qe = np.abs(data.q_d - data.q)
     q_min, q_max = data.q.min(axis=0), data.q.max(axis=0)
@@ -110,7 +89,7 @@ def feature_config_from(data: SampleSet) -> FeatureConfig:
                                 np.maximum(np.abs(data.tau).max(axis=0), 1e-4))
 
 
-def split_validation(data: SampleSet, fraction: float, seed: int) -> tuple[SampleSet, SampleSet]:
+def split_validation(data: Samples, fraction: float, seed: int) -> tuple[Samples, Samples]:
     """Random held-out split, stratified by object."""
     rng = np.random.default_rng(seed)
     val = []
@@ -134,7 +113,7 @@ def draw_sets(object_id: np.ndarray, per_object: int, set_size: int, seed: int) 
     return np.stack(out)
 
 
-def _features(fc: FeatureConfig, d: SampleSet) -> jnp.ndarray:
+def _features(fc: FeatureConfig, d: Samples) -> jnp.ndarray:
     return featurize(fc, jnp.asarray(d.q), jnp.asarray(d.q_d), jnp.asarray(d.direction)).astype(
         jnp.float32)
 
@@ -241,8 +220,8 @@ class TrainedTorque(NamedTuple):
 def train_torque_models(
     cfg: TrainConfig,
     fc: FeatureConfig,
-    train: SampleSet,
-    val: SampleSet,
+    train: Samples,
+    val: Samples,
     key: jax.Array,
     *,
     model: TorqueModel | None = None,
@@ -312,7 +291,7 @@ class TrainedAttention(NamedTuple):
     best_epoch: np.ndarray  # (K,)
 
 
-def torque_predictions(model, variables, fc: FeatureConfig, data: SampleSet) -> jnp.ndarray:
+def torque_predictions(model, variables, fc: FeatureConfig, data: Samples) -> jnp.ndarray:
     """(K, S, N) torques [N m] of K stacked torque models."""
     X = _features(fc, data)
     scale = jnp.asarray(fc.tau_scale, jnp.float32)
@@ -323,8 +302,8 @@ def train_attention_models(
     cfg: TrainConfig,
     fc: FeatureConfig,
     torque: TrainedTorque,
-    train: SampleSet,
-    val: SampleSet,
+    train: Samples,
+    val: Samples,
     key: jax.Array,
     *,
     model: AttentionModel | None = None,
@@ -342,7 +321,7 @@ def train_attention_models(
     B = min(cfg.attention_batch, sets.shape[0])
     steps = sets.shape[0] // B
 
-    def arrays(d: SampleSet):
+    def arrays(d: Samples):
         y = torque_predictions(torque.model, torque.variables, fc, d).astype(dtype)
         y = y - jnp.asarray(d.tau_g, dtype)
         return (_features(fc, d), jnp.asarray(d.A, dtype), y,

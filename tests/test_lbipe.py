@@ -10,26 +10,25 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from support.reference import reference_loop
 
-from jaxinertia.cli import main as cli_main
+from jaxinertia.app.cli import main as cli_main
+from jaxinertia.app.pipeline import load_real, released_benchmark
+from jaxinertia.errors import FileFormatError, WeightsError
 from jaxinertia.estimation import predict_torques, predict_weights
+from jaxinertia.evaluation import stack
 from jaxinertia.features import LBIPE_FEATURES, featurize
-from jaxinertia.lbipe import LbipeFormatError, find_layout, load_golden, load_test_file
-from jaxinertia.lbipe_benchmark import (
-    load_released_models,
-    prepare,
-    reference_loop,
-    run_lbipe_benchmark,
-)
+from jaxinertia.lbipe import find_layout, load_golden, load_released_models
 from jaxinertia.metrics import error_metrics, inertial_metrics
-from jaxinertia.networks import WeightsError, load_released_pair
+from jaxinertia.networks import load_released_pair
+from jaxinertia.samples import load_lbipe
 
 OBJECTS = ["cube", "white"]
 
 
 @pytest.fixture(scope="module")
 def lbipe_run(lbipe_dir):
-    return run_lbipe_benchmark(lbipe_dir)
+    return released_benchmark(lbipe_dir)
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +37,7 @@ def released(lbipe_dir):
 
 
 def _data(lbipe_dir, name):
-    ds = load_test_file(lbipe_dir / "data" / f"data_test_{name}.npz")
+    ds = load_lbipe(lbipe_dir / "data" / f"data_test_{name}.npz")
     g = load_golden(lbipe_dir / "golden" / f"golden_{name}.npz", ds.n_samples)
     return ds, g
 
@@ -94,7 +93,7 @@ def test_pt_and_npz_give_identical_parameters(lbipe_dir):
 
 def test_table_one_and_three_equal_reference_metrics(lbipe_dir, lbipe_run):
     ref = json.loads((lbipe_dir / "golden" / "reference_metrics.json").read_text())
-    got = lbipe_run["metrics"]
+    got = lbipe_run["objects"]
     assert set(got) == set(ref)
     for name, r in ref.items():
         assert set(got[name]) == set(r)
@@ -111,16 +110,20 @@ def test_table_one_and_three_equal_reference_metrics(lbipe_dir, lbipe_run):
             assert d[method]["n_solves"] == 10 * 1000
 
 
-def test_batched_evaluation_equals_the_authors_per_set_loop(lbipe_dir):
-    inputs, pair = prepare(lbipe_dir)
-    est = run_lbipe_benchmark(lbipe_dir)["estimates"]
-    inputs.sets = [s[:15] for s in inputs.sets]  # the loop is slow; 15 sets x 10 models
-    for o in range(len(inputs.names)):
-        xt, xta = reference_loop(pair, inputs, o)
+def test_batched_evaluation_equals_the_authors_per_set_loop(lbipe_dir, lbipe_run, released):
+    real = load_real(lbipe_dir)
+    est = lbipe_run["estimates"]
+    for o, obj in enumerate(real.objects):
+        sets = real.sets[o][:15]  # the loop is slow; 15 sets x 10 models
+        inputs = stack([obj], [sets], LBIPE_FEATURES)
+        xt, xta = reference_loop(released, inputs.features[0], inputs.A[0], inputs.tau_g[0],
+                                 sets)
         # The networks run in float32 on both sides (XLA vs numpy summation order: ~1e-7
         # relative in tau_hat), which moves m*p (~1e-4 kg m) by ~1e-8: 1e-7 kg m is 0.002 mm.
-        np.testing.assert_allclose(est.T.x[o][:, :15], xt, rtol=1e-5, atol=1e-7)
-        np.testing.assert_allclose(est.TA.x[o][:, :15], xta, rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(est["T"][o][:, :15], xt, rtol=1e-5, atol=1e-7,
+                                   err_msg=f"{obj.name} T")
+        np.testing.assert_allclose(est["T-A"][o][:, :15], xta, rtol=1e-5, atol=1e-7,
+                                   err_msg=f"{obj.name} T-A")
 
 
 def test_metrics_equal_direct_numpy():
@@ -191,8 +194,9 @@ def test_cli_unknown_object_needs_l_max(lbipe_dir, tmp_path, capsys):
     assert cli_main(["lbipe-benchmark", "--lbipe-dir", str(root), "--l-max", "mystery=0.0692820",
                      "--json", str(out)]) == 0
     assert json.loads(out.read_text())["mystery"]["L_max_m"] == pytest.approx(0.069282)
-    with pytest.raises(SystemExit):
-        cli_main(["lbipe-benchmark", "--lbipe-dir", str(root), "--l-max", "mystery=-1"])
+    capsys.readouterr()
+    assert cli_main(["lbipe-benchmark", "--lbipe-dir", str(root), "--l-max", "mystery=-1"]) == 2
+    assert "--l-max expects NAME=METRES" in capsys.readouterr().err
 
 
 # ---- malformed input: one clear error naming the file and the field ------------------
@@ -242,8 +246,8 @@ def _garbage(d, path):
 def test_malformed_test_file_gives_one_clear_error(lbipe_dir, tmp_path, capsys, edit, field,
                                                    words):
     path = _write_variant(lbipe_dir, tmp_path, edit)
-    with pytest.raises(LbipeFormatError) as e:
-        load_test_file(path)
+    with pytest.raises(FileFormatError) as e:
+        load_lbipe(path)
     assert e.value.path == str(path) and e.value.field == field
     assert words in str(e.value) and str(path) in str(e.value)
     assert cli_main(["lbipe-benchmark", "--lbipe-dir", str(path.parent.parent)]) == 2
@@ -271,5 +275,5 @@ def test_missing_directory_says_how_to_get_the_data(tmp_path, capsys):
 def test_find_layout_rejects_folder_without_weights(lbipe_dir, tmp_path):
     (tmp_path / "data").mkdir()
     shutil.copy(lbipe_dir / "data" / "data_test_cube.npz", tmp_path / "data")
-    with pytest.raises(LbipeFormatError, match="neither weights/ nor dicts/"):
+    with pytest.raises(FileFormatError, match="neither weights/ nor dicts/"):
         find_layout(tmp_path)

@@ -10,21 +10,23 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxinertia.app.pipeline import estimate
+from jaxinertia.app.reproduce import Scale, reproduce
 from jaxinertia.baselines import fit_baselines
-from jaxinertia.checkpoints import CheckpointError, load_models, save_models
-from jaxinertia.datasets import load_samples, save_native
+from jaxinertia.checkpoints import load_models, save_models
+from jaxinertia.errors import FileFormatError, ModelFolderError, RobotMismatchError, UsageError
 from jaxinertia.estimation import ModelPair
-from jaxinertia.evaluation import evaluate, mean_filter, sliding_windows, stack_objects
+from jaxinertia.evaluation import evaluate, mean_filter, sliding_windows
 from jaxinertia.features import FeatureConfig
-from jaxinertia.lbipe import LbipeDataset, LbipeFormatError
 from jaxinertia.metrics import inertial_metrics
 from jaxinertia.networks import AttentionModel, TorqueModel
+from jaxinertia.samples import Samples, load_samples, save_native
 from jaxinertia.training import (
-    SampleSet,
     TrainConfig,
     attention_loss,
     feature_config_from,
     split_validation,
+    torque_predictions,
     train_torque_models,
 )
 
@@ -40,8 +42,9 @@ def _synthetic(rng, n=400, n_obj=3, *, k=(16.0, 18.0, 17.0, 10.0), f=(0.02, 0.05
     tau_g = rng.normal(size=(n, 4)) * 0.2
     tau = tau_g + np.einsum("snp,sp->sn", A, x[oid])
     qe = (tau + s * f - 0.01) / k
-    return SampleSet(q_d=q + qe, q=q, direction=s, current_tau=tau - 0.03 * s + 0.004,
-                     tau=tau, tau_g=tau_g, A=A, object_id=oid, x=x)
+    return Samples(q_d=q + qe, q=q, direction=s, current_tau=tau - 0.03 * s + 0.004,
+                   tau=tau, tau_g=tau_g, A=A, object_id=oid, x=x,
+                   names=tuple(f"o{i}" for i in range(n_obj)))
 
 
 def test_baselines_recover_the_constants_of_an_exact_law():
@@ -109,8 +112,6 @@ def test_torque_training_learns_and_keeps_the_best_validation_epoch():
     best = np.argmin(hist[:, 1], axis=0)
     np.testing.assert_array_equal(res.best_epoch, best)
     # The kept parameters are the best epoch's: their validation MSE is the minimum.
-    from jaxinertia.training import torque_predictions
-
     pred = np.asarray(torque_predictions(res.model, res.variables, fc, val))
     mse = np.mean(((pred - val.tau) / np.asarray(fc.tau_scale)) ** 2, axis=(1, 2))
     np.testing.assert_allclose(mse, hist[best, 1, [0, 1]], rtol=1e-4)
@@ -145,9 +146,9 @@ def test_checkpoints_round_trip_and_refuse_another_robot(tmp_path):
     assert pair2.torque_model == pair.torque_model and cfg["a"] == 1
     np.testing.assert_array_equal(b2.pe_gain, b.pe_gain)
     np.testing.assert_array_equal(fc2.qe_scale, _fc().qe_scale)
-    with pytest.raises(CheckpointError, match="trained for robot 'open_manipulator_x'"):
+    with pytest.raises(RobotMismatchError, match="trained for robot 'open_manipulator_x'"):
         load_models(tmp_path / "m", robot="another_arm")
-    with pytest.raises(CheckpointError, match="not a jaxinertia model folder"):
+    with pytest.raises(ModelFolderError, match="not a jaxinertia model folder"):
         load_models(tmp_path / "nothing")
 
 
@@ -155,17 +156,13 @@ def test_tables_equal_a_direct_numpy_computation():
     rng = np.random.default_rng(5)
     d = _synthetic(rng, n=200, n_obj=2)
     b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.tau)
-    objs = []
-    for o in range(2):
-        s = d.take(np.flatnonzero(d.object_id == o))
-        objs.append(LbipeDataset(name=f"o{o}", q_d=s.q_d, q=s.q,
-                                 current_tau=s.current_tau + rng.normal(size=s.q.shape) * 0.02,
-                                 direction=s.direction, tau=s.tau, tau_g=s.tau_g, A=s.A,
-                                 x=d.x[o]))
+    objs = [o.replace(current_tau=o.current_tau + rng.normal(size=o.q.shape) * 0.02)
+            for o in d.by_object()]
+    assert [o.name for o in objs] == ["o0", "o1"]
     sets = [np.stack([rng.choice(o.n_samples, 20, replace=False) for _ in range(7)])
             for o in objs]
     pair = _tiny_pair()
-    res = evaluate(stack_objects(objs, [0.07, 0.08], sets, _fc()), pair, b)
+    res = evaluate(objs, sets, pair=pair, baselines=b, fc=_fc(), l_max=[0.07, 0.08])
     for o, ds in enumerate(objs):
         # Sensor by hand: numpy lstsq with identity weights, set by set.
         tau_hat = ds.current_tau - ds.direction * np.asarray(b.sensor_friction) + np.asarray(
@@ -174,7 +171,7 @@ def test_tables_equal_a_direct_numpy_computation():
                                        (tau_hat - ds.tau_g)[i].reshape(-1), rcond=None)[0]
                        for i in sets[o]])
         np.testing.assert_allclose(res["estimates"]["Sensor"][o], xs, rtol=1e-8, atol=1e-12)
-        m, p = ds.x[0], ds.x[1:] / ds.x[0]
+        m, p = ds.mass, ds.com
         e_m = xs[:, 0] - m
         e_p = np.linalg.norm(xs[:, 1:] / xs[:, :1] - p, axis=1)
         got = res["objects"][ds.name]["Sensor"]
@@ -185,7 +182,8 @@ def test_tables_equal_a_direct_numpy_computation():
             100 * np.sqrt(np.mean(e_p**2)) / [0.07, 0.08][o], rel=1e-9)
         # T-A through the networks equals inertial_metrics of its own estimates.
         x_ta = res["estimates"]["T-A"][o].reshape(-1, 4)
-        assert res["objects"][ds.name]["T-A"] == inertial_metrics(x_ta, ds.x, [0.07, 0.08][o])
+        assert res["objects"][ds.name]["T-A"] == inertial_metrics(x_ta, ds.x[0],
+                                                                   [0.07, 0.08][o])
     # Table II (PE) by hand, over all samples of both objects.
     tau = np.concatenate([o.tau for o in objs])
     pe = np.concatenate([np.asarray(b.pe(o.q_d, o.q, o.direction)) for o in objs])
@@ -204,42 +202,49 @@ def test_sliding_windows_and_mean_filter():
         sliding_windows(3, 4)
 
 
-def _write(path, d: SampleSet, drop=()):
-    fields = {k: getattr(d, k) for k in d._fields if k not in drop}
-    return save_native(path, fields, {"robot": "open_manipulator_x", "objects": ["a", "b", "c"]})
+def _write(path, d: Samples, drop=()):
+    """A native file of ``d``; ``drop`` leaves fields out (as a broken writer would)."""
+    save_native(path, d, {"robot": "open_manipulator_x"})
+    if drop:
+        with np.load(path) as z:
+            fields = {k: z[k] for k in z.files if k not in drop}
+        np.savez_compressed(path, **fields)
+    return path
 
 
 def test_bad_sample_files_give_one_clear_error(tmp_path):
     d = _synthetic(np.random.default_rng(6), n=50)
-    with pytest.raises(LbipeFormatError, match=r"\[A\]: missing"):
+    with pytest.raises(FileFormatError, match=r"\[A\]: missing"):
         load_samples(_write(tmp_path / "a.npz", d, drop=("A",)))
-    bad = d._replace(direction=d.direction * 0.5)
-    with pytest.raises(LbipeFormatError, match=r"\[direction\]: must be"):
+    bad = d.replace(direction=d.direction * 0.5)
+    with pytest.raises(FileFormatError, match=r"\[direction\]: must be"):
         load_samples(_write(tmp_path / "b.npz", bad))
-    # An unknown object has no tau: fine for estimation, refused for training.
-    unknown = d._replace(tau=np.full_like(d.tau, np.nan))
+    # An unknown object has no tau: fine for estimation (truth None), refused for training.
+    unknown = d.replace(tau=np.full_like(d.tau, np.nan))
     p = _write(tmp_path / "c.npz", unknown)
-    assert load_samples(p, need_tau=False)[0].n_samples == 50
-    with pytest.raises(LbipeFormatError, match=r"\[tau\]: holds non-finite"):
+    est, _ = load_samples(p, need_truth=False)
+    assert est.n_samples == 50 and est.tau is None and est.x is None and not est.known
+    with pytest.raises(FileFormatError, match=r"\[tau\]: holds non-finite"):
+        load_samples(p)
+    # Without ground truth at all (as collected from an unknown object).
+    p = _write(tmp_path / "d.npz", d.without_truth())
+    assert load_samples(p, need_truth=False)[0].tau is None
+    with pytest.raises(FileFormatError, match=r"\[tau\]: missing"):
         load_samples(p)
 
 
 def test_estimate_refuses_a_singular_sample_set(tmp_path):
-    from jaxinertia.pipeline import estimate
-
     d = _synthetic(np.random.default_rng(7), n=64)
-    d = d._replace(A=np.repeat(d.A[:1], 64, axis=0) * [1, 1, 0, 1])  # no y information
-    p = _write(tmp_path / "s.npz", d._replace(tau=np.full_like(d.tau, np.nan)))
+    d = d.replace(A=np.repeat(d.A[:1], 64, axis=0) * [1, 1, 0, 1])  # no y information
+    p = _write(tmp_path / "s.npz", d.without_truth())
     b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.q_d)
     save_models(tmp_path / "m", _tiny_pair(), b, _fc(), robot="open_manipulator_x")
-    with pytest.raises(ValueError, match="do not determine mass and COM"):
+    with pytest.raises(UsageError, match="do not determine mass and COM"):
         estimate(tmp_path / "m", p)
 
 
 def test_tiny_end_to_end_report_numbers_come_from_the_run(tmp_path, lbipe_dir):
     """simulate -> train -> evaluate -> continuous -> sim-to-real -> report, tiny."""
-    from jaxinertia.reproduce import Scale, reproduce
-
     scale = Scale(planning=False, random_per_load=80, test_per_object=70,
                   continuous_samples=160, switch_every=40, n_sets=20,
                   train=TrainConfig(n_models=2, torque_epochs=5, attention_epochs=2,

@@ -1,0 +1,1 @@
+"""Test support: independent references the library is checked against."""
