@@ -143,28 +143,40 @@ def _joint_prefixes(sd, pattern):
     return idx
 
 
-def torque_params_from_torch(sd: dict, path: str = "<state dict>") -> tuple[TorqueModel, dict]:
-    """The authors' ``TorqueModel`` state dict (``j{1..N}.{0,2}``, ``tau.{0,2,4}``) -> Flax."""
+def _from_torch(sd: dict, path: str, joint: str, stack: str, names: tuple[str, str],
+                shape_out: int | None) -> tuple[dict, int, int, int, tuple[int, ...]]:
+    """Flax parameters of a per-joint MLP (``{joint}.{0,2}`` per joint, numbered from 1)
+    followed by a stack of dense layers (``{stack}.{k}``): the layout of both of the
+    authors' networks. Returns the parameters, N, the joint MLPs' hidden and embedding
+    widths, and the widths of the stack's hidden layers."""
     try:
-        joints = _joint_prefixes(sd, r"j(\d+)\.0\.weight$")
+        joints = _joint_prefixes(sd, joint.replace("{j}", r"(\d+)") + r"\.0\.weight$")
     except WeightsError as e:
         raise WeightsError(f"{path}: {e}") from None
     n = len(joints)
     params = {}
     for j in joints:
-        params[f"joint{j - 1}"] = {
-            "hidden": _dense(sd, f"j{j}.0", path, shape_in=4),
-            "embed": _dense(sd, f"j{j}.2", path),
-        }
-    heads = sorted(int(m.group(1)) for k in sd if (m := re.match(r"tau\.(\d+)\.weight$", k)))
-    if len(heads) < 1:
-        raise WeightsError(f"{path}: missing tensor 'tau.0.weight'")
-    for i, h in enumerate(heads[:-1]):
-        params[f"head{i}"] = _dense(sd, f"tau.{h}", path)
-    params["out"] = _dense(sd, f"tau.{heads[-1]}", path, shape_out=n)
-    hidden = params["joint0"]["hidden"]["kernel"].shape[1]
-    embed = params["joint0"]["embed"]["kernel"].shape[1]
-    head = tuple(params[f"head{i}"]["kernel"].shape[1] for i in range(len(heads) - 1))
+        prefix = joint.format(j=j)
+        params[f"joint{j - 1}"] = {"hidden": _dense(sd, f"{prefix}.0", path, shape_in=4),
+                                   "embed": _dense(sd, f"{prefix}.2", path)}
+    layers = sorted(int(m.group(1)) for k in sd
+                    if (m := re.match(re.escape(stack) + r"\.(\d+)\.weight$", k)))
+    if len(layers) < 1:
+        raise WeightsError(f"{path}: missing tensor '{stack}.0.weight'")
+    hidden_name, out_name = names
+    for i, h in enumerate(layers[:-1]):
+        params[f"{hidden_name}{i}"] = _dense(sd, f"{stack}.{h}", path)
+    params[out_name] = _dense(sd, f"{stack}.{layers[-1]}", path,
+                              shape_out=n if shape_out is None else shape_out)
+    widths = tuple(params[f"{hidden_name}{i}"]["kernel"].shape[1]
+                   for i in range(len(layers) - 1))
+    return (params, n, params["joint0"]["hidden"]["kernel"].shape[1],
+            params["joint0"]["embed"]["kernel"].shape[1], widths)
+
+
+def torque_params_from_torch(sd: dict, path: str = "<state dict>") -> tuple[TorqueModel, dict]:
+    """The authors' ``TorqueModel`` state dict (``j{1..N}.{0,2}``, ``tau.{0,2,4}``) -> Flax."""
+    params, n, hidden, embed, head = _from_torch(sd, path, "j{j}", "tau", ("head", "out"), None)
     model = TorqueModel(n_joints=n, hidden=hidden, embed=embed, head=head)
     _check_against_init(model, {"params": params}, n, path)
     return model, {"params": params}
@@ -174,26 +186,8 @@ def attention_params_from_torch(
     sd: dict, path: str = "<state dict>"
 ) -> tuple[AttentionModel, dict]:
     """The authors' attention state dict (``joint{j}_feature.{0,2}``, ``scorer.{0,2}``) -> Flax."""
-    try:
-        joints = _joint_prefixes(sd, r"joint(\d+)_feature\.0\.weight$")
-    except WeightsError as e:
-        raise WeightsError(f"{path}: {e}") from None
-    n = len(joints)
-    params = {}
-    for j in joints:
-        params[f"joint{j - 1}"] = {
-            "hidden": _dense(sd, f"joint{j}_feature.0", path, shape_in=4),
-            "embed": _dense(sd, f"joint{j}_feature.2", path),
-        }
-    layers = sorted(int(m.group(1)) for k in sd if (m := re.match(r"scorer\.(\d+)\.weight$", k)))
-    if len(layers) < 1:
-        raise WeightsError(f"{path}: missing tensor 'scorer.0.weight'")
-    for i, h in enumerate(layers[:-1]):
-        params[f"scorer{i}"] = _dense(sd, f"scorer.{h}", path)
-    params["score"] = _dense(sd, f"scorer.{layers[-1]}", path, shape_out=1)
-    hidden = params["joint0"]["hidden"]["kernel"].shape[1]
-    embed = params["joint0"]["embed"]["kernel"].shape[1]
-    scorer = tuple(params[f"scorer{i}"]["kernel"].shape[1] for i in range(len(layers) - 1))
+    params, n, hidden, embed, scorer = _from_torch(sd, path, "joint{j}_feature", "scorer",
+                                                   ("scorer", "score"), 1)
     model = AttentionModel(n_joints=n, hidden=hidden, embed=embed, scorer=scorer)
     _check_against_init(model, {"params": params}, n, path)
     return model, {"params": params}
