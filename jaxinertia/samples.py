@@ -14,6 +14,10 @@ Two file layouts, both read by :func:`load_samples` (it tells them apart by cont
 * the authors' lbipe layout (``data_<split>_<object>.npz``, one object per file):
   ``joint_data`` (S, 9, N) rows q_d, q, q_d - q, 0, current torque, direction, tau, tau_g,
   agreement flag; ``A`` (S*N, 4); ``x`` (4,); ``tau`` (S*N,) = tau - tau_g.
+
+The record and its readers and writers are one module on purpose: every file reaches the
+library through here, so the validation (one error naming the file and the field) is
+written once.
 """
 
 from __future__ import annotations

@@ -5,6 +5,10 @@ a pickle whose tensors are calls to ``torch._utils._rebuild_tensor_v2`` over sto
 ``persistent_load`` fetches from the raw records ``<prefix>/data/<key>``. Unpickling can run
 arbitrary code, so the unpickler here resolves only an allowlist of globals, each to a local
 stand-in; torch is never imported.
+
+One module on purpose: a self-contained reader of one foreign file format (the allowlisted
+unpickler, the storage records and the tensor views belong together); nothing else in the
+library depends on its internals.
 """
 
 from __future__ import annotations
