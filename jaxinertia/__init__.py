@@ -1,36 +1,50 @@
 """jaxinertia: mass and centre of mass of a held object from servo encoder discrepancies.
 
-The core is importable from the top level::
+The library's main names (see docs/architecture.md for the data flow and each module's
+job)::
 
-    from jaxinertia import open_manipulator_x, load_regressor, solve_sets, mass_and_com
+    from jaxinertia import Samples, load_samples, load_regressor, solve_sets, evaluate
 """
 
 from jaxinertia import _xla_workarounds
 
 _xla_workarounds.apply()  # before JAX creates its CPU backend
 
-from jaxinertia.identification import WLSResult, mass_and_com, solve_sets, wls  # noqa: E402
-from jaxinertia.kinematics import (  # noqa: E402
+# ruff: noqa: E402  (the XLA:CPU settings above must come first)
+from jaxinertia.errors import JaxinertiaError
+from jaxinertia.estimation import ModelPair, estimate_sets
+from jaxinertia.evaluation import evaluate
+from jaxinertia.identification import WLSResult, mass_and_com, solve_sets, wls
+from jaxinertia.kinematics import (
     ee_jacobian,
     ee_pose,
     forward_kinematics,
     gravity_torques,
     point_jacobian,
 )
-from jaxinertia.robot import Robot, load_robot, open_manipulator_x  # noqa: E402
-from jaxinertia.statics import load_regressor, tag_pose  # noqa: E402
+from jaxinertia.objects import HeldObject
+from jaxinertia.robot import Robot, load_robot, open_manipulator_x
+from jaxinertia.samples import Samples, load_samples
+from jaxinertia.statics import load_regressor, tag_pose
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "HeldObject",
+    "JaxinertiaError",
+    "ModelPair",
     "Robot",
+    "Samples",
     "WLSResult",
     "ee_jacobian",
     "ee_pose",
+    "estimate_sets",
+    "evaluate",
     "forward_kinematics",
     "gravity_torques",
     "load_regressor",
     "load_robot",
+    "load_samples",
     "mass_and_com",
     "open_manipulator_x",
     "point_jacobian",
