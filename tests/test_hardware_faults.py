@@ -20,6 +20,10 @@ import time
 import numpy as np
 import pytest
 
+from jaxinertia.plans import random_plan
+from jaxinertia.samples import load_native
+from jaxinertia.virtual.testing import VirtualRobotProcess
+
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
                                 reason="the virtual servo bus needs a Linux pseudo-terminal")
 
@@ -31,8 +35,6 @@ FAULTS = ["--drop-rate", "0.01", "--corrupt-rate", "0.01", "--delay-rate", "0.01
 
 @pytest.fixture(scope="module")
 def robot(tmp_path_factory):
-    from jaxinertia.hardware.testing import VirtualRobotProcess
-
     log = tmp_path_factory.mktemp("faults") / "virtual.log"
     with VirtualRobotProcess(["--object", "50g", "--speed", "15", *FAULTS],
                              stderr=log) as r:
@@ -40,7 +42,7 @@ def robot(tmp_path_factory):
 
 
 def collect_cmd(port: str, out, *extra: str) -> list[str]:
-    return [sys.executable, "-m", "jaxinertia.cli", "collect", "--port", port,
+    return [sys.executable, "-m", "jaxinertia", "collect", "--port", port,
             "--plan", "random", "--n", str(N), "--seed", "4", "--object", "50g",
             "--out", str(out), "--no-progress", "--retries", "5", *extra]
 
@@ -52,14 +54,12 @@ def journal_indices(out) -> list[int]:
 
 
 def check_complete(out) -> None:
-    from jaxinertia.datasets import load_native
-    from jaxinertia.sim import scenarios as sc
-
-    fields, _ = load_native(out)
-    q_d, d = sc.random_plan(N, 4)
-    np.testing.assert_array_equal(fields["plan_index"], np.arange(N))
-    np.testing.assert_array_equal(fields["q_d"], q_d)
-    np.testing.assert_array_equal(fields["direction"], d)
+    samples, _ = load_native(out, only_at_rest=False)
+    fields = samples.fields()
+    q_d, d = random_plan(N, 4)
+    np.testing.assert_array_equal(fields["plan_index"], np.arange(N), err_msg="plan_index")
+    np.testing.assert_array_equal(fields["q_d"], q_d, err_msg="q_d")
+    np.testing.assert_array_equal(fields["direction"], d, err_msg="direction")
     assert sorted(journal_indices(out)) == list(range(N)), "each sample exactly once"
 
 

@@ -10,14 +10,19 @@ from __future__ import annotations
 import json
 
 import cv2
+import jax
 import numpy as np
 import pytest
 
-from jaxinertia.vision import commands
+from jaxinertia.app.cli import main
+from jaxinertia.kinematics import ee_pose
+from jaxinertia.open_manipulator_x import TAG_IN_EE, WORKSPACE_DEG
+from jaxinertia.robot import open_manipulator_x
 from jaxinertia.vision.calibration import (
     CameraPoseError,
     calibrate_camera_pose,
     load_camera_pose,
+    read_manifest,
     save_camera_pose,
 )
 from jaxinertia.vision.intrinsics import CameraIntrinsics, IntrinsicsError, load_intrinsics
@@ -27,8 +32,21 @@ from jaxinertia.vision.tags import TagNotFoundError, measure_tag, tag_object_poi
 
 TAG = 0.04  # [m]
 TAG_ID = 7
-POS_TOL = 1e-3  # [m]
-ANG_TOL = np.deg2rad(0.5)
+
+#: The tolerances of this module (measurements against the rendered ground truth), by
+#: what they bound.
+TOL = {
+    "tag_p": 1e-3,  # tag position, one image [m]
+    "tag_R": np.deg2rad(0.5),  # tag orientation, one image [rad]
+    "tag_reprojection": 0.5,  # RMS corner reprojection, one image [px]
+    "corners": 0.1,  # edge-refined corners, face-on [px]
+    "camera_p": 0.5e-3,  # calibrated p_base_cam and p_ee_tag [m]
+    "camera_R": np.deg2rad(0.1),  # calibrated R_base_cam [rad]
+    "mount_R": np.deg2rad(0.2),  # calibrated R_ee_tag [rad]
+    "calibration_rms": 0.2,  # RMS corner reprojection of the calibration [px]
+    "file": 1e-12,  # camera-pose file round trip
+    "exact": 1e-6,  # noiseless corners: the algebra [m, rad]
+}
 
 PLAIN = CameraIntrinsics(600.0, 600.0, 319.5, 239.5, 640, 480)
 DISTORTED = CameraIntrinsics(600.0, 602.0, 322.0, 236.0, 640, 480,
@@ -67,9 +85,10 @@ def test_tag_pose_matches_rendered_ground_truth(name, intr):
     img = render_tag(intr, R, p, TAG, tag_id=TAG_ID, blur_sigma=0.8, noise_std=3.0, rng=rng)
     tp = measure_tag(img, intr, TAG, TAG_ID)
     dp, da = np.linalg.norm(tp.p_cam_tag - p), angle(tp.R_cam_tag, R)
-    assert dp < POS_TOL, f"{name}: position error {dp * 1e3:.3f} mm"
-    assert da < ANG_TOL, f"{name}: angle error {np.rad2deg(da):.3f} deg"
-    assert tp.reprojection_error < 0.5, f"{name}: reprojection {tp.reprojection_error:.3f} px"
+    assert dp < TOL["tag_p"], f"{name}: p_cam_tag error {dp * 1e3:.3f} mm"
+    assert da < TOL["tag_R"], f"{name}: R_cam_tag error {np.rad2deg(da):.3f} deg"
+    assert tp.reprojection_error < TOL["tag_reprojection"], (
+        f"{name}: reprojection_error {tp.reprojection_error:.3f} px")
 
 
 def test_edge_refinement_beats_detector_corners_face_on():
@@ -83,7 +102,7 @@ def test_edge_refinement_beats_detector_corners_face_on():
     ref = measure_tag(img, DISTORTED, TAG, TAG_ID)
     err_raw = np.abs(raw.corners - truth).max()
     err_ref = np.abs(ref.corners - truth).max()
-    assert err_ref < 0.1, f"refined corners off by {err_ref:.3f} px"
+    assert err_ref < TOL["corners"], f"refined corners off by {err_ref:.3f} px"
     assert err_ref < 0.5 * err_raw, f"refined {err_ref:.3f} px vs detector {err_raw:.3f} px"
 
 
@@ -121,12 +140,6 @@ def test_intrinsics_files(tmp_path):
 
 def _calibration_scene(n: int, seed: int):
     """Arm poses in the paper's workspace (facing the camera), a camera above, a tag mount."""
-    import jax
-
-    from jaxinertia.kinematics import ee_pose
-    from jaxinertia.robot import open_manipulator_x
-    from jaxinertia.sim.scenarios import TAG_IN_EE, WORKSPACE_DEG
-
     robot = open_manipulator_x()
     rng = np.random.default_rng(seed)
     lo, hi = np.deg2rad(np.array(WORKSPACE_DEG)).T
@@ -151,21 +164,21 @@ def test_camera_calibration_end_to_end(tmp_path):
         corners.append(measure_tag(img, DISTORTED, TAG, TAG_ID).corners)
     res = calibrate_camera_pose(R_be, p_be, np.stack(corners), DISTORTED, TAG)
     cp = res.camera_pose
-    assert np.linalg.norm(cp.p_base_cam - p_bc) < 0.5e-3
-    assert angle(cp.R_base_cam, R_bc) < np.deg2rad(0.1)
-    assert np.linalg.norm(cp.p_ee_tag - p_et) < 0.5e-3
-    assert angle(cp.R_ee_tag, R_et) < np.deg2rad(0.2)
-    assert res.rms_px < 0.2
+    assert np.linalg.norm(cp.p_base_cam - p_bc) < TOL["camera_p"], "p_base_cam"
+    assert angle(cp.R_base_cam, R_bc) < TOL["camera_R"], "R_base_cam"
+    assert np.linalg.norm(cp.p_ee_tag - p_et) < TOL["camera_p"], "p_ee_tag"
+    assert angle(cp.R_ee_tag, R_et) < TOL["mount_R"], "R_ee_tag"
+    assert res.rms_px < TOL["calibration_rms"], "rms_px"
     # The refinement improves on the closed-form start.
     assert (np.linalg.norm(cp.p_base_cam - p_bc)
-            < np.linalg.norm(res.initial.p_base_cam - p_bc))
+            < np.linalg.norm(res.initial.p_base_cam - p_bc)), "p_base_cam: refined vs initial"
     # Round trip of the file, then a per-sample source on a fresh image.
     path = save_camera_pose(tmp_path / "camera_pose.json", cp)
     loaded = load_camera_pose(path)
-    np.testing.assert_allclose(loaded.R_base_cam, cp.R_base_cam, atol=1e-12)
-    np.testing.assert_allclose(loaded.p_base_cam, cp.p_base_cam, atol=1e-12)
-    from jaxinertia.kinematics import ee_pose
-
+    np.testing.assert_allclose(loaded.R_base_cam, cp.R_base_cam, atol=TOL["file"],
+                               err_msg="R_base_cam")
+    np.testing.assert_allclose(loaded.p_base_cam, cp.p_base_cam, atol=TOL["file"],
+                               err_msg="p_base_cam")
     q_new = np.deg2rad([10.0, -30.0, 30.0, 5.0])
     R_e, p_e = (np.asarray(a) for a in ee_pose(robot, q_new))
     R_bt, p_bt = R_e @ R_et, R_e @ p_et + p_e
@@ -173,8 +186,8 @@ def test_camera_calibration_end_to_end(tmp_path):
                      blur_sigma=0.8, noise_std=3.0, rng=rng)
     source = CameraTagSource(DISTORTED, loaded, TAG, TAG_ID, capture=lambda: img)
     R_meas, p_meas = source(q_new)
-    assert np.linalg.norm(p_meas - p_bt) < POS_TOL
-    assert angle(R_meas, R_bt) < ANG_TOL
+    assert np.linalg.norm(p_meas - p_bt) < TOL["tag_p"], "p_base_tag"
+    assert angle(R_meas, R_bt) < TOL["tag_R"], "R_base_tag"
 
 
 def test_camera_calibration_noiseless_exact():
@@ -188,12 +201,14 @@ def test_camera_calibration_noiseless_exact():
         corners.append(cv2.projectPoints(obj, cv2.Rodrigues(R_ct)[0], p_ct, DISTORTED.K,
                                          DISTORTED.dist)[0].reshape(4, 2))
     res = calibrate_camera_pose(R_be, p_be, np.stack(corners), DISTORTED, TAG)
-    assert np.linalg.norm(res.camera_pose.p_base_cam - p_bc) < 1e-6
-    assert angle(res.camera_pose.R_base_cam, R_bc) < 1e-6
-    assert np.linalg.norm(res.initial.p_base_cam - p_bc) < 1e-6  # closed form is exact too
+    assert np.linalg.norm(res.camera_pose.p_base_cam - p_bc) < TOL["exact"], "p_base_cam"
+    assert angle(res.camera_pose.R_base_cam, R_bc) < TOL["exact"], "R_base_cam"
+    # The closed form is exact too.
+    assert np.linalg.norm(res.initial.p_base_cam - p_bc) < TOL["exact"], "initial p_base_cam"
     fixed = calibrate_camera_pose(R_be, p_be, np.stack(corners), DISTORTED, TAG,
                                   tag_in_ee=(R_et, p_et))
-    assert np.linalg.norm(fixed.camera_pose.p_base_cam - p_bc) < 1e-6
+    assert np.linalg.norm(fixed.camera_pose.p_base_cam - p_bc) < TOL["exact"], (
+        "p_base_cam with the mounting fixed")
 
 
 def test_calibration_rejects_degenerate_motion():
@@ -213,8 +228,6 @@ def test_bad_camera_pose_file(tmp_path):
 
 
 def test_cli_tag_pose_and_calibrate(tmp_path, capsys):
-    from jaxinertia.cli import main
-
     intr_file = tmp_path / "intr.json"
     intr_file.write_text(json.dumps(DISTORTED.to_dict()))
     R, p = POSES["tilt_x_35"]
@@ -225,7 +238,7 @@ def test_cli_tag_pose_and_calibrate(tmp_path, capsys):
             "--tag-size", str(TAG), "--tag-id", str(TAG_ID)]
     assert main([*args, "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert np.linalg.norm(np.asarray(out["p_cam_tag"]) - p) < POS_TOL
+    assert np.linalg.norm(np.asarray(out["p_cam_tag"]) - p) < TOL["tag_p"], "p_cam_tag"
     cv2.imwrite(str(tmp_path / "empty.png"), np.full((480, 640), 120, np.uint8))
     args[2] = str(tmp_path / "empty.png")
     assert main(args) == 2
@@ -251,15 +264,15 @@ def test_cli_tag_pose_and_calibrate(tmp_path, capsys):
                  "--intrinsics", str(intr_file), "--tag-size", str(TAG), "--tag-id",
                  str(TAG_ID), "--out", str(out_file)]) == 0
     cp = load_camera_pose(out_file)
-    assert np.linalg.norm(cp.p_base_cam - p_bc) < 0.5e-3
-    assert angle(cp.R_base_cam, R_bc) < np.deg2rad(0.1)
+    assert np.linalg.norm(cp.p_base_cam - p_bc) < TOL["camera_p"], "p_base_cam"
+    assert angle(cp.R_base_cam, R_bc) < TOL["camera_R"], "R_base_cam"
 
 
 def test_manifest_json(tmp_path):
     (tmp_path / "m.json").write_text(json.dumps({"samples": [{"image": "a.png",
                                                               "q": [0, 0.1, 0.2, 0.3]}]}))
-    rows = commands.read_manifest(tmp_path / "m.json")
+    rows = read_manifest(tmp_path / "m.json")
     assert rows == [(tmp_path / "a.png", [0.0, 0.1, 0.2, 0.3])]
     (tmp_path / "bad.json").write_text(json.dumps({"samples": [{"img": "a.png"}]}))
     with pytest.raises(ValueError, match="bad manifest"):
-        commands.read_manifest(tmp_path / "bad.json")
+        read_manifest(tmp_path / "bad.json")

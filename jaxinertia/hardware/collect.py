@@ -19,15 +19,22 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
+import jax
 import numpy as np
+from tqdm.auto import tqdm
 
+from jaxinertia.errors import UsageError
 from jaxinertia.hardware.driver import DynamixelArm
+from jaxinertia.kinematics import gravity_torques
 from jaxinertia.robot import Robot
-from jaxinertia.sim.servo import NOMINAL_TORQUE_CONSTANT
+from jaxinertia.samples import Samples
+from jaxinertia.statics import load_regressor, tag_pose
+from jaxinertia.xm430 import NOMINAL_TORQUE_CONSTANT
 
 __all__ = [
     "DELTA",
     "Journal",
+    "JournalExists",
     "JournalMismatch",
     "KinematicTagPose",
     "TagPoseSource",
@@ -48,10 +55,6 @@ class KinematicTagPose:
     """The tag pose from forward kinematics of the measured q and a fixed tag-in-EE pose."""
 
     def __init__(self, robot: Robot, R_ee_tag: np.ndarray, p_ee_tag: np.ndarray) -> None:
-        import jax
-
-        from jaxinertia.statics import tag_pose
-
         self._fn = jax.jit(lambda q: tag_pose(robot, q, R_ee_tag, p_ee_tag))
 
     def __call__(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -59,8 +62,12 @@ class KinematicTagPose:
         return np.asarray(R), np.asarray(p)
 
 
-class JournalMismatch(ValueError):
+class JournalMismatch(UsageError):
     """The journal on disk belongs to another collection (plan, object or robot)."""
+
+
+class JournalExists(UsageError, FileExistsError):
+    """A journal is on disk and ``resume`` was not asked for (nothing is overwritten)."""
 
 
 def journal_path(out: str | os.PathLike) -> Path:
@@ -88,13 +95,14 @@ class Journal:
     def open(cls, path: str | os.PathLike, header: dict, *, resume: bool) -> Journal:
         """A new journal, or (``resume``) the existing one after checking its header.
 
-        Raises FileExistsError when a journal exists and ``resume`` is False (nothing is
-        overwritten), JournalMismatch when the header's identity differs."""
+        Raises :class:`JournalExists` (a FileExistsError) when a journal exists and
+        ``resume`` is False (nothing is overwritten), :class:`JournalMismatch` when the
+        header's identity differs."""
         path = Path(path)
         records: dict[int, dict] = {}
         if path.exists() and path.stat().st_size:
             if not resume:
-                raise FileExistsError(f"{path} exists: pass --resume to continue it, or "
+                raise JournalExists(f"{path} exists: pass --resume to continue it, or "
                                       "remove it to start over")
             lines = path.read_bytes().split(b"\n")
             # A crash can tear the last line only (every line is flushed before the next);
@@ -144,8 +152,6 @@ def collect(
     progress: bool = True,
 ) -> None:
     """Runs the plan's samples that are not in ``journal`` yet, appending each one."""
-    from tqdm.auto import tqdm
-
     todo = [i for i in range(len(q_d)) if i not in journal.records]
     # Check the whole remaining plan before anything moves.
     for i in todo:
@@ -170,15 +176,12 @@ def collect(
             bar.update(1)
 
 
-def samples_from_records(records: dict[int, dict], robot: Robot,
-                         x: np.ndarray | None) -> dict[str, np.ndarray]:
-    """Native fields (plan order) from journal records; ``A`` and ``tau_g`` of the bare
-    ``robot`` at the measured q and tag pose, ``tau = tau_g + A x`` (NaN when x is None)."""
-    import jax
-
-    from jaxinertia.kinematics import gravity_torques
-    from jaxinertia.statics import load_regressor
-
+def samples_from_records(records: dict[int, dict], robot: Robot, x: np.ndarray | None,
+                         name: str) -> Samples:
+    """The samples of the journal ``records`` (plan order) holding object ``name``: ``A``
+    and ``tau_g`` of the bare ``robot`` at the measured q and tag pose, ``tau = tau_g + A x``
+    (ground truth None when ``x`` is None); the other journal columns and ``plan_index`` in
+    ``extra``."""
     idx = sorted(records)
     cols = ("q_d", "q", "current_tau", "direction", "R_base_tag", "p_base_tag", "at_rest",
             "settle_time", "timestamp", "temperature", "voltage")
@@ -189,6 +192,8 @@ def samples_from_records(records: dict[int, dict], robot: Robot,
         q, f["R_base_tag"], f["p_base_tag"]))
     tau_g = np.asarray(jax.jit(jax.vmap(lambda q: gravity_torques(robot, q)))(q))
     f["A"], f["tau_g"] = A, tau_g
-    f["tau"] = tau_g + A @ x if x is not None else np.full_like(tau_g, np.nan)
+    if x is not None:
+        f["tau"] = tau_g + A @ x
+        f["x"] = np.asarray(x, np.float64)[None]
     f["plan_index"] = np.asarray(idx)
-    return f
+    return Samples.from_fields(f, [name])

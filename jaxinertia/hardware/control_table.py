@@ -15,7 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaxinertia.sim.servo import CURRENT_LSB_A, RAD_PER_TICK
+from jaxinertia.xm430 import CURRENT_LSB_A, RAD_PER_TICK
 
 __all__ = [
     "ITEMS",

@@ -19,7 +19,15 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+from dynamixel_sdk import (
+    COMM_SUCCESS,
+    GroupSyncRead,
+    GroupSyncWrite,
+    PacketHandler,
+    PortHandler,
+)
 
+from jaxinertia import errors
 from jaxinertia.hardware import control_table as ct
 from jaxinertia.hardware.safety import SafetyLimits, default_joint_limits
 from jaxinertia.robot import Robot
@@ -27,12 +35,12 @@ from jaxinertia.robot import Robot
 __all__ = ["ArmConfig", "ArmState", "CommError", "DynamixelArm", "HardwareError"]
 
 
-class CommError(RuntimeError):
-    """The bus failed (no or corrupt status packet) after all retries."""
+class CommError(errors.HardwareError):
+    """The bus failed (no or corrupt status packet) after all retries (exit code 3)."""
 
 
-class HardwareError(RuntimeError):
-    """A servo reported a hardware error (Hardware Error Status, alert bit)."""
+class HardwareError(errors.HardwareError):
+    """A servo reported a hardware error (Hardware Error Status, alert bit; exit code 3)."""
 
     def __init__(self, errors: dict[int, int]) -> None:
         self.errors = errors
@@ -91,8 +99,6 @@ class DynamixelArm:
 
     def __init__(self, config: ArmConfig, *, robot: Robot | None = None,
                  safety: SafetyLimits | None = None) -> None:
-        from dynamixel_sdk import PacketHandler, PortHandler
-
         self.config = config
         self.robot = robot
         self.safety = safety or SafetyLimits(np.asarray(config.joint_limits, np.float64))
@@ -105,8 +111,6 @@ class DynamixelArm:
 
     def _retry(self, what: str, call):
         """Runs ``call() -> (value, comm_result, status_error)`` until the bus succeeds."""
-        from dynamixel_sdk import COMM_SUCCESS
-
         result = None
         for _ in range(self.config.retries + 1):
             try:
@@ -145,8 +149,6 @@ class DynamixelArm:
             self._write(dxl_id, name, int(v))
 
     def _sync_read(self, address: int, length: int) -> dict[int, bytes]:
-        from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead
-
         group = GroupSyncRead(self.port, self.packet, address, length)
         for dxl_id in self.config.joint_ids:
             group.addParam(dxl_id)
@@ -198,8 +200,6 @@ class DynamixelArm:
                     lambda: (None, *self.packet.reboot(self.port, dxl_id)))
         deadline = time.monotonic() + wait
         while time.monotonic() < deadline:
-            from dynamixel_sdk import COMM_SUCCESS
-
             if self.packet.ping(self.port, dxl_id)[1] == COMM_SUCCESS:
                 return
             time.sleep(0.05)
@@ -287,8 +287,6 @@ class DynamixelArm:
 
     def command(self, q_goal: np.ndarray) -> None:
         """Checks, then writes Goal Position of every joint in one GroupSyncWrite."""
-        from dynamixel_sdk import COMM_SUCCESS, GroupSyncWrite
-
         self.check_goal(q_goal)
         item = ct.ITEMS["goal_position"]
         group = GroupSyncWrite(self.port, self.packet, item.address, item.size)
@@ -347,8 +345,6 @@ class DynamixelArm:
                 pass
 
     def _hold(self, state: ArmState) -> None:
-        from dynamixel_sdk import GroupSyncWrite
-
         item = ct.ITEMS["goal_position"]
         group = GroupSyncWrite(self.port, self.packet, item.address, item.size)
         for dxl_id, t in zip(self.config.joint_ids, state.ticks):

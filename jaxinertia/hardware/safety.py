@@ -7,7 +7,9 @@ from dataclasses import dataclass
 import jax
 import numpy as np
 
+from jaxinertia.errors import UsageError
 from jaxinertia.kinematics import ee_pose
+from jaxinertia.open_manipulator_x import WORKSPACE_DEG
 from jaxinertia.robot import Robot
 
 __all__ = ["SafetyError", "SafetyLimits", "default_joint_limits"]
@@ -15,15 +17,14 @@ __all__ = ["SafetyError", "SafetyLimits", "default_joint_limits"]
 _DEG = np.pi / 180.0
 
 
-class SafetyError(ValueError):
-    """A goal that must not be commanded; raised before anything is written to a servo."""
+class SafetyError(UsageError):
+    """A goal that must not be commanded; raised before anything is written to a servo
+    (exit code 2: the request is refused, the arm has not moved)."""
 
 
 def default_joint_limits(margin_deg: float = 8.0) -> np.ndarray:
-    """(N, 2) [rad]: the paper's workspace (``scenarios.WORKSPACE_DEG``) widened by
-    ``margin_deg`` (which covers the 3 deg pre-positions with room to spare)."""
-    from jaxinertia.sim.scenarios import WORKSPACE_DEG
-
+    """(N, 2) [rad]: the paper's workspace (``open_manipulator_x.WORKSPACE_DEG``) widened
+    by ``margin_deg`` (which covers the 3 deg pre-positions with room to spare)."""
     w = np.asarray(WORKSPACE_DEG, np.float64)
     return (w + np.array([-margin_deg, margin_deg])) * _DEG
 

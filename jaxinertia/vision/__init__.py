@@ -1,41 +1,48 @@
 """Camera: AprilTag detection, tag pose and camera-to-base calibration.
 
 Modules: ``intrinsics`` (camera model files), ``tags`` (tag36h11 detection, corners,
-PnP), ``calibration`` (camera pose in the robot base), ``source`` (per-sample tag pose
-for data collection), ``synthetic`` (rendered test images), ``commands`` (CLI).
-
-Names are re-exported lazily: the CLI imports ``jaxinertia.vision.commands`` to build its
-parser, and ``jaxinertia --help`` should not pay for importing OpenCV.
+PnP), ``calibration`` (camera pose in the robot base, calibration manifests), ``source``
+(per-sample tag pose for data collection), ``synthetic`` (rendered test images). The
+commands ``tag-pose`` and ``camera-calibrate`` are in :mod:`jaxinertia.app.vision_commands`.
 """
 
-from __future__ import annotations
+from jaxinertia.errors import TagNotFoundError
+from jaxinertia.vision.calibration import (
+    CalibrationResult,
+    CameraPose,
+    CameraPoseError,
+    calibrate_camera_pose,
+    load_camera_pose,
+    read_manifest,
+    save_camera_pose,
+)
+from jaxinertia.vision.intrinsics import (
+    CameraIntrinsics,
+    IntrinsicsError,
+    load_intrinsics,
+    save_intrinsics,
+)
+from jaxinertia.vision.source import CameraTagSource, opencv_capture
+from jaxinertia.vision.synthetic import render_tag
+from jaxinertia.vision.tags import TagPose, detect_tags, measure_tag
 
-import importlib
-
-_EXPORTS = {
-    "CalibrationResult": "calibration",
-    "CameraPose": "calibration",
-    "CameraPoseError": "calibration",
-    "calibrate_camera_pose": "calibration",
-    "load_camera_pose": "calibration",
-    "save_camera_pose": "calibration",
-    "CameraIntrinsics": "intrinsics",
-    "IntrinsicsError": "intrinsics",
-    "load_intrinsics": "intrinsics",
-    "save_intrinsics": "intrinsics",
-    "CameraTagSource": "source",
-    "opencv_capture": "source",
-    "TagNotFoundError": "tags",
-    "TagPose": "tags",
-    "detect_tags": "tags",
-    "measure_tag": "tags",
-    "render_tag": "synthetic",
-}
-
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(f"jaxinertia.vision.{_EXPORTS[name]}"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__all__ = [
+    "CalibrationResult",
+    "CameraIntrinsics",
+    "CameraPose",
+    "CameraPoseError",
+    "CameraTagSource",
+    "IntrinsicsError",
+    "TagNotFoundError",
+    "TagPose",
+    "calibrate_camera_pose",
+    "detect_tags",
+    "load_camera_pose",
+    "load_intrinsics",
+    "measure_tag",
+    "opencv_capture",
+    "read_manifest",
+    "render_tag",
+    "save_camera_pose",
+    "save_intrinsics",
+]

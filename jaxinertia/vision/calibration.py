@@ -26,6 +26,7 @@ and the parallel pitch joints); that suffices, provided the calibration poses va
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 from dataclasses import dataclass
@@ -33,9 +34,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.optimize import least_squares
 
+from jaxinertia.errors import CameraError, FileFormatError, UsageError
 from jaxinertia.vision.intrinsics import CameraIntrinsics
-from jaxinertia.vision.tags import tag_object_points
+from jaxinertia.vision.tags import solve_tag_pose, tag_object_points
 
 __all__ = [
     "CameraPose",
@@ -43,13 +46,15 @@ __all__ = [
     "CalibrationResult",
     "calibrate_camera_pose",
     "load_camera_pose",
+    "read_manifest",
     "save_camera_pose",
     "solve_ax_zb",
 ]
 
 
-class CameraPoseError(ValueError):
-    """A camera-pose file is unreadable, or the calibration data cannot determine it."""
+class CameraPoseError(CameraError):
+    """A camera-pose file is unreadable, or the calibration data cannot determine it
+    (exit code 2)."""
 
 
 @dataclass(frozen=True)
@@ -149,17 +154,13 @@ def calibrate_camera_pose(
       tag_in_ee: a known tag mounting ``(R_ee_tag, p_ee_tag)`` to hold fixed; default:
         estimated along with the camera.
     """
-    from scipy.optimize import least_squares
-
-    from jaxinertia.vision.tags import solve_tag_pose
-
     R_base_ee = np.asarray(R_base_ee, np.float64)
     p_base_ee = np.asarray(p_base_ee, np.float64)
     corners = np.asarray(corners, np.float64)
     M = len(R_base_ee)
     if not (R_base_ee.shape == (M, 3, 3) and p_base_ee.shape == (M, 3)
             and corners.shape == (M, 4, 2)):
-        raise ValueError(f"shapes: R_base_ee {R_base_ee.shape}, p_base_ee {p_base_ee.shape}, "
+        raise UsageError(f"shapes: R_base_ee {R_base_ee.shape}, p_base_ee {p_base_ee.shape}, "
                          f"corners {corners.shape}; expected (M,3,3), (M,3), (M,4,2)")
     if M < 3:
         raise CameraPoseError(f"{M} usable images; at least 3 are needed (10 or more advised)")
@@ -278,3 +279,34 @@ def load_camera_pose(path: str | os.PathLike) -> CameraPose:
             raise
         raise CameraPoseError(f"{path}: bad value ({e})") from e
     return CameraPose(R, p)
+
+
+def read_manifest(path: str | os.PathLike) -> list[tuple[Path, list[float]]]:
+    """Images and joint angles [rad] from a JSON or CSV manifest (paths relative to it).
+
+    JSON: ``{"samples": [{"image": "img_000.png", "q": [q1, q2, q3, q4]}, ...]}``;
+    CSV: a header ``image,q1,q2,q3,q4`` then one row per image.
+
+    Raises:
+      FileFormatError: a missing, malformed or empty manifest.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileFormatError(path, None, "no such manifest")
+    rows: list[tuple[Path, list[float]]] = []
+    try:
+        if path.suffix.lower() == ".json":
+            d = json.loads(path.read_text())
+            for s in d["samples"]:
+                rows.append((path.parent / s["image"], [float(x) for x in s["q"]]))
+        else:
+            with path.open(newline="") as f:
+                for r in csv.DictReader(f):
+                    qs = sorted((k for k in r if k and k.startswith("q")), key=lambda k: int(k[1:]))
+                    rows.append((path.parent / r["image"], [float(r[k]) for k in qs]))
+    except (KeyError, TypeError, ValueError, json.JSONDecodeError) as e:
+        raise FileFormatError(path, None, f"bad manifest ({e!r}); see jaxinertia "
+                              "camera-calibrate --help") from e
+    if not rows:
+        raise FileFormatError(path, None, "the manifest lists no images")
+    return rows

@@ -23,7 +23,10 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
+
+from jaxinertia.errors import ConfigError, UsageError
 
 __all__ = [
     "CameraIntrinsics",
@@ -35,13 +38,15 @@ __all__ = [
 _N_DIST = (0, 4, 5, 8, 12, 14)  # the distortion vector lengths OpenCV accepts
 
 
-class IntrinsicsError(ValueError):
-    """An intrinsics file is missing, unreadable or describes an impossible camera."""
+class IntrinsicsError(ConfigError):
+    """An intrinsics file is missing, unreadable or describes an impossible camera
+    (``IntrinsicsError(path, field, message)``; exit code 2)."""
 
 
 @dataclass(frozen=True)
 class CameraIntrinsics:
-    """A pinhole camera with OpenCV's lens distortion model.
+    """A pinhole camera with OpenCV's lens distortion model. Impossible values raise
+    :class:`jaxinertia.errors.UsageError` (a file of them, :class:`IntrinsicsError`).
 
     Attributes:
       fx, fy: focal lengths [px]; cx, cy: principal point [px].
@@ -60,15 +65,15 @@ class CameraIntrinsics:
     def __post_init__(self):
         vals = (self.fx, self.fy, self.cx, self.cy, *self.distortion)
         if not all(math.isfinite(v) for v in vals):
-            raise IntrinsicsError(f"intrinsics must be finite numbers, got {self}")
+            raise UsageError(f"intrinsics must be finite numbers, got {self}")
         if not (self.fx > 0 and self.fy > 0):
-            raise IntrinsicsError(f"focal lengths must be positive, got fx={self.fx}, "
-                                  f"fy={self.fy}")
+            raise UsageError(f"focal lengths must be positive, got fx={self.fx}, "
+                             f"fy={self.fy}")
         if not (self.width > 0 and self.height > 0):
-            raise IntrinsicsError(f"image size must be positive, got {self.width}x{self.height}")
+            raise UsageError(f"image size must be positive, got {self.width}x{self.height}")
         if len(self.distortion) not in _N_DIST:
-            raise IntrinsicsError(f"{len(self.distortion)} distortion coefficients; OpenCV "
-                                  f"accepts {', '.join(map(str, _N_DIST[1:]))} (or none)")
+            raise UsageError(f"{len(self.distortion)} distortion coefficients; OpenCV "
+                             f"accepts {', '.join(map(str, _N_DIST[1:]))} (or none)")
 
     @property
     def K(self) -> np.ndarray:
@@ -85,6 +90,13 @@ class CameraIntrinsics:
         """(width, height) [px]."""
         return self.width, self.height
 
+    def check_size(self, image: np.ndarray, what: str = "image") -> None:
+        """Raises :class:`jaxinertia.errors.UsageError` unless ``image`` (H, W[, C]) has
+        the size these intrinsics belong to."""
+        if (image.shape[1], image.shape[0]) != self.size:
+            raise UsageError(f"{what} is {image.shape[1]}x{image.shape[0]} px; the intrinsics "
+                             f"are for {self.width}x{self.height}")
+
     def to_dict(self) -> dict:
         return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy,
                 "cx": self.cx, "cy": self.cy, "distortion": list(self.distortion)}
@@ -94,9 +106,9 @@ class CameraIntrinsics:
         """From a (3, 3) camera matrix (zero skew) and distortion coefficients."""
         K = np.asarray(K, dtype=np.float64)
         if K.shape != (3, 3):
-            raise IntrinsicsError(f"camera matrix must be 3x3, got shape {K.shape}")
+            raise UsageError(f"camera matrix must be 3x3, got shape {K.shape}")
         if abs(K[0, 1]) > 1e-9 * abs(K[0, 0]) or not np.allclose(K[2], [0, 0, 1]):
-            raise IntrinsicsError(f"camera matrix must be [[fx,0,cx],[0,fy,cy],[0,0,1]], got {K}")
+            raise UsageError(f"camera matrix must be [[fx,0,cx],[0,fy,cy],[0,0,1]], got {K}")
         d = np.asarray(dist if dist is not None else [], dtype=np.float64).ravel()
         return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
                    int(width), int(height), tuple(float(x) for x in d))
@@ -106,14 +118,14 @@ def _from_json(path: Path) -> CameraIntrinsics:
     try:
         d = json.loads(path.read_text())
     except json.JSONDecodeError as e:
-        raise IntrinsicsError(f"{path}: not valid JSON ({e})") from e
+        raise IntrinsicsError(path, None, f"not valid JSON ({e})") from e
     if not isinstance(d, dict):
-        raise IntrinsicsError(f"{path}: expected a JSON object with fx, fy, cx, cy, width, "
+        raise IntrinsicsError(path, None, "expected a JSON object with fx, fy, cx, cy, width, "
                               "height, distortion")
     missing = [k for k in ("fx", "fy", "cx", "cy", "width", "height") if k not in d]
     if missing:
-        raise IntrinsicsError(f"{path}: missing {', '.join(missing)} (expected fx, fy, cx, "
-                              "cy [px], width, height [px], distortion [OpenCV order])")
+        raise IntrinsicsError(path, None, f"missing {', '.join(missing)} (expected fx, fy, "
+                              "cx, cy [px], width, height [px], distortion [OpenCV order])")
     try:
         dist = tuple(float(x) for x in (d.get("distortion") or []))
         w, h = d["width"], d["height"]
@@ -121,32 +133,30 @@ def _from_json(path: Path) -> CameraIntrinsics:
             raise ValueError("width and height must be integers")
         return CameraIntrinsics(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]),
                                 int(w), int(h), dist)
-    except IntrinsicsError as e:
-        raise IntrinsicsError(f"{path}: {e}") from e
+    except UsageError as e:
+        raise IntrinsicsError(path, None, str(e)) from e
     except (TypeError, ValueError) as e:
-        raise IntrinsicsError(f"{path}: bad value ({e})") from e
+        raise IntrinsicsError(path, None, f"bad value ({e})") from e
 
 
 def _from_filestorage(path: Path) -> CameraIntrinsics:
-    import cv2
-
     try:
         fs = cv2.FileStorage(os.fspath(path), cv2.FileStorage_READ)
     except cv2.error as e:
-        raise IntrinsicsError(f"{path}: OpenCV cannot parse it ({e.err})") from e
+        raise IntrinsicsError(path, None, f"OpenCV cannot parse it ({e.err})") from e
     try:
         if not fs.isOpened():
-            raise IntrinsicsError(f"{path}: OpenCV cannot open it as FileStorage YAML/XML")
+            raise IntrinsicsError(path, None, "OpenCV cannot open it as FileStorage YAML/XML")
         K = fs.getNode("camera_matrix").mat()
         dist = fs.getNode("distortion_coefficients").mat()
         w, h = fs.getNode("image_width"), fs.getNode("image_height")
         if K is None or w.empty() or h.empty():
-            raise IntrinsicsError(f"{path}: needs camera_matrix, image_width, image_height "
+            raise IntrinsicsError(path, None, "needs camera_matrix, image_width, image_height "
                                   "(and distortion_coefficients)")
         try:
             return CameraIntrinsics.from_matrix(K, dist, int(w.real()), int(h.real()))
-        except IntrinsicsError as e:
-            raise IntrinsicsError(f"{path}: {e}") from e
+        except UsageError as e:
+            raise IntrinsicsError(path, None, str(e)) from e
     finally:
         fs.release()
 
@@ -159,14 +169,14 @@ def load_intrinsics(path: str | os.PathLike) -> CameraIntrinsics:
     """
     path = Path(path)
     if not path.is_file():
-        raise IntrinsicsError(f"{path}: no such intrinsics file")
+        raise IntrinsicsError(path, None, "no such intrinsics file")
     suffix = path.suffix.lower()
     if suffix == ".json":
         return _from_json(path)
     if suffix in (".yaml", ".yml", ".xml"):
         return _from_filestorage(path)
-    raise IntrinsicsError(f"{path}: unknown intrinsics format {suffix!r} (use .json, or OpenCV "
-                          ".yaml/.yml/.xml)")
+    raise IntrinsicsError(path, None, f"unknown intrinsics format {suffix!r} (use .json, or "
+                          "OpenCV .yaml/.yml/.xml)")
 
 
 def save_intrinsics(path: str | os.PathLike, intrinsics: CameraIntrinsics) -> Path:

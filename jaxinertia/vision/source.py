@@ -9,8 +9,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import cv2
 import numpy as np
 
+from jaxinertia.errors import UsageError
 from jaxinertia.vision.calibration import CameraPose
 from jaxinertia.vision.intrinsics import CameraIntrinsics
 from jaxinertia.vision.tags import (
@@ -32,8 +34,6 @@ def opencv_capture(
     Cameras queue a few frames; ``flush`` frames are grabbed and dropped first so that the
     returned image shows the arm where it is now, not where it was before it moved.
     """
-    import cv2
-
     cap = cv2.VideoCapture(index)
     if not cap.isOpened():
         raise RuntimeError(f"cannot open camera {index} (cv2.VideoCapture)")
@@ -85,7 +85,7 @@ class CameraTagSource:
         prior: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
     ):
         if not tag_size > 0:
-            raise ValueError(f"tag_size must be positive [m], got {tag_size}")
+            raise UsageError(f"tag_size must be positive [m], got {tag_size}")
         self.intrinsics = intrinsics
         self.camera_pose = camera_pose
         self.tag_size = float(tag_size)
@@ -103,9 +103,7 @@ class CameraTagSource:
         images = [image] if image is not None else [self._capture() for _ in range(self.n_frames)]
         corners = []
         for img in images:
-            if img.shape[1] != self.intrinsics.width or img.shape[0] != self.intrinsics.height:
-                raise ValueError(f"image is {img.shape[1]}x{img.shape[0]} px; the intrinsics "
-                                 f"are for {self.intrinsics.width}x{self.intrinsics.height}")
+            self.intrinsics.check_size(img)
             det = find_tag(img, self.tag_id, self._detector)
             corners.append(refine_corners_edges(img, det.corners, self.intrinsics))
         return solve_tag_pose(np.mean(corners, axis=0), self.intrinsics, self.tag_size)

@@ -15,6 +15,7 @@ import functools
 import cv2
 import numpy as np
 
+from jaxinertia.errors import UsageError
 from jaxinertia.vision.intrinsics import CameraIntrinsics
 from jaxinertia.vision.tags import TAG_FAMILY
 
@@ -30,7 +31,7 @@ def look_at(p_cam: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1
     z /= np.linalg.norm(z)
     x = np.cross(z, np.asarray(up, float))
     if np.linalg.norm(x) < 1e-9:
-        raise ValueError("up is parallel to the viewing direction")
+        raise UsageError("up is parallel to the viewing direction")
     x /= np.linalg.norm(x)
     return np.stack([x, np.cross(z, x), z], axis=1)
 
@@ -88,7 +89,7 @@ def render_tag(
     uv = np.array([[-0.5, -0.5], [n - 0.5, -0.5], [n - 0.5, n - 0.5], [-0.5, n - 0.5]])
     xyz = np.column_stack([(uv[:, 0] - c) * m, -(uv[:, 1] - c) * m, np.zeros(4)])
     if np.any((R_cam_tag @ xyz.T).T[:, 2] + p_cam_tag[2] <= 1e-3):
-        raise ValueError("the tag is (partly) behind the camera")
+        raise UsageError("the tag is (partly) behind the camera")
     # Supersampled ideal (undistorted) image: pixel centre u maps to s*u + (s-1)/2.
     K_hi = intrinsics.K.copy()
     K_hi[:2] *= s

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from jaxinertia.errors import TagNotFoundError, UsageError
 from jaxinertia.vision.intrinsics import CameraIntrinsics
 
 __all__ = [
@@ -33,10 +34,6 @@ __all__ = [
 
 #: The AprilTag family used by the paper's setup.
 TAG_FAMILY = cv2.aruco.DICT_APRILTAG_36h11
-
-
-class TagNotFoundError(RuntimeError):
-    """The requested tag is not visible (or not decodable) in the image."""
 
 
 @dataclass(frozen=True)
@@ -111,7 +108,7 @@ def make_detector(
         "none": cv2.aruco.CORNER_REFINE_NONE,
     }
     if refine not in methods:
-        raise ValueError(f"refine must be one of {sorted(methods)}, got {refine!r}")
+        raise UsageError(f"refine must be one of {sorted(methods)}, got {refine!r}")
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = methods[refine]
     if refine == "subpix":
@@ -130,7 +127,7 @@ def _gray(image: np.ndarray) -> np.ndarray:
     if image.ndim == 3 and image.shape[2] == 1:
         return image[..., 0]
     if image.ndim != 2:
-        raise ValueError(f"expected a grey (H, W) or BGR (H, W, 3) image, got shape {image.shape}")
+        raise UsageError(f"expected a grey (H, W) or BGR (H, W, 3) image, got shape {image.shape}")
     return image
 
 
@@ -285,7 +282,7 @@ def solve_tag_pose(
       tag_size: edge of the black square [m].
     """
     if not tag_size > 0:
-        raise ValueError(f"tag_size must be positive [m], got {tag_size}")
+        raise UsageError(f"tag_size must be positive [m], got {tag_size}")
     corners = np.ascontiguousarray(np.asarray(corners, np.float64).reshape(4, 2))
     obj = tag_object_points(tag_size)
     n, rvecs, tvecs, _ = cv2.solvePnPGeneric(

@@ -1,6 +1,8 @@
-"""Subcommands of ``jaxinertia`` provided by this package: ``tag-pose``, ``camera-calibrate``.
+"""Subcommands ``tag-pose`` and ``camera-calibrate``: a tag's pose in one image, and the
+camera's pose in the robot base from images of the end-effector tag.
 
-Heavy imports (OpenCV, JAX) happen inside the command functions.
+Errors are raised (:mod:`jaxinertia.errors`: a bad file, no tag in the image, a camera
+pose the images cannot determine); ``main()`` prints them and exits with code 2.
 """
 
 from __future__ import annotations
@@ -10,51 +12,46 @@ import json
 import sys
 from pathlib import Path
 
-__all__ = ["read_manifest", "register"]
+import cv2
+import jax
+import numpy as np
+
+from jaxinertia.errors import CameraError, FileFormatError, TagNotFoundError, UsageError
+from jaxinertia.kinematics import ee_pose
+from jaxinertia.robot import open_manipulator_x
+from jaxinertia.vision.calibration import (
+    calibrate_camera_pose,
+    load_camera_pose,
+    read_manifest,
+    save_camera_pose,
+)
+from jaxinertia.vision.intrinsics import load_intrinsics
+from jaxinertia.vision.tags import find_tag, make_detector, measure_tag, refine_corners_edges
+
+__all__ = ["register"]
 
 DEFAULT_TAG_SIZE = 0.04  # [m] edge of the black square; measure yours
 DEFAULT_TAG_ID = 0
 
 
-def _err(cmd: str, msg: str) -> int:
-    print(f"jaxinertia {cmd}: error: {msg}", file=sys.stderr)
-    return 2
-
-
-def _read_image(path: Path):
-    import cv2
-
+def _read_image(path: Path) -> np.ndarray:
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if img is None:
-        raise FileNotFoundError(f"{path}: not a readable image")
+        raise FileFormatError(path, None, "not a readable image")
     return img
 
 
 def _rot_deg(R) -> list[float]:
     """Rotation vector [deg] of R (axis * angle)."""
-    import cv2
-    import numpy as np
-
     return (np.rad2deg(cv2.Rodrigues(np.asarray(R, float))[0].ravel())).tolist()
 
 
 def cmd_tag_pose(args) -> int:
-    import numpy as np
-
-    from jaxinertia.vision.calibration import CameraPoseError, load_camera_pose
-    from jaxinertia.vision.intrinsics import IntrinsicsError, load_intrinsics
-    from jaxinertia.vision.tags import TagNotFoundError, measure_tag
-
-    try:
-        intr = load_intrinsics(args.intrinsics)
-        cam = load_camera_pose(args.camera_pose) if args.camera_pose else None
-        img = _read_image(args.image)
-        if (img.shape[1], img.shape[0]) != intr.size:
-            return _err("tag-pose", f"{args.image} is {img.shape[1]}x{img.shape[0]} px; the "
-                        f"intrinsics are for {intr.width}x{intr.height}")
-        tp = measure_tag(img, intr, args.tag_size, args.tag_id)
-    except (IntrinsicsError, CameraPoseError, TagNotFoundError, FileNotFoundError) as e:
-        return _err("tag-pose", str(e))
+    intr = load_intrinsics(args.intrinsics)
+    cam = load_camera_pose(args.camera_pose) if args.camera_pose else None
+    img = _read_image(args.image)
+    intr.check_size(img, str(args.image))
+    tp = measure_tag(img, intr, args.tag_size, args.tag_id)
     out = {"tag_id": args.tag_id, "tag_size": args.tag_size,
            "R_cam_tag": tp.R_cam_tag.tolist(), "p_cam_tag": tp.p_cam_tag.tolist(),
            "reprojection_error_px": tp.reprojection_error, "ambiguity": tp.ambiguity,
@@ -78,88 +75,33 @@ def cmd_tag_pose(args) -> int:
     return 0
 
 
-def read_manifest(path: Path) -> list[tuple[Path, list[float]]]:
-    """Images and joint angles [rad] from a JSON or CSV manifest (paths relative to it).
-
-    JSON: ``{"samples": [{"image": "img_000.png", "q": [q1, q2, q3, q4]}, ...]}``;
-    CSV: a header ``image,q1,q2,q3,q4`` then one row per image.
-    """
-    import csv
-
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"{path}: no such manifest")
-    rows: list[tuple[Path, list[float]]] = []
-    try:
-        if path.suffix.lower() == ".json":
-            d = json.loads(path.read_text())
-            for s in d["samples"]:
-                rows.append((path.parent / s["image"], [float(x) for x in s["q"]]))
-        else:
-            with path.open(newline="") as f:
-                for r in csv.DictReader(f):
-                    qs = sorted((k for k in r if k and k.startswith("q")), key=lambda k: int(k[1:]))
-                    rows.append((path.parent / r["image"], [float(r[k]) for k in qs]))
-    except (KeyError, TypeError, ValueError, json.JSONDecodeError) as e:
-        raise ValueError(f"{path}: bad manifest ({e!r}); see jaxinertia camera-calibrate "
-                         "--help") from e
-    if not rows:
-        raise ValueError(f"{path}: the manifest lists no images")
-    return rows
-
-
 def cmd_camera_calibrate(args) -> int:
-    import jax
-
     jax.config.update("jax_enable_x64", True)
-    import numpy as np
-
-    from jaxinertia.kinematics import ee_pose
-    from jaxinertia.robot import open_manipulator_x
-    from jaxinertia.vision.calibration import (
-        CameraPoseError,
-        calibrate_camera_pose,
-        save_camera_pose,
-    )
-    from jaxinertia.vision.intrinsics import IntrinsicsError, load_intrinsics
-    from jaxinertia.vision.tags import (
-        TagNotFoundError,
-        find_tag,
-        make_detector,
-        refine_corners_edges,
-    )
-
-    try:
-        intr = load_intrinsics(args.intrinsics)
-        rows = read_manifest(args.manifest)
-    except (IntrinsicsError, ValueError) as e:
-        return _err("camera-calibrate", str(e))
+    intr = load_intrinsics(args.intrinsics)
+    rows = read_manifest(args.manifest)
     robot = open_manipulator_x()
     det = make_detector()
     qs, corners, names = [], [], []
     for img_path, q in rows:
         if len(q) != robot.n_joints:
-            return _err("camera-calibrate", f"{img_path.name}: {len(q)} joint angles, the robot "
-                        f"has {robot.n_joints}")
+            raise UsageError(f"{img_path.name}: {len(q)} joint angles, the robot has "
+                             f"{robot.n_joints}")
         try:
             img = _read_image(img_path)
             c = find_tag(img, args.tag_id, det).corners
-        except (FileNotFoundError, TagNotFoundError) as e:
+        except (FileFormatError, TagNotFoundError) as e:
             print(f"skipped {img_path.name}: {e}", file=sys.stderr)
             continue
         qs.append(q)
         corners.append(refine_corners_edges(img, c, intr))
         names.append(img_path.name)
     if len(names) < 3:
-        return _err("camera-calibrate", f"the tag was found in {len(names)} of {len(rows)} "
-                    "images; at least 3 are needed (10 or more advised)")
+        raise CameraError(f"the tag was found in {len(names)} of {len(rows)} images; at "
+                          "least 3 are needed (10 or more advised)")
     fk = jax.vmap(lambda q: ee_pose(robot, q))
     R_be, p_be = (np.asarray(a) for a in fk(np.asarray(qs, np.float64)))
-    try:
-        res = calibrate_camera_pose(R_be, p_be, np.asarray(corners).reshape(-1, 4, 2), intr,
-                                    args.tag_size)
-    except CameraPoseError as e:
-        return _err("camera-calibrate", str(e))
+    res = calibrate_camera_pose(R_be, p_be, np.asarray(corners).reshape(-1, 4, 2), intr,
+                                args.tag_size)
     cp = res.camera_pose
     save_camera_pose(args.out, cp, extra={
         "tag_size": args.tag_size, "tag_id": args.tag_id, "n_images": len(names),
@@ -181,7 +123,7 @@ def cmd_camera_calibrate(args) -> int:
 
 
 def register(sub) -> None:
-    """Adds this package's subcommands to the ``jaxinertia`` argparse subparsers."""
+    """Adds this module's subcommands to the ``jaxinertia`` argparse subparsers."""
     t = sub.add_parser(
         "tag-pose",
         help="pose of a tag36h11 AprilTag in one image (camera frame, and base frame)",

@@ -1,19 +1,49 @@
-"""Subcommands of ``jaxinertia`` provided by this package: ``virtual-robot`` and ``collect``.
+"""Subcommands ``virtual-robot`` and ``collect``: the virtual servo bus, and samples
+collected on the arm (or a virtual robot) into a native sample file.
 
-Heavy imports (JAX, the simulator, dynamixel-sdk) stay inside the command functions so
-that ``jaxinertia --help`` stays fast.
+Errors are raised (:mod:`jaxinertia.errors`); ``main()`` prints them and picks the exit
+code: 2 for a bad request (unknown object, a goal refused by the safety checks, a journal
+that exists or belongs to another collection), 3 for a collection stopped by the bus or a
+servo (the journal is kept; ``--resume`` continues). Ctrl-C during a collection is not an
+error: the command says where the journal is and returns 130.
 """
 
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from pathlib import Path
 
+import jax
+import numpy as np
+
+from jaxinertia import __version__, objects, plans
+from jaxinertia.errors import HardwareError
+from jaxinertia.hardware.collect import (
+    DELTA,
+    Journal,
+    KinematicTagPose,
+    collect,
+    journal_path,
+    plan_digest,
+    samples_from_records,
+)
+from jaxinertia.hardware.driver import ArmConfig, DynamixelArm
+from jaxinertia.hardware.safety import SafetyError, SafetyLimits
+from jaxinertia.open_manipulator_x import GRIPPER_ID, JOINT_IDS, TAG_IN_EE, calibrated_robot
+from jaxinertia.samples import save_native
+from jaxinertia.sim.params import default_sim_params
+from jaxinertia.virtual.bus import Faults
+from jaxinertia.virtual.physics import VirtualServoBus
+
 __all__ = ["register"]
 
-#: Exit status of ``collect`` when it stopped early (journal kept, ``--resume`` continues).
-EXIT_STOPPED = 3
+#: Exit status of ``collect`` after Ctrl-C (journal kept, ``--resume`` continues).
+EXIT_INTERRUPTED = 130
+
+#: ``collect --object unknown``: no ground truth (the file has no tau and no x).
+UNKNOWN = "unknown"
 
 
 def _ids(text: str) -> tuple[int, ...]:
@@ -30,28 +60,9 @@ def _gripper(text: str) -> int | None:
     return None if text.lower() == "none" else int(text)
 
 
-def _enable_x64() -> None:
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
-
-
 def cmd_virtual_robot(args) -> int:
-    import signal
-
-    _enable_x64()
-    import numpy as np
-
-    import jaxinertia  # noqa: F401  (XLA:CPU settings before JAX starts computing)
-    from jaxinertia.hardware.objects import resolve_object
-    from jaxinertia.hardware.virtual import Faults, VirtualServoBus
-    from jaxinertia.sim.run import default_sim_params
-
-    try:
-        obj = resolve_object(args.object)
-    except ValueError as e:
-        print(f"jaxinertia virtual-robot: error: {e}", file=sys.stderr)
-        return 2
+    jax.config.update("jax_enable_x64", True)
+    obj = objects.resolve(args.object)
     faults = Faults(drop_rate=args.drop_rate, corrupt_rate=args.corrupt_rate,
                     delay_rate=args.delay_rate, delay_s=args.delay_ms / 1000.0,
                     overload_id=args.overload_id, overload_after=args.overload_after,
@@ -68,7 +79,7 @@ def cmd_virtual_robot(args) -> int:
           f"{args.object}, {args.speed:g}x real time", file=sys.stderr, flush=True)
 
     def shutdown(signum, frame):  # noqa: ARG001
-        bus._stop.set()
+        bus.stop()
 
     signal.signal(signal.SIGTERM, shutdown)
     signal.signal(signal.SIGINT, shutdown)
@@ -80,45 +91,17 @@ def cmd_virtual_robot(args) -> int:
 
 
 def cmd_collect(args) -> int:
-    _enable_x64()
-    import numpy as np
-
-    import jaxinertia  # noqa: F401
-    from jaxinertia import __version__
-    from jaxinertia.datasets import save_native
-    from jaxinertia.hardware.collect import (
-        DELTA,
-        Journal,
-        JournalMismatch,
-        KinematicTagPose,
-        collect,
-        journal_path,
-        plan_digest,
-        samples_from_records,
-    )
-    from jaxinertia.hardware.driver import ArmConfig, CommError, DynamixelArm, HardwareError
-    from jaxinertia.hardware.objects import resolve_object
-    from jaxinertia.hardware.safety import SafetyError, SafetyLimits
-    from jaxinertia.sim import scenarios as sc
-    from jaxinertia.sim.run import default_sim_params
-
-    def fail(msg: str, code: int = 2) -> int:
-        print(f"jaxinertia collect: {msg}", file=sys.stderr)
-        return code
-
-    try:
-        obj = resolve_object(args.object)
-    except ValueError as e:
-        return fail(f"error: {e}")
+    jax.config.update("jax_enable_x64", True)
+    obj = None if args.object == UNKNOWN else objects.resolve(args.object)
     if args.plan == "planning":
-        q_d, direction = sc.planning_plan()
+        q_d, direction = plans.planning_plan()
         if args.n:
             q_d, direction = q_d[: args.n], direction[: args.n]
     else:
-        q_d, direction = sc.random_plan(args.n or 1000, args.seed)
+        q_d, direction = plans.random_plan(args.n or 1000, args.seed)
     # The calibrated bare arm: A and tau_g (as the simulator records them) and the FK of
     # the kinematic tag pose.
-    robot = default_sim_params(args.calibration).robot
+    robot = calibrated_robot(args.calibration)
     config = ArmConfig(
         port=args.port, baudrate=args.baudrate, joint_ids=args.ids, gripper_id=args.gripper_id,
         p_gain=args.p_gain, d_gain=args.d_gain, profile_velocity=args.profile_velocity,
@@ -130,59 +113,57 @@ def cmd_collect(args) -> int:
               "port": args.port, "servo_ids": list(args.ids), "delta": DELTA}
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        journal = Journal.open(journal_path(out), header, resume=args.resume)
-    except (FileExistsError, JournalMismatch) as e:
-        return fail(f"error: {e}")
+    journal = Journal.open(journal_path(out), header, resume=args.resume)
     done = len(journal.records)
     if done:
         print(f"resuming: {done} of {len(q_d)} samples already in {journal.path}",
               file=sys.stderr)
-    R_ee_tag, p_ee_tag = sc.TAG_IN_EE
+    R_ee_tag, p_ee_tag = TAG_IN_EE
     tag_source = KinematicTagPose(robot, R_ee_tag, p_ee_tag)
     safety = SafetyLimits.around_workspace(robot)
     arm = DynamixelArm(config, robot=robot, safety=safety)
+
+    def where() -> str:
+        return (f"{len(journal.records)} of {len(q_d)} samples are in {journal.path}; "
+                "continue with --resume")
+
     try:
         with arm:
             collect(arm, q_d, direction, journal, tag_pose=tag_source, delta=DELTA,
                     progress=not args.no_progress)
     except SafetyError as e:
-        journal.close()
-        return fail(f"refused: {e}")
-    except (HardwareError, CommError) as e:
-        journal.close()
-        return fail(f"stopped ({config.on_stop}): {e}; {len(journal.records)} of "
-                    f"{len(q_d)} samples are in {journal.path}; continue with --resume",
-                    EXIT_STOPPED)
+        raise SafetyError(f"refused: {e}") from e
+    except HardwareError as e:  # the bus or a servo (driver.CommError, driver.HardwareError)
+        raise HardwareError(f"stopped ({config.on_stop}): {e}; {where()}") from e
     except KeyboardInterrupt:
+        print(f"jaxinertia collect: interrupted ({config.on_stop}); {where()}",
+              file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
         journal.close()
-        return fail(f"interrupted ({config.on_stop}); {len(journal.records)} of {len(q_d)} "
-                    f"samples are in {journal.path}; continue with --resume", 130)
-    journal.close()
     print(f"bus: {arm.failed_transactions} failed transactions retried", file=sys.stderr)
     x = None if obj is None else np.asarray(obj.x)
-    fields = samples_from_records(journal.records, robot, x)
-    fields["object_id"] = np.zeros(len(fields["q"]), np.int64)
-    fields["x"] = (np.full((1, 4), np.nan) if x is None else x[None]).astype(np.float64)
+    samples = samples_from_records(journal.records, robot, x, args.object)
     meta = {"version": __version__, "source": "dynamixel", "port": args.port,
             "plan": args.plan, "scenario": args.plan, "object": args.object,
             "objects": [args.object], "seed": args.seed, "servo_ids": list(args.ids),
             "gripper_id": args.gripper_id, "robot": robot.name, "delta": DELTA,
             "journal": str(journal.path), "plan_digest": header["plan_digest"],
-            "tag_pose": "kinematic (scenarios.TAG_IN_EE)",
+            "tag_pose": "kinematic (open_manipulator_x.TAG_IN_EE)",
             "servo": {"p_gain": args.p_gain, "i_gain": 0, "d_gain": args.d_gain,
                       "profile_velocity": args.profile_velocity,
                       "profile_acceleration": args.profile_acceleration,
                       "settle_time": args.settle_time, "timeout": args.timeout}}
-    path = save_native(out, fields, meta)
-    bad = int(np.sum(~fields["at_rest"]))
-    print(f"wrote {path} ({len(fields['q'])} samples" + (
+    path = save_native(out, samples, meta)
+    bad = int(np.sum(~samples.at_rest))
+    print(f"wrote {path} ({samples.n_samples} samples" + (
         f", {bad} timed out: at_rest = False)" if bad else ")"))
     return 0
 
 
 def register(sub) -> None:
-    """Adds this package's subcommands to the ``jaxinertia`` argparse subparsers."""
+    """Adds this module's subcommands to the ``jaxinertia`` argparse subparsers."""
+    names = ", ".join(objects.known_names())
     v = sub.add_parser(
         "virtual-robot",
         help="a simulated chain of XM430-W350-T servos on a pseudo-terminal",
@@ -191,10 +172,10 @@ def register(sub) -> None:
         "simulated OpenMANIPULATOR-X. Runs until SIGTERM or Ctrl-C.",
     )
     v.add_argument("--object", default="none",
-                   help="held object: cube, red, white, black, 0g, 50g, 100g, 150g or none")
+                   help=f"held object: {names} (none: the empty gripper)")
     v.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
-    v.add_argument("--ids", type=_ids, default=(11, 12, 13, 14), help="joint servo IDs")
-    v.add_argument("--gripper-id", type=_gripper, default=15, help="gripper ID or none")
+    v.add_argument("--ids", type=_ids, default=JOINT_IDS, help="joint servo IDs")
+    v.add_argument("--gripper-id", type=_gripper, default=GRIPPER_ID, help="gripper ID or none")
     v.add_argument("--q0", type=float, nargs=4, default=(0.0, -30.0, 30.0, 0.0),
                    metavar="DEG", help="initial joint angles [deg]")
     v.add_argument("--seed", type=int, default=0, help="friction draws and current noise")
@@ -220,15 +201,16 @@ def register(sub) -> None:
     c.add_argument("--port", required=True, help="serial device (e.g. /dev/ttyUSB0)")
     c.add_argument("--plan", required=True, choices=["planning", "random"])
     c.add_argument("--object", required=True,
-                   help="held object (cube, red, white, black, 0g, 50g, 100g, 150g) or "
-                   "unknown (no ground truth: tau and x are NaN)")
+                   help=f"held object ({names}) or {UNKNOWN} (no ground truth: the file has "
+                   "no tau and no x)")
     c.add_argument("--out", required=True, type=Path, help="native sample file (.npz)")
     c.add_argument("--resume", action="store_true", help="continue OUT.journal.jsonl")
     c.add_argument("--n", type=int, help="samples (random; caps planning)")
     c.add_argument("--seed", type=int, default=0, help="seed of the random plan")
     c.add_argument("--baudrate", type=int, default=1_000_000)
-    c.add_argument("--ids", type=_ids, default=(11, 12, 13, 14), help="joint servo IDs")
-    c.add_argument("--gripper-id", type=_gripper, default=15, help="gripper ID (pinged) or none")
+    c.add_argument("--ids", type=_ids, default=JOINT_IDS, help="joint servo IDs")
+    c.add_argument("--gripper-id", type=_gripper, default=GRIPPER_ID,
+                   help="gripper ID (pinged) or none")
     c.add_argument("--p-gain", type=int, default=800, help="Position P Gain register")
     c.add_argument("--d-gain", type=int, default=0, help="Position D Gain register (I is 0)")
     c.add_argument("--profile-velocity", type=float, default=0.5, help="[rad/s]")

@@ -20,7 +20,7 @@ class VirtualRobotProcess:
 
     def __init__(self, args: list[str], *, stderr: Path | None = None,
                  startup_timeout: float = 120.0) -> None:
-        self.args = [sys.executable, "-m", "jaxinertia.cli", "virtual-robot", *args]
+        self.args = [sys.executable, "-m", "jaxinertia", "virtual-robot", *args]
         self.stderr_path = stderr
         self.startup_timeout = startup_timeout
         self.proc: subprocess.Popen | None = None
