@@ -81,6 +81,7 @@ class TagNotFoundError(JaxinertiaError, LookupError):
 
 
 class HardwareError(JaxinertiaError, RuntimeError):
-    """The servo bus or a servo failed (communication, hardware error status, safety)."""
+    """A device failed: the servo bus or a servo (communication, hardware error status), or
+    a camera that cannot be opened or gives no frame."""
 
     exit_code = EXIT_HARDWARE

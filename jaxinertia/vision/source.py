@@ -12,7 +12,7 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from jaxinertia.errors import UsageError
+from jaxinertia.errors import HardwareError, UsageError
 from jaxinertia.vision.calibration import CameraPose
 from jaxinertia.vision.intrinsics import CameraIntrinsics
 from jaxinertia.vision.tags import (
@@ -36,7 +36,7 @@ def opencv_capture(
     """
     cap = cv2.VideoCapture(index)
     if not cap.isOpened():
-        raise RuntimeError(f"cannot open camera {index} (cv2.VideoCapture)")
+        raise HardwareError(f"cannot open camera {index} (cv2.VideoCapture)")
     if width:
         cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
     if height:
@@ -47,7 +47,7 @@ def opencv_capture(
             cap.grab()
         ok, frame = cap.read()
         if not ok:
-            raise RuntimeError(f"camera {index} returned no frame")
+            raise HardwareError(f"camera {index} returned no frame")
         return frame
 
     capture.release = cap.release  # type: ignore[attr-defined]
