@@ -56,7 +56,9 @@ def main() -> None:
     if args.trace:
         logging.basicConfig(format="%(relativeCreated)8.0f ms %(message)s")
         logging.getLogger("jaxinertia.sim.stream").setLevel(logging.DEBUG)
-    from jaxinertia.sim.run import ScenarioRequest, default_sim_params, simulate_scenarios
+    # Imported after the precision and cache settings, and timed (import_s).
+    from jaxinertia.sim.params import default_sim_params
+    from jaxinertia.sim.run import ScenarioRequest, simulate_scenarios
 
     params = default_sim_params()
     if args.no_jitter:

@@ -52,13 +52,14 @@ def main() -> None:
     # One precision for everything, MJX included (its arrays follow jax_enable_x64).
     jax.config.update("jax_enable_x64", args.dtype == "float64")
 
+    # Imported once the precision is set (module-level arrays follow jax_enable_x64).
     import mujoco
     from mujoco import mjx
 
     from jaxinertia.dynamics import euler_step
     from jaxinertia.robot import compile_mujoco, data_path, open_manipulator_x
     from jaxinertia.sim.batched import state_batch_first, state_batch_last, step_batched
-    from jaxinertia.sim.run import default_sim_params
+    from jaxinertia.sim.params import default_sim_params
     from jaxinertia.sim.servo import goal_ticks
     from jaxinertia.sim.simulator import SimState, step
 

@@ -11,11 +11,16 @@ import jax
 import numpy as np
 import pytest
 
+from jaxinertia.objects import TEST_OBJECTS
 from jaxinertia.sim.calibration import baseline_statistics, real_plan, simulate_real_plan
-from jaxinertia.sim.run import default_sim_params
-from jaxinertia.sim.scenarios import OBJECTS
+from jaxinertia.sim.params import default_sim_params
+from jaxinertia.sim.run import simulate_scenario
 
 FIELDS = ("q_d", "q", "direction", "tau", "current_tau")
+
+#: The acceptance bands of issue 3: the simulated statistic within this fraction of the
+#: real one (the reference: the real data).
+BANDS = {"pe_mae": 0.25, "k": 0.10, "current_mae": 0.25, "mu": 0.30, "tau_max": 0.20}
 
 
 @pytest.fixture(scope="module")
@@ -29,20 +34,23 @@ def stats(lbipe_dir):
             baseline_statistics(*(sim[k] for k in FIELDS)))
 
 
-def _within(sim, real, rel):
-    return np.abs(sim / real - 1.0) <= rel
+def _assert_within(sim: np.ndarray, real: np.ndarray, name: str, joints=slice(None)):
+    """The statistic ``name`` of the simulated samples is within its band of the real one
+    on ``joints``; the failure names the statistic and both values."""
+    sim, real = np.asarray(sim)[joints], np.asarray(real)[joints]
+    ok = np.abs(sim / real - 1.0) <= BANDS[name]
+    assert np.all(ok), f"{name}: sim {sim} vs real {real} (band {BANDS[name]:.0%})"
 
 
 def test_position_error_baseline_matches_real(stats):
     real, sim = stats
-    assert np.all(_within(sim["pe_mae"], real["pe_mae"], 0.25)), (sim["pe_mae"], real["pe_mae"])
-    assert np.all(_within(sim["k"], real["k"], 0.10)), (sim["k"], real["k"])
+    _assert_within(sim["pe_mae"], real["pe_mae"], "pe_mae")
+    _assert_within(sim["k"], real["k"], "k")
 
 
 def test_current_baseline_matches_real(stats):
     real, sim = stats
-    assert np.all(_within(sim["current_mae"], real["current_mae"], 0.25)), (
-        sim["current_mae"], real["current_mae"])
+    _assert_within(sim["current_mae"], real["current_mae"], "current_mae")
 
 
 def test_load_friction_slope_matches_real(stats):
@@ -51,7 +59,7 @@ def test_load_friction_slope_matches_real(stats):
     asks for agreement within two combined standard errors instead (issue 3's band is not
     checkable on joint 4 with this much data; see the closing note)."""
     real, sim = stats
-    assert np.all(_within(sim["mu"][:3], real["mu"][:3], 0.30)), (sim["mu"], real["mu"])
+    _assert_within(sim["mu"], real["mu"], "mu", joints=slice(0, 3))
     assert real["mu_se"][3] > 0.3 * abs(real["mu"][3])  # the premise of the exception
     se = np.hypot(real["mu_se"][3], sim["mu_se"][3])
     assert abs(sim["mu"][3] - real["mu"][3]) <= 2 * se, (sim["mu"][3], real["mu"][3], se)
@@ -60,11 +68,9 @@ def test_load_friction_slope_matches_real(stats):
 def test_max_torque_over_the_four_test_objects():
     """The test scenario as the paper ran it (1000 samples per object): a maximum over
     fewer samples is biased low."""
-    from jaxinertia.sim.run import simulate_scenario
-
     res = simulate_scenario(default_sim_params(), "test", n=1000, seed=0, progress=False)
-    assert list(res) == list(OBJECTS)
+    assert list(res) == list(TEST_OBJECTS)
     tau_max = np.max([np.max(np.abs(r["tau"][r["at_rest"]]), axis=0)
                       for _, r in res.values()], axis=0)
     real = np.array([0.417, 1.131, 0.534, 0.247])
-    assert np.all(_within(tau_max, real, 0.20)), (tau_max, real)
+    _assert_within(tau_max, real, "tau_max")

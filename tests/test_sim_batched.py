@@ -13,11 +13,15 @@ from jaxinertia.sim.batched import (
     state_batch_last,
     step_batched,
 )
-from jaxinertia.sim.run import default_sim_params
+from jaxinertia.sim.params import default_sim_params
 from jaxinertia.sim.servo import ServoState, goal_ticks, present_ticks
 from jaxinertia.sim.simulator import SimState, attach_payload, step
 
 B, STEPS = 64, 300
+
+#: Agreement with the reference ``jax.vmap(simulator.step)`` in float64 (relative to each
+#: field's magnitude, at least 1): rounding only, accumulated over ``STEPS`` steps.
+TOL = 1e-12
 
 
 def _random_states(key, n=4):
@@ -59,11 +63,17 @@ def _rollouts(params_ref, in_axes, params_bl, state, goal):
 
 
 def _assert_same(traj_ref, traj_bl):
-    for a, b in zip(jax.tree_util.tree_leaves(traj_ref), jax.tree_util.tree_leaves(traj_bl)):
-        assert a.shape == b.shape
+    """Every field of the trajectories agrees to ``TOL``; the failure names the field
+    (``.servo.integral``, ...)."""
+    ref = dict(jax.tree_util.tree_flatten_with_path(traj_ref)[0])
+    for path, b in jax.tree_util.tree_flatten_with_path(traj_bl)[0]:
+        name, a = jax.tree_util.keystr(path), ref[path]
+        assert a.shape == b.shape, f"mismatch: {name} shape {b.shape} != {a.shape}"
         scale = max(1.0, float(jnp.max(jnp.abs(a))))
-        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=0, atol=1e-12 * scale)
-    np.testing.assert_array_equal(present_ticks(traj_bl.q), present_ticks(traj_ref.q))
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=0, atol=TOL * scale,
+                                   err_msg=f"mismatch: {name}")
+    np.testing.assert_array_equal(present_ticks(traj_bl.q), present_ticks(traj_ref.q),
+                                  err_msg="mismatch: present ticks")
     assert float(jnp.max(jnp.abs(traj_ref.qd))) > 1e-2  # the arms did move
 
 
@@ -107,3 +117,30 @@ def test_layout_helpers_round_trip_and_reject_batch_first_states():
         np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="batch last"):
         step_batched(default_sim_params(), state, goal)
+
+
+def test_the_steps_trace_and_compile_once_for_new_data_of_the_same_shapes():
+    """New states, goals and parameter values of the same shapes reuse the compiled step
+    (one arm vmapped, and batch-last): the parameters' static fields (dt, tolerances) and
+    the leaves' dtypes do not change between calls, so nothing is traced again."""
+    traces = {"vmap": 0, "batch-last": 0}
+
+    @jax.jit
+    def vmapped(params, state, goal):
+        traces["vmap"] += 1  # runs only while tracing
+        return jax.vmap(step, (None, 0, 0))(params, state, goal)
+
+    @jax.jit
+    def batch_last(params, state, goal):
+        traces["batch-last"] += 1
+        return step_batched(params, state, goal)
+
+    params = default_sim_params()
+    for i in range(3):
+        p = params.replace(friction=params.friction.replace(
+            coulomb=params.friction.coulomb * (1.0 + 0.1 * i)))
+        state, goal = _random_states(jax.random.PRNGKey(10 + i))
+        jax.block_until_ready(vmapped(p, state, goal))
+        jax.block_until_ready(batch_last(p, state_batch_last(state), goal.T))
+    assert traces == {"vmap": 1, "batch-last": 1}, traces
+    assert vmapped._cache_size() == 1 and batch_last._cache_size() == 1

@@ -1,34 +1,41 @@
-"""Calibration of the simulated arm to the real OpenMANIPULATOR-X data (lbipe).
+"""Calibration of the simulated arm to the real OpenMANIPULATOR-X data (lbipe): the fits.
 
 Link gravity: the real free-motion torques ``tau_g`` are a static gravity model on the
 URDF kinematics with other link masses and first moments (lbipe README). The 8
 identifiable base parameters are fitted to them and the simulated arm gets the link
-parameters closest to the URDF's that reproduce them exactly; the result ships as
-``data/open_manipulator_x_sim.json``.
+parameters closest to the URDF's that reproduce them exactly. Servo and friction: a
+fixed-point fit of the simulated real plan's baseline statistics to the real ones. The
+result ships as ``data/open_manipulator_x_sim.json``; :mod:`jaxinertia.sim.params` loads
+and applies it.
 """
 
 from __future__ import annotations
 
-import json
 import os
-from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxinertia.lbipe import find_layout, load_test_file
-from jaxinertia.robot import Robot, data_path
-from jaxinertia.statics import identify_gravity_base_parameters, robot_with_gravity_parameters
+from jaxinertia.lbipe import find_layout, test_files
+from jaxinertia.objects import HeldObject
+from jaxinertia.robot import Robot
+from jaxinertia.sim.run import run_plans
+from jaxinertia.sim.simulator import SimParams
+from jaxinertia.statics import (
+    fit_tag_pose,
+    identify_gravity_base_parameters,
+    robot_with_gravity_parameters,
+)
 
-__all__ = ["SIM_CALIBRATION_FILE", "apply_calibration", "fit_link_gravity", "load_calibration"]
-
-SIM_CALIBRATION_FILE = "open_manipulator_x_sim.json"
+__all__ = ["OFFSET_ITERATIONS", "baseline_statistics", "calibrate_servo_friction",
+           "fit_link_gravity", "real_plan", "simulate_real_plan"]
 
 
 def fit_link_gravity(robot: Robot, lbipe_dir: str | os.PathLike) -> tuple[Robot, dict]:
     """Fits link masses/first moments to every real test file's ``tau_g``."""
     layout = find_layout(lbipe_dir)
-    data = [load_test_file(p, n) for n, p in layout.test_files.items()]
+    data = test_files(layout)
     q = np.concatenate([d.q for d in data])
     tau_g = np.concatenate([d.tau_g for d in data])
     theta, base = identify_gravity_base_parameters(robot, jnp.asarray(q), tau_g)
@@ -40,17 +47,6 @@ def fit_link_gravity(robot: Robot, lbipe_dir: str | os.PathLike) -> tuple[Robot,
         "link_com": np.asarray(fitted.com).tolist(),
     }
     return fitted, info
-
-
-def load_calibration(path: str | os.PathLike | None = None) -> dict:
-    path = Path(path) if path else data_path(SIM_CALIBRATION_FILE)
-    return json.loads(Path(path).read_text())
-
-
-def apply_calibration(robot: Robot, calibration: dict) -> Robot:
-    g = calibration["link_gravity"]
-    return robot.replace(mass=jnp.asarray(g["link_mass"], robot.mass.dtype),
-                         com=jnp.asarray(g["link_com"], robot.com.dtype))
 
 
 # ---- servo and friction: match the real data's baseline statistics ------------------
@@ -91,29 +87,25 @@ def baseline_statistics(q_d, q, direction, tau, current_tau) -> dict[str, np.nda
     return {k: np.asarray(v) for k, v in out.items()}
 
 
-def real_plan(robot: Robot, lbipe_dir) -> list[tuple[str, object, np.ndarray, np.ndarray]]:
-    """The real files' objects (mass, COM and a fitted tag pose), goals and directions."""
-    from jaxinertia.sim.sampling import HeldObject
-    from jaxinertia.statics import fit_tag_pose
-
+def real_plan(robot: Robot, lbipe_dir) -> list[tuple[str, HeldObject, object]]:
+    """``[(name, object, data)]`` per real test file: the object (mass, COM and a fitted
+    tag pose) and the file's data (goals, directions and the real measurements)."""
     layout = find_layout(lbipe_dir)
     plans = []
-    for name, path in layout.test_files.items():
-        d = load_test_file(path, name)
+    for d in test_files(layout):
+        x = np.asarray(d.x)[0]  # [m, m p_tag] of the file's one object
+        mass, com = float(x[0]), x[1:] / x[0]
         fit = fit_tag_pose(robot, jnp.asarray(d.q), jnp.asarray(d.A))
         side = 0.04
-        obj = HeldObject(jnp.asarray(d.mass), jnp.asarray(d.com), jnp.asarray(fit.R_ee_tag),
-                         jnp.asarray(fit.p_ee_tag), jnp.eye(3) * d.mass * side**2 / 6)
-        plans.append((name, obj, d))
+        obj = HeldObject(jnp.asarray(mass), jnp.asarray(com), jnp.asarray(fit.R_ee_tag),
+                         jnp.asarray(fit.p_ee_tag), jnp.eye(3) * mass * side**2 / 6)
+        plans.append((d.name, obj, d))
     return plans
 
 
-def simulate_real_plan(params, plans, key, *, progress: bool = False) -> dict[str, np.ndarray]:
+def simulate_real_plan(params: SimParams, plans, key, *,
+                       progress: bool = False) -> dict[str, np.ndarray]:
     """Simulates every real file's goals/directions/object; returns the stacked fields."""
-    import jax
-
-    from jaxinertia.sim.run import run_plans
-
     parts = run_plans(params, [(obj, d.q_d, d.direction, jax.random.fold_in(key, i))
                                for i, (_, obj, d) in enumerate(plans)],
                       descs=[name for name, _, _ in plans], desc="real plans",
@@ -143,8 +135,6 @@ def calibrate_servo_friction(params, lbipe_dir, *, iterations: int = 6, seed: in
     PE gain and friction, ``mean(tau - k qe + s f)``, matches the real one; without it the
     simulated arm has the real gains and friction but not the real intercepts, which is
     most of the sim-to-real gap (docs/results.md). Returns ``(params, history)``."""
-    import jax
-
     plans = real_plan(params.robot, lbipe_dir)
     real = baseline_statistics(
         np.concatenate([d.q_d for _, _, d in plans]), np.concatenate([d.q for _, _, d in plans]),
@@ -201,29 +191,3 @@ def calibrate_servo_friction(params, lbipe_dir, *, iterations: int = 6, seed: in
     return params, {"real": {k: v.tolist() for k, v in real.items()}, "history": history,
                     "sim_samples": sim, "plans": plans}
 
-
-def params_to_dict(params) -> dict:
-    return {
-        "dt": params.dt,
-        "armature": np.asarray(params.robot.armature).tolist(),
-        "torque_offset": (None if params.torque_offset is None
-                          else np.asarray(params.torque_offset).tolist()),
-        "servo": {k: np.asarray(v).tolist() for k, v in params.servo.__dict__.items()},
-        "friction": {k: np.asarray(v).tolist() for k, v in params.friction.__dict__.items()},
-    }
-
-
-def apply_servo_friction(params, calibration: dict):
-    """Sets the servo, friction and armature values of a calibration file, where present."""
-    from jaxinertia.sim.friction import FrictionParams
-    from jaxinertia.sim.servo import ServoParams
-
-    c = calibration.get("servo_friction")
-    if not c:
-        return params
-    n = params.robot.n_joints
-    robot = params.robot.replace(armature=jnp.asarray(c["armature"]))
-    offset = c.get("torque_offset")
-    return params.replace(robot=robot, servo=ServoParams.xm430_w350(n, **c["servo"]),
-                          friction=FrictionParams.create(n, **c["friction"]),
-                          torque_offset=None if offset is None else jnp.asarray(offset))

@@ -16,46 +16,13 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from jaxinertia.sim.sampling import (
-    HeldObject,
-    Samples,
-    jitter_friction,
-    loaded_params,
-    record,
-)
-from jaxinertia.sim.scenarios import WORKSPACE_DEG
+from jaxinertia.objects import HeldObject, resolve
+from jaxinertia.plans import continuous_plan, switching_schedule
+from jaxinertia.sim.sampling import Record, jitter_friction, loaded_params, record
 from jaxinertia.sim.servo import goal_ticks
 from jaxinertia.sim.simulator import SimParams, SimState, step, trapezoid
 
-__all__ = ["continuous_plan", "simulate_continuous", "simulate_continuous_run",
-           "switching_schedule"]
-
-_DEG = np.pi / 180.0
-
-
-def continuous_plan(n: int, seed: int = 0, *, step_deg: tuple[float, float] = (0.5, 2.0),
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """A random walk of ``n`` nearby goals in the workspace: every joint moves by
-    ``step_deg`` (uniform magnitude, random sign, reflected at the workspace bounds) from
-    one goal to the next, so every joint has a defined approach direction."""
-    rng = np.random.default_rng(seed)
-    lo = np.array([w[0] for w in WORKSPACE_DEG]) * _DEG
-    hi = np.array([w[1] for w in WORKSPACE_DEG]) * _DEG
-    q = np.empty((n, 4))
-    q[0] = 0.5 * (lo + hi)
-    for i in range(1, n):
-        d = rng.uniform(*step_deg, 4) * _DEG * rng.choice([-1.0, 1.0], 4)
-        nxt = q[i - 1] + d
-        out = (nxt < lo) | (nxt > hi)
-        nxt[out] = q[i - 1][out] - d[out]
-        q[i] = nxt
-    direction = np.sign(np.diff(q, axis=0, prepend=q[:1] - (hi - lo) * 1e-3))
-    return q, direction
-
-
-def switching_schedule(n: int, n_objects: int, every: int) -> np.ndarray:
-    """(n,) object index per sample: object k from sample k*every on, cycling."""
-    return (np.arange(n) // every) % n_objects
+__all__ = ["simulate_continuous", "simulate_continuous_run"]
 
 
 def simulate_continuous(
@@ -70,7 +37,7 @@ def simulate_continuous(
     chunk: int = 128,
     progress: bool = True,
     desc: str = "continuous",
-) -> Samples:
+) -> Record:
     """Simulates the trajectory; ``objects`` is a stacked HeldObject (leading axis O; a
     zero mass is the empty gripper) and ``schedule`` (S,) picks the one held per sample."""
     q_d = np.asarray(q_d, np.float64)
@@ -113,7 +80,7 @@ def simulate_continuous(
             state, rec = run(state, tuple(_chunk(a, start, chunk) for a in xs))
             out.append([np.asarray(a)[:n] for a in rec])
             bar.update(n)
-    return Samples(*(np.concatenate(f) for f in zip(*out)))
+    return Record(*(np.concatenate(f) for f in zip(*out)))
 
 
 def _chunk(a: jnp.ndarray, start: int, size: int) -> jnp.ndarray:
@@ -123,26 +90,13 @@ def _chunk(a: jnp.ndarray, start: int, size: int) -> jnp.ndarray:
     return jnp.concatenate([part, jnp.repeat(part[-1:], pad, 0)]) if pad else part
 
 
-def named_object(name: str) -> HeldObject:
-    """A test object by name, ``empty``, or a training load like ``100g``."""
-    from jaxinertia.sim import scenarios as sc
-
-    if name in sc.OBJECTS:
-        return sc.lbipe_object(name)
-    if name == "empty":
-        return sc.training_object(0.0)
-    if name.endswith("g") and name[:-1].isdigit():
-        return sc.training_object(int(name[:-1]) / 1000.0)
-    raise ValueError(f"unknown object {name!r}: use 'empty', a test object "
-                     f"{list(sc.OBJECTS)} or a load like 100g")
-
-
 def simulate_continuous_run(params: SimParams, *, n: int, objects: list[str],
                             switch_every: int, seed: int = 0,
                             progress: bool = True) -> tuple[dict, dict]:
     """The switching-load run as native-format fields and metadata (``object_id`` is the
-    object held at each sample, ``x`` per object)."""
-    objs = [named_object(o) for o in objects]
+    object held at each sample, ``x`` per object; ``objects``: names as
+    :func:`jaxinertia.objects.resolve` takes them, ``empty`` for the empty gripper)."""
+    objs = [resolve(o) for o in objects]
     stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *objs)
     q, d = continuous_plan(n, seed)
     schedule = switching_schedule(n, len(objs), switch_every)

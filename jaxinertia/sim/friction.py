@@ -16,7 +16,7 @@ carries the measured structure of the real servos' friction:
 
 Viscous friction ``b v`` is integrated implicitly with the joint damping.
 The box problem is solved by projected Gauss-Seidel (exact for one joint, converging
-fast for the weakly coupled 4 x 4 case).
+fast for the weakly coupled N x N case).
 """
 
 from __future__ import annotations
@@ -43,7 +43,8 @@ class FrictionParams:
     jitter: jnp.ndarray  # relative std of a per-sample scale on f_c, f_s (log-normal) [-]
 
     @classmethod
-    def create(cls, n_joints: int = 4, **values) -> FrictionParams:
+    def create(cls, n_joints: int, **values) -> FrictionParams:
+        """Defaults for ``n_joints`` joints (``values``: per-joint or shared overrides)."""
         base = dict(coulomb=0.03, static=0.05, stribeck_velocity=0.02, viscous=0.01,
                     load_coefficient=0.3, ripple_amplitude=0.0, ripple_frequency=1.0,
                     ripple_phase=0.0, jitter=0.0)

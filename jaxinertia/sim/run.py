@@ -1,5 +1,5 @@
-"""Running plans and scenarios (checked, streamed, with a progress bar), and the default
-simulated arm."""
+"""Running plans and scenarios: checked, streamed (:mod:`jaxinertia.sim.stream`), with a
+progress bar; scenario results as native-format fields."""
 
 from __future__ import annotations
 
@@ -9,36 +9,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxinertia.robot import open_manipulator_x
-from jaxinertia.sim import scenarios as sc
-from jaxinertia.sim.friction import FrictionParams
-from jaxinertia.sim.sampling import HeldObject
-from jaxinertia.sim.servo import ServoParams
+from jaxinertia.errors import SimulationError, UsageError
+from jaxinertia.objects import (
+    TEST_OBJECTS,
+    TRAINING_LOADS_KG,
+    HeldObject,
+    load_name,
+    test_object,
+    training_object,
+)
+from jaxinertia.plans import planning_plan, random_plan
+from jaxinertia.sim.params import params_to_dict
 from jaxinertia.sim.simulator import SimParams
 from jaxinertia.sim.stream import Plan, precompile, stream_plans
 
-__all__ = ["SimulationError", "as_float64", "default_sim_params", "native_fields", "run_plan",
-           "run_plans", "ScenarioRequest", "simulate_scenario", "simulate_scenarios"]
-
-#: Reflected rotor inertia of the XM430 gear train [kg m^2] (assumed until calibrated).
-DEFAULT_ARMATURE = 0.01
-
-
-def default_sim_params(calibration_file=None) -> SimParams:
-    """The simulated OpenMANIPULATOR-X as calibrated to the real arm
-    (``data/open_manipulator_x_sim.json``: link gravity, servo and friction), falling back
-    to datasheet servos and default friction where the file has no servo calibration."""
-    from jaxinertia.sim.calibration import (
-        apply_calibration,
-        apply_servo_friction,
-        load_calibration,
-    )
-
-    calibration = load_calibration(calibration_file)
-    robot = apply_calibration(open_manipulator_x(), calibration)
-    robot = robot.replace(armature=jnp.asarray(np.full(4, DEFAULT_ARMATURE)))
-    params = SimParams(robot, ServoParams.xm430_w350(), FrictionParams.create())
-    return apply_servo_friction(params, calibration)
+__all__ = ["as_float64", "native_fields", "run_plan", "run_plans", "ScenarioRequest",
+           "simulate_scenario", "simulate_scenarios"]
 
 
 def run_plan(params: SimParams, obj: HeldObject, q_d: np.ndarray, direction: np.ndarray,
@@ -89,10 +75,6 @@ def _check_diverged(res: dict, q_d: np.ndarray, desc: str) -> None:
 
 #: A sample whose arm ends farther than this from its goal [rad] counts as diverged.
 DIVERGED_RAD = 0.5
-
-
-class SimulationError(ValueError):
-    """A plan that cannot be simulated, or a simulation that diverged."""
 
 
 def _check_plan(params: SimParams, q_d, direction, desc: str):
@@ -155,7 +137,7 @@ def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
     for r in requests:  # bad requests fail before anything compiles
         _check_request(r.scenario, r.objects)
     # The stepping program needs no plans: it compiles while they are built.
-    precompile(params, sc.training_object(0.0), lanes=lanes, batch_last=batch_last)
+    precompile(params, training_object(0.0), lanes=lanes, batch_last=batch_last)
     jobs, descs, plans = [], [], []
     for r in requests:
         named = _scenario_jobs(r.scenario, r.n, r.objects, r.seed)
@@ -174,27 +156,27 @@ def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
 
 def _check_request(scenario: str, objects: list[str] | None) -> None:
     if scenario not in ("planning", "random", "test"):
-        raise ValueError(f"unknown scenario {scenario!r}; known: planning, random, test")
-    unknown = [o for o in objects or [] if o not in sc.OBJECTS]
+        raise UsageError(f"unknown scenario {scenario!r}; known: planning, random, test")
+    unknown = [o for o in objects or [] if o not in TEST_OBJECTS]
     if scenario == "test" and unknown:
-        raise ValueError(f"unknown test object(s) {unknown}; known: {list(sc.OBJECTS)}")
+        raise UsageError(f"unknown test object(s) {unknown}; known: {list(TEST_OBJECTS)}")
 
 
 def _scenario_jobs(scenario: str, n: int | None, objects: list[str] | None, seed: int):
     """``[(object name, object, (q_d, direction))]`` of a scenario."""
     _check_request(scenario, objects)
     if scenario == "test":
-        names = objects or list(sc.OBJECTS)
-        return [(o, sc.lbipe_object(o), sc.random_plan(n or 1000, seed + i))
+        names = objects or list(TEST_OBJECTS)
+        return [(o, test_object(o), random_plan(n or 1000, seed + i))
                 for i, o in enumerate(names)]
     jobs = []  # planning or random
-    grid = sc.planning_plan() if scenario == "planning" else None
-    for i, m in enumerate(sc.TRAINING_LOADS_KG):
+    grid = planning_plan() if scenario == "planning" else None
+    for i, m in enumerate(TRAINING_LOADS_KG):
         if scenario == "planning":
             plan = tuple(a[:n] for a in grid) if n else grid
         else:
-            plan = sc.random_plan(n or 1000, seed + i)
-        jobs.append((f"{round(m * 1000)}g", sc.training_object(m), plan))
+            plan = random_plan(n or 1000, seed + i)
+        jobs.append((load_name(m), training_object(m), plan))
     return jobs
 
 
@@ -212,14 +194,10 @@ def native_fields(results: dict[str, tuple[HeldObject, dict]], params: SimParams
     fields["object_id"] = np.concatenate(
         [np.full(len(results[n][1]["q"]), i) for i, n in enumerate(names)])
     fields["x"] = as_float64(np.stack([np.asarray(results[n][0].x) for n in names]))
+    simulator = {k: v for k, v in params_to_dict(params).items() if k != "torque_offset"}
     meta = {
         "version": version, "scenario": scenario, "seed": seed, "source": "simulator",
         "objects": names, "robot": params.robot.name,
-        "simulator": {"precision": str(jnp.dtype(jnp.result_type(float))), "dt": params.dt,
-                      "armature": np.asarray(params.robot.armature).tolist(),
-                      "servo": {k: np.asarray(v).tolist()
-                                for k, v in params.servo.__dict__.items()},
-                      "friction": {k: np.asarray(v).tolist()
-                                   for k, v in params.friction.__dict__.items()}},
+        "simulator": {"precision": str(jnp.dtype(jnp.result_type(float))), **simulator},
     }
     return fields, meta

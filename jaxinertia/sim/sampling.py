@@ -13,9 +13,9 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from flax import struct
 
 from jaxinertia.kinematics import gravity_torques
+from jaxinertia.objects import HeldObject
 from jaxinertia.robot import Robot
 from jaxinertia.sim.servo import (
     CURRENT_LSB_A,
@@ -26,30 +26,13 @@ from jaxinertia.sim.servo import (
 from jaxinertia.sim.simulator import SimParams, SimState, attach_payload, move_and_settle
 from jaxinertia.statics import load_regressor, tag_pose
 
-__all__ = ["HeldObject", "Samples", "loaded_params", "record", "simulate_samples"]
+__all__ = ["Record", "jitter_friction", "loaded_params", "record", "simulate_samples"]
 
 
-@struct.dataclass
-class HeldObject:
-    """A rigid object held with an AprilTag frame fixed in the end-effector frame."""
-
-    mass: jnp.ndarray  # [kg]
-    com_tag: jnp.ndarray  # (3,) COM in the tag frame [m]
-    R_ee_tag: jnp.ndarray  # (3, 3) tag orientation in the end-effector frame
-    p_ee_tag: jnp.ndarray  # (3,) tag origin in the end-effector frame [m]
-    inertia: jnp.ndarray  # (3, 3) about the COM, tag axes [kg m^2]
-
-    @property
-    def x(self) -> jnp.ndarray:
-        """The identification target ``[m, m * p_tag]``."""
-        return jnp.concatenate([self.mass[None], self.mass * self.com_tag])
-
-    def com_ee(self) -> jnp.ndarray:
-        return self.R_ee_tag @ self.com_tag + self.p_ee_tag
-
-
-class Samples(NamedTuple):
-    """Leading axis S. Angles [rad], torques [N m]."""
+class Record(NamedTuple):
+    """What the simulator records per sample: the lbipe fields, the tag pose and the
+    simulator's true state (the raw output; :class:`jaxinertia.samples.Samples` is the
+    library's sample container). Leading axis S. Angles [rad], torques [N m]."""
 
     q_d: jnp.ndarray  # (S, N) commanded goal (continuous, as recorded on the real arm)
     q: jnp.ndarray  # (S, N) Present Position (integer ticks, in rad)
@@ -76,7 +59,7 @@ def jitter_friction(params: SimParams, key: jax.Array, n_joints: int) -> SimPara
 
 
 def record(params: SimParams, bare: Robot, obj: HeldObject, q_d, direction, state: SimState,
-           key: jax.Array, *, at_rest, settle_time) -> Samples:
+           key: jax.Array, *, at_rest, settle_time) -> Record:
     """What the servos and the statics report for the arm in ``state`` (one sample)."""
     q = present_ticks(state.q) * RAD_PER_TICK
     noise = jax.random.normal(key, q.shape) * params.servo.current_noise
@@ -84,7 +67,7 @@ def record(params: SimParams, bare: Robot, obj: HeldObject, q_d, direction, stat
     R_bt, p_bt = tag_pose(bare, q, obj.R_ee_tag, obj.p_ee_tag)
     A = load_regressor(bare, q, R_bt, p_bt)
     tau_g = gravity_torques(bare, q)
-    return Samples(
+    return Record(
         q_d=q_d, q=q, current_tau=NOMINAL_TORQUE_CONSTANT * current,
         direction=direction, tau=tau_g + A @ obj.x, tau_g=tau_g, A=A, R_base_tag=R_bt,
         p_base_tag=p_bt, at_rest=at_rest, settle_time=settle_time, q_true=state.q,
@@ -120,7 +103,7 @@ def simulate_samples(
     key: jax.Array,
     *,
     delta: float = 3.0 * jnp.pi / 180.0,
-) -> Samples:
+) -> Record:
     """Simulates S samples (vmapped): goals ``q_d`` and directions (S, N).
 
     ``params.robot`` is the bare arm in the lbipe convention; the object is attached here.

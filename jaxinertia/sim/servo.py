@@ -43,7 +43,6 @@ __all__ = [
 ]
 
 
-
 @struct.dataclass
 class ServoParams:
     """Per-joint (N,) servo parameters: registers as the servo holds them, physics in SI."""
@@ -60,8 +59,9 @@ class ServoParams:
     current_noise: jnp.ndarray  # std of the Present Current reading [A]
 
     @classmethod
-    def xm430_w350(cls, n_joints: int = 4, **overrides) -> ServoParams:
-        """Datasheet values: 12 V, stall 4.1 N m / 2.3 A, no load 46 rpm, gear 353.5."""
+    def xm430_w350(cls, n_joints: int, **overrides) -> ServoParams:
+        """Datasheet values for ``n_joints`` servos (``overrides``: per-joint or shared
+        values): 12 V, stall 4.1 N m / 2.3 A, no load 46 rpm, gear 353.5."""
         stall_torque, stall_current, v = 4.1, 2.3, 12.0
         no_load_speed = 46.0 * 2.0 * np.pi / 60.0
         base = dict(

@@ -23,7 +23,14 @@ from jaxinertia.dynamics import bias_forces, mass_matrix
 from jaxinertia.identification import cholesky_solve
 from jaxinertia.robot import Robot
 from jaxinertia.sim.friction import FrictionParams, friction_bound, solve_box_friction
-from jaxinertia.sim.servo import RAD_PER_TICK, ServoParams, ServoState, goal_ticks, servo_step
+from jaxinertia.sim.servo import (
+    RAD_PER_TICK,
+    ServoParams,
+    ServoState,
+    goal_ticks,
+    present_ticks,
+    servo_step,
+)
 
 __all__ = ["SimParams", "SimState", "attach_payload", "hold", "move_and_settle", "step",
            "trapezoid"]
@@ -154,8 +161,6 @@ def rest_ticks_error(state: SimState, q_d: jnp.ndarray) -> jnp.ndarray:
 def hold(params: SimParams, state: SimState, goal_rad: jnp.ndarray, seconds: float):
     """Holds a constant goal for ``seconds``; returns the final state and the Present
     Position ticks at every step (for checking that nothing creeps)."""
-    from jaxinertia.sim.servo import present_ticks
-
     g = goal_ticks(goal_rad)
 
     def body(s, _):

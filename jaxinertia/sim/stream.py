@@ -1,32 +1,19 @@
-"""Many samples on a fixed set of lanes that refill as they finish: one compiled program.
+"""The host runner of the lane program (:mod:`jaxinertia.sim.lanes`): many samples on a
+fixed set of lanes, one compiled program for any plans.
 
-``simulate_samples`` vmaps the protocol of one sample over a batch, and a ``vmap`` of a
-``while_loop`` runs every lane until the *slowest* sample of the batch has settled (a
-sample takes 0.7-1.9 s of simulated time, with a tail), and a small batch (a 1,000-sample
-test object) leaves a GPU mostly idle. Here a sample is a small state machine run by a
-lane::
-
-    phase 0: rest at the pre-position q_d - s delta (hold until at rest, or time out)
-    phase 1: profiled move to q_d, hold until at rest (or time out)
-    phase 2: done -> its final state is stored at the sample's index; the lane takes the
-             next sample of the table (objects mixed freely) or idles when none is left
-
-Lanes step together in blocks of ``refill_every`` servo periods; a lane that finishes
-inside a block waits (frozen) for the block's end. The step-by-step arithmetic is that of
-:func:`jaxinertia.sim.sampling.simulate_samples`, with the same per-sample keys, so both
-give the same samples (tests/test_sim.py checks it); only the scheduling differs. By
-default the lanes step batch-last (:mod:`jaxinertia.sim.batched`: the same physics, rounded
-differently; the same ticks). The table is padded to a power of two and the objects to a
-multiple of four, so plans of different sizes share the stepping program per lane count
-(only the small preparation, :func:`_prepare`, is compiled per set of plan sizes).
+The sample table is padded to a power of two and the objects to a multiple of four, so
+plans of different sizes share the stepping program per lane count (only the small
+preparation, :func:`jaxinertia.sim.lanes.prepare`, is compiled per set of plan sizes).
+Sample keys are split on the host CPU (:func:`_sample_keys`).
 
 The host loop dispatches ``blocks_per_call`` blocks (a refill program, then a steps
-program; buffers donated) before it reads the count of finished samples for the progress
-bar. What the servos and statics
-report (:func:`jaxinertia.sim.sampling.record`) is computed once for all samples after the
-stream (:func:`_finish`), so the stepping program stays small. The programs are compiled
-ahead of time in background threads, overlapping the preparation and each other; on an
-accelerator the last samples move to a program of fewer lanes (:func:`default_tail_lanes`).
+program of ``refill_every`` servo periods; buffers donated) before it reads the count of
+finished samples for the progress bar; the records are computed once after the stream
+(:func:`jaxinertia.sim.lanes.finish`). The programs are compiled ahead of time in
+background threads (:class:`_Compiler`), overlapping the preparation and each other;
+:func:`precompile` starts the stepping program before the plans exist. On an accelerator
+the last samples move to a program of fewer lanes (:func:`default_tail_lanes`). By default
+the lanes step batch-last (:func:`batch_last_default`).
 """
 
 from __future__ import annotations
@@ -40,22 +27,18 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 from tqdm.auto import tqdm
 
-from jaxinertia.sim import batched
-from jaxinertia.sim.sampling import HeldObject, Samples, jitter_friction, loaded_params, record
-from jaxinertia.sim.servo import goal_ticks
-from jaxinertia.sim.simulator import SimParams, SimState, step, trapezoid
+from jaxinertia.objects import HeldObject
+from jaxinertia.sim import lanes as lane_program
+from jaxinertia.sim.sampling import Record
+from jaxinertia.sim.simulator import SimParams
 
 __all__ = ["Plan", "batch_last_default", "default_lanes", "default_tail_lanes", "precompile",
            "stream_plans"]
 
 _log = logging.getLogger(__name__)
 _T_IMPORT = time.perf_counter()
-
-#: Pre-position offset of the protocol [rad] (``simulate_samples``' default ``delta``).
-DELTA = 3.0 * np.pi / 180.0
 
 
 class Plan(NamedTuple):
@@ -73,143 +56,6 @@ def default_lanes() -> int:
     return 256 if jax.default_backend() == "cpu" else 16384
 
 
-@struct.dataclass
-class _Table:
-    """The samples to run (leading axis S_pad) and the objects (leading axis O_pad)."""
-
-    q_d: jnp.ndarray  # (S_pad, N)
-    direction: jnp.ndarray  # (S_pad, N)
-    key: jax.Array  # (S_pad,) typed keys
-    obj_id: jnp.ndarray  # (S_pad,) int
-    objects: HeldObject  # leading O_pad
-    loaded: SimParams  # physical arm per object (robot leaves with leading O_pad)
-    count: jnp.ndarray  # () the real S
-
-
-@struct.dataclass
-class _Lanes:
-    """Per-lane state (leading axis L)."""
-
-    state: SimState
-    robot: object  # the loaded robot of the lane's object
-    friction: object  # the lane's jittered friction
-    pre: jnp.ndarray  # (L, N)
-    q_d: jnp.ndarray
-    direction: jnp.ndarray
-    obj_id: jnp.ndarray
-    idx: jnp.ndarray  # sample index, S_pad when idle
-    phase: jnp.ndarray  # 0, 1, 2 (done / idle)
-    k: jnp.ndarray  # steps in the phase
-    still: jnp.ndarray  # consecutive steps at rest
-    ok_pre: jnp.ndarray  # phase 0 ended at rest
-    ok: jnp.ndarray  # phase 1 ended at rest
-    t_settle: jnp.ndarray  # duration of phase 1 [s]
-
-
-@struct.dataclass
-class _Ended:
-    """What a finished lane leaves behind (leading axis S_pad); :func:`_finish` turns it
-    into the recorded :class:`Samples` after the stream, so that the stepping program
-    carries no statics."""
-
-    state: SimState
-    at_rest: jnp.ndarray
-    settle_time: jnp.ndarray
-
-
-@struct.dataclass
-class _Carry:
-    lanes: _Lanes
-    out: _Ended  # leading S_pad
-    next: jnp.ndarray  # () next sample of the table to hand out
-    done: jnp.ndarray  # () samples recorded
-
-
-def _lane_step(base: SimParams, lane: _Lanes, *, batch_last: bool = False) -> _Lanes:
-    """One servo period (``move_and_settle``'s loop body and condition) of one lane, or of
-    all lanes at once when ``batch_last`` (every leaf with the lanes as its last axis,
-    stepped by :func:`jaxinertia.sim.batched.step_batched`)."""
-    params = base.replace(robot=lane.robot, friction=lane.friction)
-    joints = 0 if batch_last else -1  # the joint axis of (N,) or (N, L) arrays
-    dt = base.dt
-    hold_steps = int(round(base.hold_time / dt))
-    max_steps = int(round(base.timeout / dt))
-    active = lane.phase < 2
-    end = jnp.where(lane.phase == 0, lane.pre, lane.q_d)
-    t = lane.k * dt
-    q_goal, t_total = trapezoid(lane.pre, end, t, base.profile_velocity,
-                                base.profile_acceleration)
-    s = (batched.step_batched if batch_last else step)(params, lane.state, goal_ticks(q_goal))
-    resting = ((t >= jnp.max(t_total, axis=joints))
-               & jnp.all(jnp.abs(s.qd) < base.rest_velocity, axis=joints))
-    still = jnp.where(resting, lane.still + 1, 0)
-    k = lane.k + 1
-    ended = active & ((still >= hold_steps) | (k >= max_steps))
-    at_rest = still >= hold_steps
-    first = ended & (lane.phase == 0)
-    second = ended & (lane.phase == 1)
-    keep = lambda new, old: jnp.where(active, new, old)  # noqa: E731
-    return lane.replace(
-        state=jax.tree.map(keep, s, lane.state),
-        phase=lane.phase + ended.astype(lane.phase.dtype),
-        k=jnp.where(first, 0, keep(k, lane.k)),
-        still=jnp.where(first, 0, keep(still, lane.still)),
-        ok_pre=jnp.where(first, at_rest, lane.ok_pre),
-        ok=jnp.where(second, at_rest, lane.ok),
-        t_settle=jnp.where(second, k * dt, lane.t_settle),
-    )
-
-
-def _refill(base: SimParams, table: _Table, carry: _Carry) -> _Carry:
-    """Stores the lanes that finished and hands them the next samples."""
-    lanes, S_pad = carry.lanes, table.q_d.shape[0]
-    finished = (lanes.phase == 2) & (lanes.idx < S_pad)
-    ended = _Ended(lanes.state, lanes.ok_pre & lanes.ok, lanes.t_settle)
-    where = jnp.where(finished, lanes.idx, S_pad)  # S_pad: dropped
-    out = jax.tree.map(lambda buf, v: buf.at[where].set(v, mode="drop"), carry.out, ended)
-
-    free = lanes.phase == 2
-    new_idx = carry.next + jnp.cumsum(free, dtype=jnp.int32) - 1
-    take = free & (new_idx < table.count)
-    n_taken = jnp.sum(take, dtype=jnp.int32)
-    i = jnp.where(take, new_idx, 0)
-    q_d, direction, obj_id = table.q_d[i], table.direction[i], table.obj_id[i]
-    key_f = jax.vmap(lambda k: jax.random.split(k)[0])(table.key[i])
-    n = q_d.shape[1]
-    friction = jax.vmap(lambda kf: jitter_friction(base, kf, n).friction)(key_f)
-    robot = jax.tree.map(lambda a: a[obj_id], table.loaded.robot)
-    pre = q_d - direction * DELTA
-    fresh = _Lanes(
-        state=jax.vmap(SimState.at_rest)(pre), robot=robot, friction=friction, pre=pre,
-        q_d=q_d, direction=direction, obj_id=obj_id,
-        idx=i, phase=jnp.zeros_like(lanes.phase), k=jnp.zeros_like(lanes.k),
-        still=jnp.zeros_like(lanes.still), ok_pre=jnp.zeros_like(lanes.ok_pre),
-        ok=jnp.zeros_like(lanes.ok), t_settle=jnp.zeros_like(lanes.t_settle))
-
-    def pick(new, old):
-        m = take.reshape(take.shape + (1,) * (new.ndim - 1))
-        return jnp.where(m, new, old)
-
-    lanes = jax.tree.map(pick, fresh, lanes)
-    lanes = lanes.replace(idx=jnp.where(take, i, jnp.where(free, S_pad, lanes.idx)))
-    return _Carry(lanes, out, carry.next + n_taken, carry.done + jnp.sum(finished, dtype=jnp.int32))
-
-
-def _steps(base: SimParams, lanes: _Lanes, *, n: int, batch_last: bool) -> _Lanes:
-    """``n`` servo periods of every lane (none when no lane is running), batch-last
-    (:mod:`jaxinertia.sim.batched`) or by ``vmap`` of the one-arm step."""
-    if batch_last:
-        def run(ln):
-            return batched.batch_first(jax.lax.fori_loop(
-                0, n, lambda _, x: _lane_step(base, x, batch_last=True),
-                batched.batch_last(ln)))
-    else:
-        def run(ln):
-            return jax.lax.fori_loop(
-                0, n, lambda _, x: jax.vmap(_lane_step, (None, 0))(base, x), ln)
-    return jax.lax.cond(jnp.any(lanes.phase < 2), run, lambda ln: ln, lanes)
-
-
 def batch_last_default() -> bool:
     """Whether the stream steps its lanes batch-last by default: yes, on every backend.
 
@@ -222,55 +68,16 @@ def batch_last_default() -> bool:
     return True
 
 
-# Two programs, not one: they compile in parallel (compilation is most of a cold run's
-# time on an accelerator) and the host loop dispatches them asynchronously.
-_refill_jit = jax.jit(_refill, donate_argnums=(2,))
-_steps_jit = jax.jit(_steps, static_argnames=("n", "batch_last"), donate_argnums=(1,))
-
-
-@jax.jit
-def _finish(params: SimParams, table: _Table, ended: _Ended) -> Samples:
-    """The records of every sample (:func:`record`: what the servos and the statics
-    report) from the final states; the current noise uses the second half of the
-    sample's key, as :func:`jaxinertia.sim.sampling.simulate_samples` does."""
-
-    def one(q_d, direction, key, obj_id, state, at_rest, settle_time):
-        obj = jax.tree.map(lambda a: a[obj_id], table.objects)
-        return record(params, params.robot, obj, q_d, direction, state,
-                      jax.random.split(key)[1], at_rest=at_rest, settle_time=settle_time)
-
-    return jax.vmap(one)(table.q_d, table.direction, table.key, table.obj_id, ended.state,
-                         ended.at_rest, ended.settle_time)
-
-
-@partial(jax.jit, static_argnames=("sizes", "lanes"))
-def _prepare(params: SimParams, q_d, direction, obj_id, objects: HeldObject, keys,
-             *, sizes: tuple[int, ...], lanes: int) -> tuple[_Table, _Carry]:
-    """The sample table (per-sample keys, the loaded arm of every object) and the starting
-    carry (every lane idle: phase 2, index S_pad; empty outputs), in one compiled call (op
-    by op, an accelerator would compile each small kernel separately)."""
-    S_pad, n = q_d.shape
-    pad = S_pad - keys.shape[0]
-    keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], pad, 0)])
-    loaded = jax.vmap(loaded_params, (None, 0))(params, objects)
-    count = jnp.asarray(sum(sizes), jnp.int32)
-    table = _Table(q_d, direction, keys, obj_id, objects, loaded, count)
-    dtype = q_d.dtype
-    zeros = jnp.zeros((lanes, n), dtype)
-    lane0 = _Lanes(
-        state=jax.vmap(SimState.at_rest)(zeros),
-        robot=jax.tree.map(lambda a: jnp.broadcast_to(a[0], (lanes,) + a.shape[1:]),
-                           loaded.robot),
-        friction=jax.tree.map(lambda a: jnp.broadcast_to(a, (lanes,) + a.shape),
-                              params.friction),
-        pre=zeros, q_d=zeros, direction=zeros,
-        obj_id=jnp.zeros(lanes, jnp.int32), idx=jnp.full(lanes, S_pad, jnp.int32),
-        phase=jnp.full(lanes, 2, jnp.int32), k=jnp.zeros(lanes, jnp.int32),
-        still=jnp.zeros(lanes, jnp.int32), ok_pre=jnp.zeros(lanes, bool),
-        ok=jnp.zeros(lanes, bool), t_settle=jnp.zeros(lanes, dtype))
-    out = _Ended(jax.vmap(SimState.at_rest)(jnp.zeros((S_pad, n), dtype)),
-                 jnp.zeros(S_pad, bool), jnp.zeros(S_pad, dtype))
-    return table, _Carry(lane0, out, jnp.asarray(0, jnp.int32), jnp.asarray(0, jnp.int32))
+# The lane program's functions as compiled here. Refill and steps are two programs, not
+# one: they compile in parallel (compilation is most of a cold run's time on an
+# accelerator) and the host loop dispatches them asynchronously. The preparation is one
+# compiled call (op by op, an accelerator would compile each small kernel separately).
+_refill_jit = jax.jit(lane_program.refill, donate_argnums=(2,))
+_steps_jit = jax.jit(lane_program.steps, static_argnames=("n", "batch_last"),
+                     donate_argnums=(1,))
+_finish = jax.jit(lane_program.finish)
+_prepare = jax.jit(lane_program.prepare, static_argnames=("sizes", "lanes"))
+_compact = jax.jit(lane_program.compact, static_argnames=("size",))
 
 
 def _sample_keys(plans: list[Plan]) -> jax.Array:
@@ -308,15 +115,6 @@ def default_tail_lanes(lanes: int) -> int:
     small already). Once every sample is handed out, the last few hundred samples (a
     time-out runs 6 s of simulated time per move) would otherwise step all ``lanes``."""
     return 0 if jax.default_backend() == "cpu" else max(lanes // 16, 1)
-
-
-@partial(jax.jit, static_argnames=("size",))
-def _compact(carry: _Carry, *, size: int) -> _Carry:
-    """The carry on ``size`` lanes: the occupied ones first (every occupied lane is kept
-    when at most ``size`` are occupied), then idle ones."""
-    S_pad = carry.out.at_rest.shape[0]
-    order = jnp.argsort(carry.lanes.idx >= S_pad, stable=True)[:size]
-    return carry.replace(lanes=jax.tree.map(lambda a: a[order], carry.lanes))
 
 
 class _Compiler:
@@ -391,8 +189,8 @@ def _signature(tree) -> tuple:
 
 def _steps_program(params: SimParams, lanes, n: int, batch_last: bool,
                    untimed: bool = False) -> Future:
-    """A future of the compiled :func:`_steps` for the (abstract) ``lanes``; submitted
-    once per signature (:func:`precompile` may have submitted it already).
+    """A future of the compiled :func:`jaxinertia.sim.lanes.steps` for the (abstract)
+    ``lanes``; submitted once per signature (:func:`precompile` may have submitted it).
 
     Batch-last steps always compile ``untimed``: they have no ``dot`` for the GPU
     autotuner to choose kernels for, and skipping it saved 0.3-1 s of an H100's 4.3-5.7 s
@@ -442,9 +240,10 @@ def _result(futures):
 
 
 def _assemble(params: SimParams, plans: list[Plan], lanes: int, *, keys: bool = True):
-    """The arguments of :func:`_prepare` (host-side assembly in numpy, one transfer):
-    samples padded to a power of two (at least ``lanes``), objects to a multiple of four.
-    ``keys=False``: the sample keys only as a shape (for :func:`jax.eval_shape`)."""
+    """The arguments of :func:`jaxinertia.sim.lanes.prepare` (host-side assembly in numpy,
+    one transfer): samples padded to a power of two (at least ``lanes``), objects to a
+    multiple of four. ``keys=False``: the sample keys only as a shape (for
+    :func:`jax.eval_shape`)."""
     sizes = tuple(len(p.q_d) for p in plans)
     S_pad = max(lanes, 1 << (sum(sizes) - 1).bit_length())
     O_pad = -(-len(plans) // 4) * 4
@@ -485,9 +284,9 @@ def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = No
                  tail_lanes: int | None = None, batch_last: bool | None = None,
                  refill_every: int = 32,
                  blocks_per_call: int = 16, desc: str = "simulating",
-                 progress: bool = True) -> list[Samples]:
+                 progress: bool = True) -> list[Record]:
     """Simulates every plan's samples (``params.robot``: the bare arm, lbipe convention);
-    returns one :class:`Samples` (numpy) per plan, in plan order.
+    returns one :class:`~jaxinertia.sim.sampling.Record` (numpy) per plan, in plan order.
 
     Sample j of a plan gets ``jax.random.split(plan.key, S)[j]``, as in
     :func:`jaxinertia.sim.run.run_plan`'s reference path, so results depend neither on the

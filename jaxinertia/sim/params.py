@@ -1,0 +1,59 @@
+"""The simulated arm's parameters: the calibrated default, a calibration file's servo,
+friction and armature values applied, and the parameters as plain data.
+
+``default_sim_params`` reads the calibration file that ``jaxinertia calibrate`` writes
+(:mod:`jaxinertia.sim.calibration` fits it); the arm's constants and the file's link
+gravity come from :mod:`jaxinertia.open_manipulator_x`. Every per-joint array is sized
+from the robot (``robot.n_joints``).
+"""
+
+from __future__ import annotations
+
+import os
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxinertia.open_manipulator_x import calibrated_robot, load_calibration
+from jaxinertia.sim.friction import FrictionParams
+from jaxinertia.sim.servo import ServoParams
+from jaxinertia.sim.simulator import SimParams
+
+__all__ = ["apply_servo_friction", "default_sim_params", "params_to_dict"]
+
+
+def default_sim_params(calibration_file: str | os.PathLike | None = None) -> SimParams:
+    """The simulated OpenMANIPULATOR-X as calibrated to the real arm (default: the shipped
+    ``data/open_manipulator_x_sim.json``: link gravity, servo and friction), falling back
+    to datasheet servos and default friction where the file has no servo calibration."""
+    calibration = load_calibration(calibration_file)
+    robot = calibrated_robot(calibration)
+    n = robot.n_joints
+    params = SimParams(robot, ServoParams.xm430_w350(n), FrictionParams.create(n))
+    return apply_servo_friction(params, calibration)
+
+
+def apply_servo_friction(params: SimParams, calibration: dict) -> SimParams:
+    """Sets the servo, friction and armature values of a calibration file, where present."""
+    c = calibration.get("servo_friction")
+    if not c:
+        return params
+    n = params.robot.n_joints
+    robot = params.robot.replace(armature=jnp.asarray(c["armature"]))
+    offset = c.get("torque_offset")
+    return params.replace(robot=robot, servo=ServoParams.xm430_w350(n, **c["servo"]),
+                          friction=FrictionParams.create(n, **c["friction"]),
+                          torque_offset=None if offset is None else jnp.asarray(offset))
+
+
+def params_to_dict(params: SimParams) -> dict:
+    """The servo, friction and armature values as a calibration file stores them
+    (``servo_friction``; :func:`apply_servo_friction` reads them back)."""
+    return {
+        "dt": params.dt,
+        "armature": np.asarray(params.robot.armature).tolist(),
+        "torque_offset": (None if params.torque_offset is None
+                          else np.asarray(params.torque_offset).tolist()),
+        "servo": {k: np.asarray(v).tolist() for k, v in params.servo.__dict__.items()},
+        "friction": {k: np.asarray(v).tolist() for k, v in params.friction.__dict__.items()},
+    }
