@@ -21,6 +21,7 @@ from jaxinertia.baselines import Baselines
 from jaxinertia.errors import ModelFolderError, RobotMismatchError
 from jaxinertia.estimation import ModelPair
 from jaxinertia.features import FeatureConfig
+from jaxinertia.fileio import replacing_dir
 from jaxinertia.networks import AttentionModel, TorqueModel
 
 __all__ = ["file_sha256", "load_models", "save_models"]
@@ -49,13 +50,9 @@ def save_models(directory: str | os.PathLike, pair: ModelPair, baselines: Baseli
     """Writes ``directory/checkpoint`` (orbax) and ``directory/config.json``."""
     import orbax.checkpoint as ocp  # heavy (~1 s): only when models are written or read
 
-    directory = Path(directory).absolute()
-    directory.mkdir(parents=True, exist_ok=True)
-    ckpt = directory / "checkpoint"
+    _check_finite(pair, directory)
     state = {"torque": jax.device_get(pair.torque_vars),
              "attention": jax.device_get(pair.attention_vars)}
-    with ocp.StandardCheckpointer() as saver:
-        saver.save(ckpt, state, force=True)
     config = {
         "format": FORMAT, "format_version": FORMAT_VERSION, "robot": robot,
         "n_models": pair.n_models,
@@ -65,8 +62,13 @@ def save_models(directory: str | os.PathLike, pair: ModelPair, baselines: Baseli
         "baselines": baselines.to_dict(),
         **(extra or {}),
     }
-    (directory / CONFIG).write_text(json.dumps(config, indent=2) + "\n")
-    return directory
+    text = json.dumps(config, indent=2, allow_nan=False) + "\n"  # no bare NaN in the config
+    # Checkpoint and config appear together (a folder renamed into place) or not at all.
+    with replacing_dir(directory) as tmp:
+        with ocp.StandardCheckpointer() as saver:
+            saver.save(tmp / "checkpoint", state, force=True)
+        (tmp / CONFIG).write_text(text)
+    return Path(directory).absolute()
 
 
 def load_models(directory: str | os.PathLike, *, robot: str | None = None):
@@ -87,6 +89,9 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None):
         raise ModelFolderError(f"{cfg_path}: unreadable ({e})") from e
     if config.get("format") != FORMAT:
         raise ModelFolderError(f"{cfg_path}: not a jaxinertia model config")
+    if config.get("format_version") != FORMAT_VERSION:
+        raise ModelFolderError(f"{cfg_path}: format_version {config.get('format_version')!r}; "
+                               f"this version of jaxinertia reads {FORMAT_VERSION}")
     if robot is not None and config.get("robot") != robot:
         raise RobotMismatchError(f"{directory}: models trained for robot {config.get('robot')!r}, "
                               f"the samples come from {robot!r}")
@@ -94,8 +99,14 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None):
                         for k, v in config["torque_model"].items()})
     am = AttentionModel(**{k: tuple(v) if isinstance(v, list) else v
                            for k, v in config["attention_model"].items()})
-    features = FeatureConfig.from_dict(config["features"])
-    K = int(config["n_models"])
+    try:
+        features = FeatureConfig.from_dict(config["features"])
+        baselines = Baselines.from_dict(config["baselines"])
+        K = int(config["n_models"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise ModelFolderError(f"{cfg_path}: malformed ({type(e).__name__}: {e})") from None
+    if K < 1:
+        raise ModelFolderError(f"{cfg_path}: n_models {K} must be at least 1")
     example = jnp.zeros((1, tm.n_joints, 4), jnp.float32)
 
     def abstract(model):
@@ -110,7 +121,26 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None):
     except Exception as e:  # orbax raises many types for missing or mismatched files
         raise ModelFolderError(f"{directory / 'checkpoint'}: cannot restore the models "
                               f"({type(e).__name__}: {str(e).splitlines()[0][:200]})") from e
+    for name, tree in state.items():  # orbax restores what is on disk, whatever the target
+        for path, leaf in jax.tree_util.tree_leaves_with_path(tree):
+            if np.shape(leaf)[:1] != (K,):
+                raise ModelFolderError(
+                    f"{directory}: {name} parameters {jax.tree_util.keystr(path)} have shape "
+                    f"{np.shape(leaf)}: not the {K} models config.json's n_models says")
     pair = ModelPair(torque_vars=state["torque"], attention_vars=state["attention"],
                      tau_scale=jnp.asarray(np.asarray(features.tau_scale), jnp.float32),
                      torque_model=tm, attention_model=am)
-    return pair, Baselines.from_dict(config["baselines"]), features, config
+    _check_finite(pair, directory)
+    for k, v in {**features.to_dict(), **baselines.to_dict()}.items():
+        if not np.all(np.isfinite(np.asarray(v, np.float64))):
+            raise ModelFolderError(f"{cfg_path}: {k} holds non-finite values")
+    return pair, baselines, features, config
+
+
+def _check_finite(pair: ModelPair, directory) -> None:
+    """Every weight finite, or an error naming the folder and the parameter."""
+    for name, tree in (("torque", pair.torque_vars), ("attention", pair.attention_vars)):
+        for path, leaf in jax.tree_util.tree_leaves_with_path(tree):
+            if not np.all(np.isfinite(np.asarray(leaf))):
+                raise ModelFolderError(f"{directory}: {name} parameters "
+                                       f"{jax.tree_util.keystr(path)} hold non-finite values")

@@ -23,6 +23,7 @@ __all__ = [
     "RobotMismatchError",
     "SimulationError",
     "TagNotFoundError",
+    "TrainingError",
     "UsageError",
     "WeightsError",
 ]
@@ -66,6 +67,10 @@ class WeightsError(JaxinertiaError, ValueError):
 
 class ConfigError(FileFormatError):
     """A parameter or calibration file (simulator, camera, intrinsics) that cannot be used."""
+
+
+class TrainingError(JaxinertiaError, ArithmeticError):
+    """Training that diverged (a loss went non-finite): no model folder is written."""
 
 
 class SimulationError(JaxinertiaError, ValueError):

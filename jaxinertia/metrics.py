@@ -17,13 +17,19 @@ __all__ = ["error_metrics", "inertial_metrics", "torque_metrics"]
 
 
 def error_metrics(abs_err: np.ndarray, scale: float, *, unit: float = 1.0) -> dict[str, float]:
-    """MAE (times ``unit``), NMAE and NRMSE (%) of absolute errors ``abs_err``."""
+    """MAE (times ``unit``), NMAE and NRMSE (%) of absolute errors ``abs_err``; the
+    normalised ones are NaN when ``scale`` is zero (e.g. the mass error of the empty
+    gripper) or when there are no errors."""
     e = np.abs(np.asarray(abs_err, dtype=np.float64))
+    if e.size == 0:
+        return {"MAE": np.nan, "NMAE_pct": np.nan, "NRMSE_pct": np.nan}
     mae = float(np.mean(e))
+    rmse = float(np.sqrt(np.mean(e**2)))
+    ok = bool(scale > 0)
     return {
         "MAE": mae * unit,
-        "NMAE_pct": 100.0 * mae / scale,
-        "NRMSE_pct": 100.0 * float(np.sqrt(np.mean(e**2))) / scale,
+        "NMAE_pct": 100.0 * mae / scale if ok else np.nan,
+        "NRMSE_pct": 100.0 * rmse / scale if ok else np.nan,
     }
 
 
@@ -35,10 +41,16 @@ def inertial_metrics(
     The COM is recovered with the *estimated* mass, as at test time in the paper.
     """
     x_hat = np.asarray(x_hat, dtype=np.float64).reshape(-1, 4)
-    m, p = x_true[0], x_true[1:] / x_true[0]
-    m_hat, p_hat = x_hat[:, 0], x_hat[:, 1:] / x_hat[:, :1]
+    x_true = np.asarray(x_true, dtype=np.float64)
+    m, m_hat = x_true[0], x_hat[:, 0]
     mass = error_metrics(m_hat - m, m, unit=1e3)
-    com = error_metrics(np.linalg.norm(p_hat - p, axis=-1), bbox_diagonal, unit=1e3)
+    if m > 0:  # an empty gripper has no COM
+        with np.errstate(divide="ignore", invalid="ignore"):  # a zero estimate: inf error
+            p_hat = x_hat[:, 1:] / x_hat[:, :1]
+        com = error_metrics(np.linalg.norm(p_hat - x_true[1:] / m, axis=-1), bbox_diagonal,
+                            unit=1e3)
+    else:
+        com = error_metrics(np.empty(0), bbox_diagonal)
     return {
         "mass_MAE_g": mass["MAE"],
         "mass_NMAE_pct": mass["NMAE_pct"],

@@ -31,6 +31,7 @@ import numpy as np
 from flax import struct
 
 from jaxinertia.errors import FileFormatError, UsageError
+from jaxinertia.fileio import replacing
 
 __all__ = [
     "FORMAT_VERSION",
@@ -198,6 +199,11 @@ class Samples:
         if missing:
             raise FileFormatError(path, missing[0], f"missing (this file has "
                                   f"{sorted(fields)}); needed: {list(need)}")
+        for k, a in fields.items():
+            if k in _REQUIRED + _OPTIONAL + ("x", "object_id") and not (
+                    np.issubdtype(np.asarray(a).dtype, np.number)
+                    or np.asarray(a).dtype == bool):
+                raise FileFormatError(path, k, f"dtype {np.asarray(a).dtype} is not numeric")
         q = np.asarray(fields["q"], np.float64)
         if q.ndim != 2:
             raise FileFormatError(path, "q", f"expected (S, N), got shape {q.shape}")
@@ -210,7 +216,7 @@ class Samples:
             a = object_id if k == "object_id" else fields.get(k)
             if a is not None and np.shape(a) != shape:
                 raise FileFormatError(path, k, f"expected shape {shape}, got {np.shape(a)}")
-        for k in ("q_d", "q", "direction", "tau_g", "A"):
+        for k in ("q_d", "q", "direction", "current_tau", "tau_g", "A"):
             if not np.all(np.isfinite(fields[k])):
                 raise FileFormatError(path, k, "holds non-finite values")
         if not np.all(np.isin(fields["direction"], (-1, 1))):
@@ -286,14 +292,12 @@ def save_native(path: str | os.PathLike, samples: Samples, metadata: dict) -> Pa
     """Writes a native sample file atomically (a temporary file, then a rename); the
     object names go into ``metadata["objects"]``."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"format": "jaxinertia-samples", "format_version": FORMAT_VERSION, **metadata,
             "objects": list(samples.names)}
-    tmp = path.with_name(path.name + ".tmp.npz")
     fields = {k: (v.astype(np.float64) if np.issubdtype(v.dtype, np.floating) else v)
               for k, v in samples.fields().items()}
-    np.savez_compressed(tmp, metadata=np.asarray(json.dumps(meta)), **fields)
-    os.replace(tmp, path)
+    with replacing(path, suffix=".npz") as tmp:
+        np.savez_compressed(tmp, metadata=np.asarray(json.dumps(meta)), **fields)
     return path
 
 
@@ -312,7 +316,12 @@ def load_native(path: str | os.PathLike, *, need_truth: bool = True,
         meta = json.loads(str(fields.pop("metadata")))
     except ValueError as e:
         raise FileFormatError(path, "metadata", f"not JSON ({e})") from e
-    samples = Samples.from_fields(fields, meta.get("objects"), path=path, need_truth=need_truth)
+    names = meta.get("objects") if isinstance(meta, dict) else None
+    if not isinstance(meta, dict) or not (names is None or (
+            isinstance(names, list) and all(isinstance(n, str) for n in names))):
+        raise FileFormatError(path, "metadata", "must be a JSON object whose 'objects' is a "
+                              "list of names")
+    samples = Samples.from_fields(fields, names, path=path, need_truth=need_truth)
     return (samples.at_rest_only() if only_at_rest else samples), meta
 
 
@@ -408,7 +417,7 @@ def save_lbipe(directory: str | os.PathLike, split: str, samples: Samples) -> li
     out = []
     for part in samples.by_object():
         path = Path(directory) / f"data_{split}_{part.name}.npz"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(path, **lbipe_arrays(part))
+        with replacing(path, suffix=".npz") as tmp:
+            np.savez(tmp, **lbipe_arrays(part))
         out.append(path)
     return out

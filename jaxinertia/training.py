@@ -34,6 +34,7 @@ import optax
 from flax import struct
 from tqdm.auto import tqdm
 
+from jaxinertia.errors import TrainingError, UsageError
 from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.identification import solve_normal
 from jaxinertia.networks import AttentionModel, TorqueModel
@@ -72,6 +73,26 @@ class TrainConfig:
     w_mass: float = 1.0
     w_com: float = 0.3
     val_fraction: float = 0.1
+
+    def __post_init__(self):
+        positive = ("n_models", "torque_epochs", "torque_batch", "attention_epochs",
+                    "attention_batch", "set_size", "attention_sets", "attention_val_sets")
+        for name in positive:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
+                raise UsageError(f"{name} must be a positive integer, got {v!r}")
+        for name in ("torque_lr", "attention_lr"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise UsageError(f"{name} must be a positive finite number, got {v!r}")
+        for name in ("w_mass", "w_com"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise UsageError(f"{name} must be a finite number >= 0, got {v!r}")
+        if self.w_mass + self.w_com <= 0:
+            raise UsageError("w_mass and w_com are both zero: the attention loss would be zero")
+        if not 0.0 < self.val_fraction < 1.0:
+            raise UsageError(f"val_fraction must be in (0, 1), got {self.val_fraction!r}")
 
     def replace(self, **kw) -> TrainConfig:
         return dataclasses.replace(self, **kw)
@@ -203,6 +224,12 @@ def _run_epochs(epoch: Epoch, state: TrainState, data, val_data, n_epochs, key, 
             state, train_loss, val_loss = epoch.update(state, jax.random.fold_in(key, e), data,
                                                        val_data)
             history.append((np.asarray(train_loss), np.asarray(val_loss)))
+            bad = ~(np.isfinite(history[-1][0]) & np.isfinite(history[-1][1]))
+            if bad.any():
+                raise TrainingError(
+                    f"{desc}: the loss went non-finite at epoch {e} (model(s) "
+                    f"{np.flatnonzero(bad).tolist()}); lower the learning rate or check the "
+                    "training data")
             bar.set_postfix(val=f"{float(np.min(history[-1][1])):.3g}")
             bar.update()
             if on_epoch is not None:

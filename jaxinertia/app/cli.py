@@ -17,6 +17,14 @@ import numpy as np
 
 from jaxinertia import __version__
 from jaxinertia.app import hardware_commands, vision_commands
+from jaxinertia.app.options import (
+    Parser,
+    fraction,
+    nonnegative_float,
+    positive_float,
+    positive_int,
+    unit_fraction,
+)
 from jaxinertia.app.pipeline import (
     estimate,
     evaluate_samples,
@@ -29,7 +37,9 @@ from jaxinertia.app.plots import plot_calibration, plot_lbipe_estimates
 from jaxinertia.app.report import calibration_report, table1, table2, table3
 from jaxinertia.app.reproduce import reproduce
 from jaxinertia.errors import JaxinertiaError, UsageError
+from jaxinertia.fileio import check_output, write_text
 from jaxinertia.lbipe import default_lbipe_dir
+from jaxinertia.objects import TEST_OBJECTS, TRAINING_LOADS_KG, load_name
 from jaxinertia.open_manipulator_x import CALIBRATION_FILE
 from jaxinertia.robot import data_path
 from jaxinertia.samples import Samples, save_lbipe, save_native
@@ -47,6 +57,12 @@ def _enable_x64():
     jax.config.update("jax_enable_x64", True)
 
 
+def _distinct(names: list[str] | None, option: str) -> None:
+    if names and len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise UsageError(f"{option}: {', '.join(dup)} given more than once")
+
+
 def _parse_l_max(items: list[str]) -> dict[str, float]:
     out = {}
     for item in items or []:
@@ -61,8 +77,17 @@ def _parse_l_max(items: list[str]) -> dict[str, float]:
     return out
 
 
+def _outputs(args, *options: str) -> None:
+    """Checks every output option given (before any work): see fileio.check_output."""
+    for option in options:
+        path = getattr(args, option.lstrip("-").replace("-", "_"))
+        if path is not None:
+            check_output(path, overwrite=args.overwrite, option=option)
+
+
 def cmd_lbipe_benchmark(args) -> int:
     _enable_x64()
+    _outputs(args, "--json", "--plot")
     res = released_benchmark(args.lbipe_dir, seed=args.seed, l_max=_parse_l_max(args.l_max))
     objects = res["objects"]
     print(table1(objects, "Table I: mass and COM error of the released models (10 pairs x "
@@ -93,6 +118,15 @@ def cmd_simulate(args) -> int:
         jax.config.update("jax_enable_x64", False)
     else:
         _enable_x64()
+    _distinct(args.objects, "--objects")
+    if args.format == "lbipe":
+        split = "test" if args.scenario == "test" else "train"
+        names = (args.objects or list(TEST_OBJECTS) if args.scenario == "test" else
+                 [load_name(m) for m in TRAINING_LOADS_KG])
+        for name in names:
+            check_output(args.out / f"data_{split}_{name}.npz", overwrite=args.overwrite)
+    else:
+        _outputs(args, "--out")
     params = sim_params.default_sim_params(args.calibration)
     if args.scenario == "continuous":
         if args.format != "native":
@@ -118,7 +152,6 @@ def cmd_simulate(args) -> int:
                                          seed=args.seed, version=__version__)
     samples = Samples.from_fields(fields, meta["objects"], need_truth=True)
     if args.format == "lbipe":
-        split = "test" if args.scenario == "test" else "train"
         kept = samples.at_rest_only()
         for path, part in zip(save_lbipe(args.out, split, kept), kept.by_object()):
             print(f"wrote {path} ({part.n_samples} samples)")
@@ -130,13 +163,17 @@ def cmd_simulate(args) -> int:
 
 def cmd_calibrate(args) -> int:
     _enable_x64()
+    out = args.out or data_path(CALIBRATION_FILE)
+    if args.out is not None:
+        _outputs(args, "--out")
+    for name in ("report.md", "calibration.png"):
+        check_output(args.report / name, overwrite=args.overwrite, option="--report")
     params = sim_params.default_sim_params(args.start)
     robot, gravity_info = fit_link_gravity(params.robot, args.lbipe_dir)
     params = params.replace(robot=robot)
     params, info = calibrate_servo_friction(params, args.lbipe_dir, iterations=args.iterations,
                                             seed=args.seed, kinetic_ratio=args.kinetic_ratio,
                                             fit_offset=args.fit_offset, progress=True)
-    out = args.out or data_path(CALIBRATION_FILE)
     payload = {"robot": "open_manipulator_x", "link_gravity": gravity_info,
                "servo_friction": sim_params.params_to_dict(params),
                "fit": {"iterations": args.iterations, "seed": args.seed,
@@ -151,17 +188,18 @@ def cmd_calibrate(args) -> int:
     png = plot_calibration(real, sim, report / "calibration.png")
     text = calibration_report(real, sim, source=args.lbipe_dir, iterations=args.iterations,
                               parameters=out, figure=png.name)
-    (report / "report.md").write_text(text)
+    write_text(report / "report.md", text)
     print(f"wrote {report / 'report.md'} and {png}")
     return 0
 
 
 def cmd_train(args) -> int:
     _enable_x64()
+    _outputs(args, "--out")
     overrides = {k: v for k, v in vars(args).items()
                  if k in TrainConfig.__dataclass_fields__ and v is not None}
     cfg = TrainConfig(**overrides)
-    info = train(args.data, args.out, cfg)
+    info = train(args.data, args.out, cfg, overwrite=args.overwrite)
     print(f"trained {cfg.n_models} model pairs on {info['samples']['train']} samples "
           f"({info['samples']['validation']} validation) in "
           f"{sum(info['wall_time_s'].values()):.1f} s; wrote {args.out}")
@@ -170,6 +208,7 @@ def cmd_train(args) -> int:
 
 def cmd_evaluate(args) -> int:
     _enable_x64()
+    _outputs(args, "--json")
     released = None
     if args.samples:
         res = evaluate_samples(args.models, args.samples, n_sets=args.sets, seed=args.seed)
@@ -196,13 +235,20 @@ def cmd_evaluate(args) -> int:
 
 def cmd_estimate(args) -> int:
     _enable_x64()
-    res = estimate(args.models, args.samples, set_size=args.set_size)
-    print(f"{res['n_samples']} samples")
-    print(f"{'method':<7} {'mass [g]':>9} {'COM x [mm]':>11} {'COM y [mm]':>11} "
-          f"{'COM z [mm]':>11}   (COM in the tag frame)")
-    for m, r in res["methods"].items():
-        c = np.asarray(r["com_tag_m"]) * 1e3
-        print(f"{m:<7} {r['mass_kg'] * 1e3:>9.1f} {c[0]:>11.1f} {c[1]:>11.1f} {c[2]:>11.1f}")
+    _outputs(args, "--json")
+    res = estimate(args.models, args.samples, set_size=args.set_size, max_mass=args.max_mass,
+                   max_com=args.max_com)
+    for name, o in res["objects"].items():
+        print(f"{name}: {o['n_samples']} samples")
+        print(f"{'method':<7} {'mass [g]':>9} {'COM x [mm]':>11} {'COM y [mm]':>11} "
+              f"{'COM z [mm]':>11}   (COM in the tag frame)")
+        for m, r in o["methods"].items():
+            if not r["ok"]:
+                print(f"{m:<7} failed: {r['reason']}")
+                continue
+            c = np.asarray(r["com_tag_m"]) * 1e3
+            print(f"{m:<7} {r['mass_kg'] * 1e3:>9.1f} {c[0]:>11.1f} {c[1]:>11.1f} "
+                  f"{c[2]:>11.1f}")
     if args.json:
         write_json(args.json, res)
         print(f"wrote {args.json}")
@@ -216,7 +262,7 @@ def cmd_reproduce(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="jaxinertia",
         description="Mass and centre of mass of a held object from servo encoder discrepancies.",
     )
@@ -237,6 +283,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--l-max", action="append", metavar="NAME=METRES",
                    help="bounding-box diagonal of an object without a built-in one")
     b.add_argument("--plot", type=Path, help="write a PNG of the per-set estimates here")
+    b.add_argument("--overwrite", action="store_true", help="replace an existing --json/--plot")
     b.set_defaults(func=cmd_lbipe_benchmark)
 
     s = sub.add_parser(
@@ -251,15 +298,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, type=Path,
                    help="native: an .npz file; lbipe: a directory for data_<split>_<obj>.npz")
     s.add_argument("--format", choices=["native", "lbipe"], default="native")
-    s.add_argument("--n", type=int, help="samples per object (random/test; caps planning)")
+    s.add_argument("--n", type=positive_int,
+                   help="samples per object (random/test; caps planning)")
     s.add_argument("--objects", nargs="+",
                    help="test objects (default: all four); continuous: the switching order, "
                    "'empty' or test objects or training loads like 100g")
-    s.add_argument("--switch-every", type=int, default=512,
+    s.add_argument("--switch-every", type=positive_int, default=512,
                    help="continuous: samples between object switches (default 512)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--calibration", type=Path,
                    help="simulator parameter file (default: the shipped calibration)")
+    s.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     s.add_argument("--precision", choices=["float64", "float32"], default="float64",
                    help="arithmetic of the simulation (default: %(default)s). float32 runs "
                    "~1.8x faster on a CPU; its random friction jitter differs, so its samples "
@@ -274,13 +323,15 @@ def build_parser() -> argparse.ArgumentParser:
         "and friction so that the simulated real plan reproduces the real baseline fits.",
     )
     c.add_argument("--lbipe-dir", type=Path, default=default_lbipe_dir())
-    c.add_argument("--iterations", type=int, default=6)
+    c.add_argument("--iterations", type=positive_int, default=6)
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--out", type=Path,
                    help="parameter file (default: the package's data/open_manipulator_x_sim.json)")
     c.add_argument("--report", type=Path, default=Path("runs/calibration"))
     c.add_argument("--start", type=Path, help="parameter file to start from (default: shipped)")
-    c.add_argument("--kinetic-ratio", type=float, default=0.6,
+    c.add_argument("--overwrite", action="store_true",
+                   help="replace an existing --out parameter file or --report folder")
+    c.add_argument("--kinetic-ratio", type=unit_fraction, default=0.6,
                    help="Coulomb (sliding) friction as a fraction of breakaway (default 0.6)")
     c.add_argument("--fit-offset", action=argparse.BooleanOptionalAction, default=True,
                    help="after the servo and friction, fit a constant torque per joint "
@@ -295,11 +346,14 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--data", nargs="+", required=True, type=Path,
                    help="sample files of known objects (native or the authors' layout)")
     t.add_argument("--out", required=True, type=Path, help="model folder to write")
-    for name, typ in (("n_models", int), ("seed", int), ("torque_epochs", int),
-                      ("torque_batch", int), ("torque_lr", float), ("attention_epochs", int),
-                      ("attention_batch", int), ("attention_lr", float), ("set_size", int),
-                      ("attention_sets", int), ("w_mass", float), ("w_com", float),
-                      ("val_fraction", float)):
+    t.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
+    for name, typ in (("n_models", positive_int), ("seed", int), ("torque_epochs", positive_int),
+                      ("torque_batch", positive_int), ("torque_lr", positive_float),
+                      ("attention_epochs", positive_int), ("attention_batch", positive_int),
+                      ("attention_lr", positive_float), ("set_size", positive_int),
+                      ("attention_sets", positive_int), ("attention_val_sets", positive_int),
+                      ("w_mass", nonnegative_float), ("w_com", nonnegative_float),
+                      ("val_fraction", fraction)):
         t.add_argument("--" + name.replace("_", "-"), dest=name, type=typ,
                        help=f"(default {getattr(TrainConfig(), name)})")
     t.set_defaults(func=cmd_train)
@@ -313,15 +367,25 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--samples", type=Path,
                    help="a sample file of known objects instead (native or the authors' layout)")
     e.add_argument("--json", type=Path, help="write Table I/III (lbipe-benchmark schema)")
-    e.add_argument("--sets", type=int, default=1000, help="random sets per object (no golden)")
+    e.add_argument("--sets", type=positive_int, default=1000,
+                   help="random sets per object (no golden)")
+    e.add_argument("--overwrite", action="store_true", help="replace an existing --json")
     e.add_argument("--seed", type=int, default=0)
     e.set_defaults(func=cmd_evaluate)
 
     m = sub.add_parser("estimate", help="mass and COM of an unknown object from a sample file")
     m.add_argument("--models", required=True, type=Path)
     m.add_argument("--samples", required=True, type=Path)
-    m.add_argument("--set-size", type=int, default=64, help="for the spread over sample sets")
+    m.add_argument("--set-size", type=positive_int, default=64,
+                   help="samples per set for the spread over sample sets (default 64); a "
+                   "file needs at least this many samples per object")
+    m.add_argument("--max-mass", type=positive_float, default=5.0,
+                   help="an estimate above this mass [kg] is reported as failed (default 5)")
+    m.add_argument("--max-com", type=positive_float, default=0.5,
+                   help="an estimate whose COM is farther than this from the tag [m] is "
+                   "reported as failed (default 0.5)")
     m.add_argument("--json", type=Path)
+    m.add_argument("--overwrite", action="store_true", help="replace an existing --json")
     m.set_defaults(func=cmd_estimate)
 
     r = sub.add_parser(
@@ -354,7 +418,10 @@ def _compilation_cache() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as e:  # --help (0) or a bad option (2, one line printed)
+        return int(e.code or 0)
     _compilation_cache()
     try:
         return int(args.func(args) or 0)

@@ -2,10 +2,13 @@
 collected on the arm (or a virtual robot) into a native sample file.
 
 Errors are raised (:mod:`jaxinertia.errors`); ``main()`` prints them and picks the exit
-code: 2 for a bad request (unknown object, a goal refused by the safety checks, a journal
-that exists or belongs to another collection), 3 for a collection stopped by the bus or a
-servo (the journal is kept; ``--resume`` continues). Ctrl-C during a collection is not an
-error: the command says where the journal is and returns 130.
+code: 2 for a bad request (an option out of range, ``--ids`` of the wrong count, unknown
+object, a goal refused by the safety checks, an existing output, a journal that exists,
+is damaged or belongs to another collection), all before anything moves; 3 for the bus
+or a servo (a port that cannot be opened, is in use by another ``collect`` or
+disappears; a collection stopped by the bus or a servo: the journal is kept and
+``--resume`` continues; with nothing collected no journal is left). Ctrl-C during a
+collection is not an error: the command says where the journal is and returns 130.
 """
 
 from __future__ import annotations
@@ -19,7 +22,14 @@ import jax
 import numpy as np
 
 from jaxinertia import __version__, objects, plans
-from jaxinertia.errors import HardwareError
+from jaxinertia.app.options import (
+    finite_float,
+    nonnegative_float,
+    positive_float,
+    positive_int,
+)
+from jaxinertia.errors import HardwareError, UsageError
+from jaxinertia.fileio import check_output
 from jaxinertia.hardware.collect import (
     DELTA,
     Journal,
@@ -29,8 +39,9 @@ from jaxinertia.hardware.collect import (
     plan_digest,
     samples_from_records,
 )
-from jaxinertia.hardware.driver import ArmConfig, DynamixelArm
+from jaxinertia.hardware.driver import ArmConfig, DynamixelArm, PortError
 from jaxinertia.hardware.safety import SafetyError, SafetyLimits
+from jaxinertia.hardware.transport import LockedPortHandler
 from jaxinertia.open_manipulator_x import GRIPPER_ID, JOINT_IDS, TAG_IN_EE, calibrated_robot
 from jaxinertia.samples import save_native
 from jaxinertia.sim.params import default_sim_params
@@ -57,21 +68,66 @@ def _ids(text: str) -> tuple[int, ...]:
 
 
 def _gripper(text: str) -> int | None:
-    return None if text.lower() == "none" else int(text)
+    if text.lower() == "none":
+        return None
+    (dxl_id,) = _ids(text)
+    return dxl_id
+
+
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
+    return value
+
+
+def _probability(text: str) -> float:
+    value = nonnegative_float(text)
+    if value > 1:
+        raise argparse.ArgumentTypeError(f"must be a probability in [0, 1], got {text!r}")
+    return value
+
+
+def _register(limit: int):
+    """A register value in 0..limit."""
+    def parse(text: str) -> int:
+        value = _count(text)
+        if value > limit:
+            raise argparse.ArgumentTypeError(f"must be in 0..{limit}, got {text!r}")
+        return value
+    parse.__name__ = f"an integer in 0..{limit}"
+    return parse
+
+
+def _check_ids(args, n_joints: int) -> None:
+    """One servo ID per joint, all distinct, the gripper's apart (before anything moves)."""
+    ids = tuple(args.ids)
+    if len(ids) != n_joints:
+        raise UsageError(f"--ids needs {n_joints} joint servo IDs (one per joint), got "
+                         f"{len(ids)}: {','.join(map(str, ids))}")
+    if len(set(ids)) != len(ids):
+        raise UsageError(f"--ids must be distinct, got {','.join(map(str, ids))}")
+    if args.gripper_id is not None and args.gripper_id in ids:
+        raise UsageError(f"--gripper-id {args.gripper_id} is also a joint in --ids")
 
 
 def cmd_virtual_robot(args) -> int:
     jax.config.update("jax_enable_x64", True)
     obj = objects.resolve(args.object)
+    params = default_sim_params(args.calibration)
+    _check_ids(args, params.robot.n_joints)
     faults = Faults(drop_rate=args.drop_rate, corrupt_rate=args.corrupt_rate,
                     delay_rate=args.delay_rate, delay_s=args.delay_ms / 1000.0,
                     overload_id=args.overload_id, overload_after=args.overload_after,
                     seed=args.fault_seed)
-    bus = VirtualServoBus(default_sim_params(args.calibration), obj, ids=args.ids,
+    bus = VirtualServoBus(params, obj, ids=args.ids,
                           extra_ids=() if args.gripper_id is None else (args.gripper_id,),
                           q0=np.radians(args.q0), speed=args.speed, faults=faults,
                           seed=args.seed)
-    bus.compile()
+    bus.compile()  # every physics path, so that no reply waits on a compilation
     bus.start()
     # The device path is the first line of stdout: callers wait for it.
     print(bus.path, flush=True)
@@ -90,18 +146,30 @@ def cmd_virtual_robot(args) -> int:
     return 0
 
 
+def _check_collect_options(args) -> None:
+    if LockedPortHandler(args.port).getCFlagBaud(args.baudrate) <= 0:
+        raise UsageError(f"--baudrate {args.baudrate} is not a rate dynamixel-sdk supports")
+    if args.timeout <= args.settle_time:
+        raise UsageError(f"--timeout {args.timeout:g} s must exceed --settle-time "
+                         f"{args.settle_time:g} s")
+
+
 def cmd_collect(args) -> int:
     jax.config.update("jax_enable_x64", True)
+    # Everything that can be refused is refused before the port is opened (exit code 2).
+    _check_collect_options(args)
     obj = None if args.object == UNKNOWN else objects.resolve(args.object)
     if args.plan == "planning":
         q_d, direction = plans.planning_plan()
-        if args.n:
+        if args.n is not None:
             q_d, direction = q_d[: args.n], direction[: args.n]
     else:
-        q_d, direction = plans.random_plan(args.n or 1000, args.seed)
+        q_d, direction = plans.random_plan(1000 if args.n is None else args.n, args.seed)
     # The calibrated bare arm: A and tau_g (as the simulator records them) and the FK of
     # the kinematic tag pose.
     robot = calibrated_robot(args.calibration)
+    _check_ids(args, robot.n_joints)
+    out = check_output(args.out, overwrite=args.overwrite)
     config = ArmConfig(
         port=args.port, baudrate=args.baudrate, joint_ids=args.ids, gripper_id=args.gripper_id,
         p_gain=args.p_gain, d_gain=args.d_gain, profile_velocity=args.profile_velocity,
@@ -111,8 +179,6 @@ def cmd_collect(args) -> int:
     header = {"kind": "header", "plan": args.plan, "seed": args.seed, "n_samples": len(q_d),
               "object": args.object, "plan_digest": plan_digest(q_d, direction),
               "port": args.port, "servo_ids": list(args.ids), "delta": DELTA}
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     journal = Journal.open(journal_path(out), header, resume=args.resume)
     done = len(journal.records)
     if done:
@@ -124,15 +190,20 @@ def cmd_collect(args) -> int:
     arm = DynamixelArm(config, robot=robot, safety=safety)
 
     def where() -> str:
+        if not journal.path.exists():
+            return "nothing was collected (no journal written); run the command again"
         return (f"{len(journal.records)} of {len(q_d)} samples are in {journal.path}; "
                 "continue with --resume")
 
     try:
+        arm.open()  # locked for this collection: a second collect on the port is refused
         with arm:
             collect(arm, q_d, direction, journal, tag_pose=tag_source, delta=DELTA,
                     progress=not args.no_progress)
     except SafetyError as e:
         raise SafetyError(f"refused: {e}") from e
+    except PortError:  # nothing has moved; the journal is as it was
+        raise
     except HardwareError as e:  # the bus or a servo (driver.CommError, driver.HardwareError)
         raise HardwareError(f"stopped ({config.on_stop}): {e}; {where()}") from e
     except KeyboardInterrupt:
@@ -141,7 +212,8 @@ def cmd_collect(args) -> int:
         return EXIT_INTERRUPTED
     finally:
         journal.close()
-    print(f"bus: {arm.failed_transactions} failed transactions retried", file=sys.stderr)
+        arm.close()
+    print(f"bus: {arm.bus_report()}", file=sys.stderr)
     x = None if obj is None else np.asarray(obj.x)
     samples = samples_from_records(journal.records, robot, x, args.object)
     meta = {"version": __version__, "source": "dynamixel", "port": args.port,
@@ -173,20 +245,24 @@ def register(sub) -> None:
     )
     v.add_argument("--object", default="none",
                    help=f"held object: {names} (none: the empty gripper)")
-    v.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
+    v.add_argument("--speed", type=positive_float, default=1.0,
+                   help="simulated seconds per second")
     v.add_argument("--ids", type=_ids, default=JOINT_IDS, help="joint servo IDs")
     v.add_argument("--gripper-id", type=_gripper, default=GRIPPER_ID, help="gripper ID or none")
-    v.add_argument("--q0", type=float, nargs=4, default=(0.0, -30.0, 30.0, 0.0),
+    v.add_argument("--q0", type=finite_float, nargs=4, default=(0.0, -30.0, 30.0, 0.0),
                    metavar="DEG", help="initial joint angles [deg]")
     v.add_argument("--seed", type=int, default=0, help="friction draws and current noise")
     v.add_argument("--calibration", type=Path, help="simulator parameter file")
     g = v.add_argument_group("fault injection")
-    g.add_argument("--drop-rate", type=float, default=0.0, help="status packets not sent")
-    g.add_argument("--corrupt-rate", type=float, default=0.0, help="status packets with bad CRC")
-    g.add_argument("--delay-rate", type=float, default=0.0, help="status packets delayed")
-    g.add_argument("--delay-ms", type=float, default=10.0)
+    g.add_argument("--drop-rate", type=_probability, default=0.0,
+                   help="status packets not sent")
+    g.add_argument("--corrupt-rate", type=_probability, default=0.0,
+                   help="status packets with bad CRC")
+    g.add_argument("--delay-rate", type=_probability, default=0.0,
+                   help="status packets delayed")
+    g.add_argument("--delay-ms", type=nonnegative_float, default=10.0)
     g.add_argument("--overload-id", type=int, help="servo that raises an overload error")
-    g.add_argument("--overload-after", type=int, default=0,
+    g.add_argument("--overload-after", type=_count, default=0,
                    help="... after this many Goal Position writes to it")
     g.add_argument("--fault-seed", type=int, default=0)
     v.set_defaults(func=cmd_virtual_robot)
@@ -204,21 +280,27 @@ def register(sub) -> None:
                    help=f"held object ({names}) or {UNKNOWN} (no ground truth: the file has "
                    "no tau and no x)")
     c.add_argument("--out", required=True, type=Path, help="native sample file (.npz)")
+    c.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     c.add_argument("--resume", action="store_true", help="continue OUT.journal.jsonl")
-    c.add_argument("--n", type=int, help="samples (random; caps planning)")
+    c.add_argument("--n", type=positive_int,
+                   help="samples (random: default 1000; planning: the first N)")
     c.add_argument("--seed", type=int, default=0, help="seed of the random plan")
     c.add_argument("--baudrate", type=int, default=1_000_000)
     c.add_argument("--ids", type=_ids, default=JOINT_IDS, help="joint servo IDs")
     c.add_argument("--gripper-id", type=_gripper, default=GRIPPER_ID,
                    help="gripper ID (pinged) or none")
-    c.add_argument("--p-gain", type=int, default=800, help="Position P Gain register")
-    c.add_argument("--d-gain", type=int, default=0, help="Position D Gain register (I is 0)")
-    c.add_argument("--profile-velocity", type=float, default=0.5, help="[rad/s]")
-    c.add_argument("--profile-acceleration", type=float, default=2.0, help="[rad/s^2]")
-    c.add_argument("--settle-time", type=float, default=0.2,
+    c.add_argument("--p-gain", type=_register(16383), default=800,
+                   help="Position P Gain register")
+    c.add_argument("--d-gain", type=_register(16383), default=0,
+                   help="Position D Gain register (I is 0)")
+    c.add_argument("--profile-velocity", type=positive_float, default=0.5, help="[rad/s]")
+    c.add_argument("--profile-acceleration", type=positive_float, default=2.0,
+                   help="[rad/s^2]")
+    c.add_argument("--settle-time", type=positive_float, default=0.2,
                    help="no tick may change for this long to count as at rest [s, servo clock]")
-    c.add_argument("--timeout", type=float, default=6.0, help="per move [s, servo clock]")
-    c.add_argument("--retries", type=int, default=3, help="per bus transaction")
+    c.add_argument("--timeout", type=positive_float, default=6.0,
+                   help="per move [s, servo clock]")
+    c.add_argument("--retries", type=_count, default=3, help="per bus transaction")
     c.add_argument("--on-stop", choices=["hold", "torque_off"], default="hold",
                    help="state to leave the arm in after an error or Ctrl-C")
     c.add_argument("--clear-errors", action="store_true",

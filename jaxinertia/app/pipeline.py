@@ -26,6 +26,7 @@ from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.estimation import ModelPair
 from jaxinertia.evaluation import choose_sets, evaluate, l_max_of
 from jaxinertia.features import LBIPE_FEATURES
+from jaxinertia.fileio import check_output, write_text
 from jaxinertia.lbipe import (
     LbipeLayout,
     find_layout,
@@ -48,8 +49,10 @@ __all__ = ["RealData", "estimate", "evaluate_models", "evaluate_samples", "load_
 
 
 def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg: TrainConfig,
-          *, progress: bool = True) -> dict:
-    """Trains K model pairs and fits the baselines; writes the model folder ``out``."""
+          *, progress: bool = True, overwrite: bool = False) -> dict:
+    """Trains K model pairs and fits the baselines; writes the model folder ``out``
+    (atomically; an existing one only with ``overwrite``)."""
+    check_output(out, overwrite=overwrite)
     parts, metas = [], []
     for f in sample_files:
         d, meta = load_samples(f)
@@ -61,6 +64,10 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
     data = Samples.concatenate(parts)
     t0 = time.perf_counter()
     train_set, val_set = split_validation(data, cfg.val_fraction, cfg.seed)
+    if val_set.n_samples == 0 or train_set.n_samples == 0:
+        raise UsageError(f"{data.n_samples} samples and --val-fraction {cfg.val_fraction} leave "
+                         f"{train_set.n_samples} for training and {val_set.n_samples} for "
+                         "validation: both need samples")
     fc = feature_config_from(train_set)
     key = jax.random.key(cfg.seed)
     k_t, k_a = jax.random.split(key)
@@ -87,7 +94,7 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
         "history": {"torque": torque.history.tolist(), "attention": attention.history.tolist()},
         "wall_time_s": {"torque": t1 - t0, "attention": t2 - t1},
     }
-    save_models(out, pair, baselines, fc, robot=robots.pop(), extra=info)
+    save_models(out, pair, baselines, fc, robot=robots.pop(), extra=info)  # atomic
     return info
 
 
@@ -180,54 +187,79 @@ def sim_to_real(models: str | os.PathLike, lbipe_dir: str | os.PathLike, *, seed
     return out
 
 
-def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_size: int = 64,
-             n_sets: int = 200, seed: int = 0) -> dict:
-    """Mass and COM of an unknown object from a sample file, by every method.
+def _gate(x: np.ndarray, *, max_mass: float, max_com: float) -> str | None:
+    """Why the estimate ``x`` (4,) is no answer, or None when it is physically possible."""
+    if not np.all(np.isfinite(x)):
+        return ("singular least squares: the samples do not determine mass and COM (add "
+                "configurations that vary all joints)")
+    if x[0] <= 0:
+        return f"non-physical mass {x[0] * 1e3:.1f} g"
+    if x[0] > max_mass:
+        return f"mass {x[0] * 1e3:.0f} g above --max-mass {max_mass * 1e3:.0f} g"
+    com = np.linalg.norm(x[1:] / x[0])
+    if com > max_com:
+        return f"COM {com * 1e3:.0f} mm from the tag, beyond --max-com {max_com * 1e3:.0f} mm"
+    return None
 
-    Uses all samples in one WLS (the estimate) and, when there are more than ``set_size``,
-    ``n_sets`` random sets of ``set_size`` samples for a spread. A singular set of samples
-    (e.g. too few distinct configurations) is an error, not a NaN.
+
+def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_size: int = 64,
+             n_sets: int = 200, seed: int = 0, max_mass: float = 5.0,
+             max_com: float = 0.5) -> dict:
+    """Mass and COM of each object in a sample file (ground truth, if any, is not used),
+    by every method.
+
+    Per object: all its samples in one WLS (the estimate) and ``n_sets`` random sets of
+    ``set_size`` samples for a spread. A method whose estimate is singular or physically
+    impossible (mass not in (0, ``max_mass``], COM farther than ``max_com`` from the tag)
+    is reported as failed, with the reason, never as a number; an object no method can
+    estimate is an error.
     """
     data, meta = load_samples(sample_file, need_truth=False)
     pair, baselines, fc, _ = load_models(models, robot=meta.get("robot"))
-    if data.n_samples < 2:
-        raise UsageError(f"{sample_file}: {data.n_samples} sample(s); need at least 2 "
-                         "configurations")
-    obj = data.without_truth().replace(object_id=np.zeros(data.n_samples, np.int64),
-                                       names=("unknown",))
-    res = evaluate([obj], [np.arange(data.n_samples)[None]], pair=pair, baselines=baselines,
-                   fc=fc, l_max=[np.nan])
-    out: dict = {"n_samples": data.n_samples, "methods": {}}
-    for m, x in res["estimates"].items():
-        x = np.asarray(x).reshape(-1, 4)
-        if not np.all(np.isfinite(x)):
-            raise UsageError(f"{sample_file}: the samples do not determine mass and COM "
-                             f"(singular least squares for {m}): add configurations that "
-                             "vary all joints")
-        mass = x[:, 0]
-        com = x[:, 1:] / x[:, :1]
-        out["methods"][m] = {"mass_kg": float(np.mean(mass)), "com_tag_m": np.mean(com, 0).tolist(),
-                             "mass_std_across_models_kg": float(np.std(mass))}
-    if data.n_samples > set_size:
+    objects = data.without_truth().by_object()
+    for obj in objects:  # every refusal before any estimate
+        where = f"{sample_file}" + (f" [{obj.name}]" if len(objects) > 1 else "")
+        if obj.n_samples < set_size:
+            raise UsageError(f"{where}: {obj.n_samples} sample(s); an estimate needs at least "
+                             f"one set of --set-size {set_size}")
+        if np.all(obj.q_d == obj.q):
+            raise UsageError(f"{where}: q_d - q is zero on every sample: no discrepancy to "
+                             "read a load from (torque off, or q_d recorded as q?)")
+    out: dict = {"file": str(sample_file), "objects": {}}
+    for obj in objects:
+        res = evaluate([obj], [np.arange(obj.n_samples)[None]], pair=pair, baselines=baselines,
+                       fc=fc, l_max=[np.nan])
         sets, _ = choose_sets([obj], n_sets=n_sets, set_size=set_size, seed=seed)
         spread = evaluate([obj], sets, pair=pair, baselines=baselines, fc=fc, l_max=[np.nan])
-        for m, x in spread["estimates"].items():
-            x = np.asarray(x).reshape(-1, 4)
-            x = x[np.all(np.isfinite(x), axis=-1)]
-            out["methods"][m][f"mass_std_over_{set_size}_sample_sets_kg"] = float(np.std(x[:, 0]))
-            out["methods"][m][f"com_std_over_{set_size}_sample_sets_m"] = np.std(
-                x[:, 1:] / x[:, :1], axis=0).tolist()
+        methods = {}
+        for m, x_all in res["estimates"].items():
+            x_models = np.asarray(x_all).reshape(-1, 4)  # (K, 4) or (1, 4)
+            x = np.mean(x_models, axis=0)
+            why = _gate(x, max_mass=max_mass, max_com=max_com)
+            if why is not None:
+                methods[m] = {"ok": False, "reason": why}
+                continue
+            xs = np.asarray(spread["estimates"][m]).reshape(-1, 4)
+            good = np.array([_gate(v, max_mass=max_mass, max_com=max_com) is None for v in xs])
+            methods[m] = {
+                "ok": True, "mass_kg": float(x[0]), "com_tag_m": (x[1:] / x[0]).tolist(),
+                "mass_std_across_models_kg": float(np.std(x_models[:, 0])),
+                f"mass_std_over_{set_size}_sample_sets_kg": float(np.std(xs[good, 0])),
+                f"com_std_over_{set_size}_sample_sets_m":
+                    np.std(xs[good, 1:] / xs[good, :1], axis=0).tolist(),
+                "failed_sets": int(np.sum(~good)), "n_sets": int(len(xs)),
+            }
+        if not any(r["ok"] for r in methods.values()):
+            raise UsageError(f"{sample_file} [{obj.name}]: no method gives a physically possible "
+                             "estimate (" + "; ".join(f"{m}: {r['reason']}"
+                                                      for m, r in methods.items()) + ")")
+        out["objects"][obj.name] = {"n_samples": obj.n_samples, "methods": methods}
     return out
 
 
 def write_json(path: str | os.PathLike, obj) -> Path:
     """``obj`` as indented JSON (numpy arrays as lists), written atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
-    os.replace(tmp, path)
-    return path
+    return write_text(path, json.dumps(obj, indent=2, default=_json_default) + "\n")
 
 
 def _json_default(o):

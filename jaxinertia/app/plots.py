@@ -9,6 +9,7 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
+from jaxinertia.fileio import replacing
 from jaxinertia.samples import Samples
 
 matplotlib.use("Agg")  # headless: files only, before pyplot is imported
@@ -21,11 +22,10 @@ __all__ = ["plot_calibration", "plot_continuous", "plot_lbipe_estimates", "plot_
 def _save(fig, path: str | os.PathLike, dpi: int) -> Path:
     """Lays out, writes (creating the folder) and closes a figure."""
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
+    with replacing(path, suffix=Path(path).suffix) as tmp:
+        fig.savefig(tmp, dpi=dpi)
     plt.close(fig)
-    return path
+    return Path(path)
 
 
 def plot_lbipe_estimates(objects: Sequence[Samples], estimates: dict, path: str | os.PathLike,

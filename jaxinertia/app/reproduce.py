@@ -27,6 +27,7 @@ from jaxinertia.app.pipeline import evaluate_samples, sim_to_real, train, write_
 from jaxinertia.app.report import table1, table2, table3
 from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import continuous_force
+from jaxinertia.fileio import write_text
 from jaxinertia.lbipe import default_lbipe_dir
 from jaxinertia.samples import Samples, load_native, load_samples, save_native
 from jaxinertia.sim.continuous import simulate_continuous_run
@@ -157,7 +158,7 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
     with stage("simulate continuous"):
         cont_file = _continuous(params, data_dir / "continuous.npz", scale, seed)
     with stage("train"):
-        info = train(train_files, out / "models", scale.train.replace(seed=seed),
+        info = train(train_files, out / "models", scale.train.replace(seed=seed), overwrite=True,
                      progress=progress)
     with stage("evaluate"):
         sim = evaluate_samples(out / "models", test_file, n_sets=scale.n_sets, seed=seed)
@@ -225,6 +226,6 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
     lines += ["## Training", "", f"Best epochs: torque {info['best_epoch']['torque']}, "
               f"attention {info['best_epoch']['attention']}.", "",
               f"![training]({figs['training'].name})", ""]
-    (out / "report.md").write_text("\n".join(lines))
+    write_text(out / "report.md", "\n".join(lines))
     print(f"wrote {out / 'report.md'}, {out / 'tables.json'} and {len(figs)} plots")
     return results

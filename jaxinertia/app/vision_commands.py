@@ -16,7 +16,9 @@ import cv2
 import jax
 import numpy as np
 
+from jaxinertia.app.options import positive_float
 from jaxinertia.errors import CameraError, FileFormatError, TagNotFoundError, UsageError
+from jaxinertia.fileio import check_output
 from jaxinertia.kinematics import ee_pose
 from jaxinertia.robot import open_manipulator_x
 from jaxinertia.vision.calibration import (
@@ -77,6 +79,7 @@ def cmd_tag_pose(args) -> int:
 
 def cmd_camera_calibrate(args) -> int:
     jax.config.update("jax_enable_x64", True)
+    check_output(args.out, overwrite=args.overwrite)
     intr = load_intrinsics(args.intrinsics)
     rows = read_manifest(args.manifest)
     robot = open_manipulator_x()
@@ -134,7 +137,7 @@ def register(sub) -> None:
     t.add_argument("--intrinsics", required=True, type=Path,
                    help="camera intrinsics: JSON (fx, fy, cx, cy, width, height, distortion) "
                    "or OpenCV FileStorage YAML/XML (camera_matrix, distortion_coefficients)")
-    t.add_argument("--tag-size", type=float, default=DEFAULT_TAG_SIZE,
+    t.add_argument("--tag-size", type=positive_float, default=DEFAULT_TAG_SIZE,
                    help="edge of the black square [m] (default %(default)s)")
     t.add_argument("--tag-id", type=int, default=DEFAULT_TAG_ID)
     t.add_argument("--camera-pose", type=Path,
@@ -154,8 +157,9 @@ def register(sub) -> None:
     )
     c.add_argument("--manifest", required=True, type=Path)
     c.add_argument("--intrinsics", required=True, type=Path)
-    c.add_argument("--tag-size", type=float, default=DEFAULT_TAG_SIZE,
+    c.add_argument("--tag-size", type=positive_float, default=DEFAULT_TAG_SIZE,
                    help="edge of the black square [m] (default %(default)s)")
     c.add_argument("--tag-id", type=int, default=DEFAULT_TAG_ID)
     c.add_argument("--out", type=Path, default=Path("camera_pose.json"))
+    c.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     c.set_defaults(func=cmd_camera_calibrate)

@@ -37,6 +37,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from jaxinertia.errors import CameraError, FileFormatError, UsageError
+from jaxinertia.fileio import write_text
 from jaxinertia.vision.intrinsics import CameraIntrinsics
 from jaxinertia.vision.tags import solve_tag_pose, tag_object_points
 
@@ -235,7 +236,7 @@ def save_camera_pose(
         d["p_ee_tag"] = np.asarray(pose.p_ee_tag).tolist()
     d.update(extra or {})
     path = Path(path)
-    path.write_text(json.dumps(d, indent=2) + "\n")
+    write_text(path, json.dumps(d, indent=2) + "\n")
     return path
 
 
@@ -309,4 +310,7 @@ def read_manifest(path: str | os.PathLike) -> list[tuple[Path, list[float]]]:
                               "camera-calibrate --help") from e
     if not rows:
         raise FileFormatError(path, None, "the manifest lists no images")
+    for image, q in rows:
+        if not np.all(np.isfinite(q)):
+            raise FileFormatError(path, None, f"{image.name}: joint angles {q} are not finite")
     return rows

@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 
 from jaxinertia.errors import ConfigError, UsageError
+from jaxinertia.fileio import write_text
 
 __all__ = [
     "CameraIntrinsics",
@@ -182,5 +183,5 @@ def load_intrinsics(path: str | os.PathLike) -> CameraIntrinsics:
 def save_intrinsics(path: str | os.PathLike, intrinsics: CameraIntrinsics) -> Path:
     """Writes the JSON format that :func:`load_intrinsics` reads."""
     path = Path(path)
-    path.write_text(json.dumps(intrinsics.to_dict(), indent=2) + "\n")
+    write_text(path, json.dumps(intrinsics.to_dict(), indent=2) + "\n")
     return path
