@@ -1,0 +1,391 @@
+"""The paper's commands: ``lbipe-benchmark``, ``simulate``, ``calibrate``, ``train``,
+``evaluate``, ``estimate`` and ``reproduce``.
+
+Each ``cmd_*`` checks its options and outputs before any work and raises
+:class:`jaxinertia.errors.JaxinertiaError` subclasses for what the user can fix;
+:func:`jaxinertia.app.cli.main` prints them.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from jaxinertia import __version__
+from jaxinertia.app.options import (
+    fraction,
+    nonnegative_float,
+    positive_float,
+    positive_int,
+    unit_fraction,
+)
+from jaxinertia.app.pipeline import (
+    estimate,
+    evaluate_samples,
+    released_benchmark,
+    sim_to_real,
+    train,
+    write_json,
+)
+from jaxinertia.app.plots import plot_calibration, plot_lbipe_estimates
+from jaxinertia.app.report import calibration_report, table1, table2, table3
+from jaxinertia.app.reproduce import reproduce
+from jaxinertia.errors import UsageError
+from jaxinertia.fileio import check_output, write_text
+from jaxinertia.lbipe import default_lbipe_dir
+from jaxinertia.objects import TEST_OBJECTS, TRAINING_LOADS_KG, load_name
+from jaxinertia.open_manipulator_x import CALIBRATION_FILE
+from jaxinertia.robot import data_path
+from jaxinertia.samples import Samples, save_lbipe, save_native
+from jaxinertia.sim import params as sim_params
+from jaxinertia.sim import run as sim_run
+from jaxinertia.sim.calibration import calibrate_servo_friction, fit_link_gravity
+from jaxinertia.sim.continuous import simulate_continuous_run
+from jaxinertia.training import TrainConfig
+
+__all__ = ["register"]
+
+
+def _enable_x64():
+    # Identification is float64 (see jaxinertia.identification); networks stay float32.
+    jax.config.update("jax_enable_x64", True)
+
+
+def _distinct(names: list[str] | None, option: str) -> None:
+    if names and len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise UsageError(f"{option}: {', '.join(dup)} given more than once")
+
+
+def _parse_l_max(items: list[str]) -> dict[str, float]:
+    out = {}
+    for item in items or []:
+        name, sep, value = item.partition("=")
+        try:
+            metres = float(value)
+        except ValueError:
+            metres = float("nan")
+        if not sep or not name or not metres > 0:
+            raise UsageError(f"--l-max expects NAME=METRES (positive), got {item!r}")
+        out[name] = metres
+    return out
+
+
+def _outputs(args, *options: str) -> None:
+    """Checks every output option given (before any work): see fileio.check_output."""
+    for option in options:
+        path = getattr(args, option.lstrip("-").replace("-", "_"))
+        if path is not None:
+            check_output(path, overwrite=args.overwrite, option=option)
+
+
+def cmd_lbipe_benchmark(args) -> int:
+    _enable_x64()
+    _outputs(args, "--json", "--plot")
+    res = released_benchmark(args.lbipe_dir, seed=args.seed, l_max=_parse_l_max(args.l_max))
+    objects = res["objects"]
+    print(table1(objects, "Table I: mass and COM error of the released models (10 pairs x "
+                 "sets)", style="text", methods=("T", "T-A")))
+    print()
+    print(table3(objects, "Table III: mean attention weight per joint", style="text"))
+    print()
+    for name, src in res["set_source"].items():
+        flags = ", ".join(
+            f"{k}: {d['rank_deficient']} rank-deficient, {d['ill_conditioned']} ill-conditioned "
+            f"of {d['n_solves']} (max cond {d['max_condition']:.1f})"
+            for k, d in res["diagnostics"][name].items())
+        print(f"{name}: sets from {src}; {flags}")
+    t = res["timing_s"]
+    print(f"load {t['load']:.2f} s, batched evaluation incl. compilation "
+          f"{t['evaluate_incl_compile']:.2f} s")
+    if args.json:
+        write_json(args.json, objects)
+        print(f"wrote {args.json}")
+    if args.plot:
+        plot_lbipe_estimates(res["real"].objects, res["estimates"], args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def cmd_simulate(args) -> int:
+    if args.precision == "float32":
+        jax.config.update("jax_enable_x64", False)
+    else:
+        _enable_x64()
+    _distinct(args.objects, "--objects")
+    if args.format == "lbipe":
+        split = "test" if args.scenario == "test" else "train"
+        names = (args.objects or list(TEST_OBJECTS) if args.scenario == "test" else
+                 [load_name(m) for m in TRAINING_LOADS_KG])
+        for name in names:
+            check_output(args.out / f"data_{split}_{name}.npz", overwrite=args.overwrite)
+    else:
+        _outputs(args, "--out")
+    params = sim_params.default_sim_params(args.calibration)
+    if args.scenario == "continuous":
+        if args.format != "native":
+            raise UsageError("the continuous run is one trajectory with switching objects: "
+                             "use --format native")
+        fields, meta = simulate_continuous_run(
+            params, n=args.n or 2048, objects=args.objects or ["empty", "cube", "white",
+                                                               "black"],
+            switch_every=args.switch_every, seed=args.seed)
+        meta["version"] = __version__
+        samples = Samples.from_fields(fields, meta["objects"], need_truth=True)
+        path = save_native(args.out, samples, meta)
+        print(f"wrote {path} ({samples.n_samples} samples, object switching every "
+              f"{args.switch_every})")
+        return 0
+    results = sim_run.simulate_scenario(params, args.scenario, n=args.n, objects=args.objects,
+                                        seed=args.seed)
+    for name, (_, r) in results.items():
+        bad = int(np.sum(~r["at_rest"]))
+        if bad:
+            print(f"{name}: {bad} of {len(r['q'])} samples timed out (flagged: at_rest = False)")
+    fields, meta = sim_run.native_fields(results, params, scenario=args.scenario,
+                                         seed=args.seed, version=__version__)
+    samples = Samples.from_fields(fields, meta["objects"], need_truth=True)
+    if args.format == "lbipe":
+        kept = samples.at_rest_only()
+        for path, part in zip(save_lbipe(args.out, split, kept), kept.by_object()):
+            print(f"wrote {path} ({part.n_samples} samples)")
+        return 0
+    path = save_native(args.out, samples, meta)
+    print(f"wrote {path} ({samples.n_samples} samples)")
+    return 0
+
+
+def cmd_calibrate(args) -> int:
+    _enable_x64()
+    out = args.out or data_path(CALIBRATION_FILE)
+    if args.out is not None:
+        _outputs(args, "--out")
+    for name in ("report.md", "calibration.png"):
+        check_output(args.report / name, overwrite=args.overwrite, option="--report")
+    params = sim_params.default_sim_params(args.start)
+    robot, gravity_info = fit_link_gravity(params.robot, args.lbipe_dir)
+    params = params.replace(robot=robot)
+    params, info = calibrate_servo_friction(params, args.lbipe_dir, iterations=args.iterations,
+                                            seed=args.seed, kinetic_ratio=args.kinetic_ratio,
+                                            fit_offset=args.fit_offset, progress=True)
+    payload = {"robot": "open_manipulator_x", "link_gravity": gravity_info,
+               "servo_friction": sim_params.params_to_dict(params),
+               "fit": {"iterations": args.iterations, "seed": args.seed,
+                       "fit_offset": args.fit_offset, "real": info["real"],
+                       "final_sim": info["history"][-1]["sim"]}}
+    write_json(out, payload)
+    print(f"wrote {out}")
+    report = args.report
+    real = {k: np.concatenate([getattr(d, k) for _, _, d in info["plans"]])
+            for k in ("q_d", "q", "direction", "tau", "current_tau")}
+    sim = {k: v[info["sim_samples"]["at_rest"]] for k, v in info["sim_samples"].items()}
+    png = plot_calibration(real, sim, report / "calibration.png")
+    text = calibration_report(real, sim, source=args.lbipe_dir, iterations=args.iterations,
+                              parameters=out, figure=png.name)
+    write_text(report / "report.md", text)
+    print(f"wrote {report / 'report.md'} and {png}")
+    return 0
+
+
+def cmd_train(args) -> int:
+    _enable_x64()
+    _outputs(args, "--out")
+    overrides = {k: v for k, v in vars(args).items()
+                 if k in TrainConfig.__dataclass_fields__ and v is not None}
+    cfg = TrainConfig(**overrides)
+    info = train(args.data, args.out, cfg, overwrite=args.overwrite)
+    print(f"trained {cfg.n_models} model pairs on {info['samples']['train']} samples "
+          f"({info['samples']['validation']} validation) in "
+          f"{sum(info['wall_time_s'].values()):.1f} s; wrote {args.out}")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    _enable_x64()
+    _outputs(args, "--json")
+    released = None
+    if args.samples:
+        res = evaluate_samples(args.models, args.samples, n_sets=args.sets, seed=args.seed)
+        objects, torque = res["objects"], res["torque"]
+    else:
+        real = sim_to_real(args.models, args.lbipe_dir, seed=args.seed, n_sets=args.sets)
+        if real is None:
+            raise UsageError(f"no real data at {args.lbipe_dir}: pass --lbipe-dir or --samples")
+        objects, torque = real["ours"]["objects"], real["ours"]["torque"]
+        released = real.get("released")
+    print(table1(objects, f"Table I: models {args.models}"))
+    if released:
+        print()
+        print(table1(released, "The authors' released models, same files and sets"))
+    print()
+    print(table2(torque, "Table II: joint torque"))
+    print()
+    print(table3(objects, "Table III: mean attention weights"))
+    if args.json:
+        write_json(args.json, objects)
+        print(f"wrote {args.json}")
+    return 0
+
+
+def cmd_estimate(args) -> int:
+    _enable_x64()
+    _outputs(args, "--json")
+    res = estimate(args.models, args.samples, set_size=args.set_size, max_mass=args.max_mass,
+                   max_com=args.max_com)
+    for name, o in res["objects"].items():
+        print(f"{name}: {o['n_samples']} samples")
+        print(f"{'method':<7} {'mass [g]':>9} {'COM x [mm]':>11} {'COM y [mm]':>11} "
+              f"{'COM z [mm]':>11}   (COM in the tag frame)")
+        for m, r in o["methods"].items():
+            if not r["ok"]:
+                print(f"{m:<7} failed: {r['reason']}")
+                continue
+            c = np.asarray(r["com_tag_m"]) * 1e3
+            print(f"{m:<7} {r['mass_kg'] * 1e3:>9.1f} {c[0]:>11.1f} {c[1]:>11.1f} "
+                  f"{c[2]:>11.1f}")
+    if args.json:
+        write_json(args.json, res)
+        print(f"wrote {args.json}")
+    return 0
+
+
+def cmd_reproduce(args) -> int:
+    _enable_x64()
+    reproduce(args.out, full=args.full, seed=args.seed, lbipe_dir=args.lbipe_dir)
+    return 0
+
+
+def register(sub) -> None:
+    """Adds this module's subcommands to the ``jaxinertia`` argparse subparsers."""
+    b = sub.add_parser(
+        "lbipe-benchmark",
+        help="evaluate the authors' ten released model pairs on real data (Tables I and III)",
+        description="Evaluates every data/data_test_<name>.npz in DIR with the ten released "
+        "model pairs (weights/*.npz|.pt or dicts/*.pt) in one batched call.",
+    )
+    b.add_argument("--lbipe-dir", type=Path, default=default_lbipe_dir(),
+                   help="shared/lbipe layout or a checkout of ChirikjianLab/lbipe "
+                   "(default: %(default)s)")
+    b.add_argument("--json", type=Path, help="write the metrics here (reference_metrics schema)")
+    b.add_argument("--seed", type=int, default=0,
+                   help="seed of the 1000 random 64-sample sets when no golden sets exist")
+    b.add_argument("--l-max", action="append", metavar="NAME=METRES",
+                   help="bounding-box diagonal of an object without a built-in one")
+    b.add_argument("--plot", type=Path, help="write a PNG of the per-set estimates here")
+    b.add_argument("--overwrite", action="store_true", help="replace an existing --json/--plot")
+    b.set_defaults(func=cmd_lbipe_benchmark)
+
+    s = sub.add_parser(
+        "simulate",
+        help="generate samples from the simulated OpenMANIPULATOR-X",
+        description="planning: the 10 deg grid x 16 direction patterns x training loads; "
+        "random: N random goals per training load; test: N per test object; continuous: N "
+        "consecutive nearby goals without stopping, the held object switching.",
+    )
+    s.add_argument("--scenario", required=True,
+                   choices=["planning", "random", "test", "continuous"])
+    s.add_argument("--out", required=True, type=Path,
+                   help="native: an .npz file; lbipe: a directory for data_<split>_<obj>.npz")
+    s.add_argument("--format", choices=["native", "lbipe"], default="native")
+    s.add_argument("--n", type=positive_int,
+                   help="samples per object (random/test; caps planning)")
+    s.add_argument("--objects", nargs="+",
+                   help="test objects (default: all four); continuous: the switching order, "
+                   "'empty' or test objects or training loads like 100g")
+    s.add_argument("--switch-every", type=positive_int, default=512,
+                   help="continuous: samples between object switches (default 512)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--calibration", type=Path,
+                   help="simulator parameter file (default: the shipped calibration)")
+    s.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    s.add_argument("--precision", choices=["float64", "float32"], default="float64",
+                   help="arithmetic of the simulation (default: %(default)s). float32 runs "
+                   "~1.8x faster on a CPU; its random friction jitter differs, so its samples "
+                   "are another draw of the same distribution (docs/benchmarks.md); the file "
+                   "stores float64 either way")
+    s.set_defaults(func=cmd_simulate)
+
+    c = sub.add_parser(
+        "calibrate",
+        help="fit the simulator's link gravity, servo and friction to real samples",
+        description="Fits link gravity to the real tau_g, then servo gain, torque constant "
+        "and friction so that the simulated real plan reproduces the real baseline fits.",
+    )
+    c.add_argument("--lbipe-dir", type=Path, default=default_lbipe_dir())
+    c.add_argument("--iterations", type=positive_int, default=6)
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--out", type=Path,
+                   help="parameter file (default: the package's data/open_manipulator_x_sim.json)")
+    c.add_argument("--report", type=Path, default=Path("runs/calibration"))
+    c.add_argument("--start", type=Path, help="parameter file to start from (default: shipped)")
+    c.add_argument("--overwrite", action="store_true",
+                   help="replace an existing --out parameter file or --report folder")
+    c.add_argument("--kinetic-ratio", type=unit_fraction, default=0.6,
+                   help="Coulomb (sliding) friction as a fraction of breakaway (default 0.6)")
+    c.add_argument("--fit-offset", action=argparse.BooleanOptionalAction, default=True,
+                   help="after the servo and friction, fit a constant torque per joint "
+                   "(unmodelled loads such as cables) to the real torque intercept at the "
+                   "real PE gain (default: on)")
+    c.set_defaults(func=cmd_calibrate)
+
+    t = sub.add_parser(
+        "train", help="train torque and attention models (K seeds) and fit the baselines",
+        description="Trains on native sample files of known objects (jaxinertia simulate or "
+        "collect). Defaults are the paper's hyperparameters.")
+    t.add_argument("--data", nargs="+", required=True, type=Path,
+                   help="sample files of known objects (native or the authors' layout)")
+    t.add_argument("--out", required=True, type=Path, help="model folder to write")
+    t.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
+    for name, typ in (("n_models", positive_int), ("seed", int), ("torque_epochs", positive_int),
+                      ("torque_batch", positive_int), ("torque_lr", positive_float),
+                      ("attention_epochs", positive_int), ("attention_batch", positive_int),
+                      ("attention_lr", positive_float), ("set_size", positive_int),
+                      ("attention_sets", positive_int), ("attention_val_sets", positive_int),
+                      ("w_mass", nonnegative_float), ("w_com", nonnegative_float),
+                      ("val_fraction", fraction)):
+        t.add_argument("--" + name.replace("_", "-"), dest=name, type=typ,
+                       help=f"(default {getattr(TrainConfig(), name)})")
+    t.set_defaults(func=cmd_train)
+
+    e = sub.add_parser(
+        "evaluate", help="Tables I-III of trained models on real (default) or simulated data",
+        description="Evaluates a model folder on every data/data_test_<name>.npz in the lbipe "
+        "folder (beside the released models on the same sets), or on a native sample file.")
+    e.add_argument("--models", required=True, type=Path)
+    e.add_argument("--lbipe-dir", type=Path, default=default_lbipe_dir())
+    e.add_argument("--samples", type=Path,
+                   help="a sample file of known objects instead (native or the authors' layout)")
+    e.add_argument("--json", type=Path, help="write Table I/III (lbipe-benchmark schema)")
+    e.add_argument("--sets", type=positive_int, default=1000,
+                   help="random sets per object (no golden)")
+    e.add_argument("--overwrite", action="store_true", help="replace an existing --json")
+    e.add_argument("--seed", type=int, default=0)
+    e.set_defaults(func=cmd_evaluate)
+
+    m = sub.add_parser("estimate", help="mass and COM of an unknown object from a sample file")
+    m.add_argument("--models", required=True, type=Path)
+    m.add_argument("--samples", required=True, type=Path)
+    m.add_argument("--set-size", type=positive_int, default=64,
+                   help="samples per set for the spread over sample sets (default 64); a "
+                   "file needs at least this many samples per object")
+    m.add_argument("--max-mass", type=positive_float, default=5.0,
+                   help="an estimate above this mass [kg] is reported as failed (default 5)")
+    m.add_argument("--max-com", type=positive_float, default=0.5,
+                   help="an estimate whose COM is farther than this from the tag [m] is "
+                   "reported as failed (default 0.5)")
+    m.add_argument("--json", type=Path)
+    m.add_argument("--overwrite", action="store_true", help="replace an existing --json")
+    m.set_defaults(func=cmd_estimate)
+
+    r = sub.add_parser(
+        "reproduce", help="simulate, train, evaluate, switching loads, sim-to-real, report",
+        description="The paper end to end into a run folder (report.md, tables.json, plots). "
+        "Default: a quick run (minutes on a laptop CPU); --full: the paper's scale.")
+    r.add_argument("--out", type=Path, default=Path("runs/reproduce"))
+    r.add_argument("--full", action="store_true")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--lbipe-dir", type=Path, default=default_lbipe_dir())
+    r.set_defaults(func=cmd_reproduce)
