@@ -6,7 +6,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.test_util import check_grads
+from support.asserts import assert_tree_close
 
+import jaxinertia.identification as ident
 from jaxinertia.identification import (
     cholesky_solve,
     mass_and_com,
@@ -17,6 +20,34 @@ from jaxinertia.identification import (
     wls_batched,
 )
 from jaxinertia.samples import load_lbipe
+
+# Tolerances, one per reference:
+# numpy's SVD-based lstsq on synthetic well-conditioned problems (columns scaled as the real
+# A): x from float64 normal equations agrees to float64 rounding times kappa^2.
+LSTSQ_RTOL = 1e-10
+LSTSQ_ATOL = 1e-12  # x entries near zero (m p ~ 1e-3 kg m)
+# numpy's residual norm and np.linalg.cond: ours come from the Gram statistics (residual
+# from y'Wy - x'A'Wy, condition from Jacobi eigenvalues), which lose digits to cancellation.
+DERIVED_RTOL = 1e-8
+# numpy lstsq on the real files' sets (64 samples; identification.py: kappa ~10-60).
+LSTSQ_REAL_TOL = {"rtol": 1e-9, "atol": 1e-12}
+# The files' own x recovered from their ground-truth torques (tau - tau_g = A x).
+TRUTH_TOL = {"rtol": 1e-3, "atol": 1e-6}
+# Our two batched paths against each other: wls_batched on gathered rows vs solve_sets on
+# per-sample statistics (other summation order) ...
+PATHS_RTOL = 1e-10
+# ... and the gather vs the 0/1 selection-matrix sums of set_statistics (same sums).
+GATHER_RTOL = 1e-12
+# Central finite differences of jax.test_util.check_grads.
+FD_TOL = 1e-6
+# numpy's LAPACK eigvalsh (relative to the largest eigenvalue) and np.linalg.solve.
+EIGVALS_RTOL = 1e-13
+CHOLESKY_TOL = {"rtol": 1e-8, "atol": 1e-10}
+# mass_and_com's COM against the hand-divided one.
+COM_RTOL = 1e-14
+# float32 against float64 on the real sets: far below the method's own error (grams, mm).
+FLOAT32_MASS_RTOL = 1e-4
+FLOAT32_COM_MM = 1e-2
 
 
 def _problem(rng, rows=256, scales=(1.0, 0.02, 0.03, 0.05), collinear=None):
@@ -39,12 +70,13 @@ def test_wls_equals_numpy_lstsq_on_random_weighted_problems():
         A, y, w = _problem(rng)
         res = wls(jnp.asarray(A), jnp.asarray(y), jnp.asarray(w))
         ref = _lstsq(A, y, w)
-        np.testing.assert_allclose(res.x, ref, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(res.x, ref, rtol=LSTSQ_RTOL, atol=LSTSQ_ATOL)
         sw = np.sqrt(w)
-        np.testing.assert_allclose(res.residual, np.linalg.norm(sw * (A @ ref - y)), rtol=1e-8)
+        np.testing.assert_allclose(res.residual, np.linalg.norm(sw * (A @ ref - y)),
+                                   rtol=DERIVED_RTOL)
         As = A * sw[:, None]
         np.testing.assert_allclose(res.condition, np.linalg.cond(As / np.linalg.norm(As, axis=0)),
-                                   rtol=1e-8)
+                                   rtol=DERIVED_RTOL)
         assert not bool(res.rank_deficient) and not bool(res.ill_conditioned)
 
 
@@ -52,7 +84,7 @@ def test_identity_weights_equal_unweighted_lstsq():
     rng = np.random.default_rng(1)
     A, y, _ = _problem(rng)
     res = wls(jnp.asarray(A), jnp.asarray(y))
-    np.testing.assert_allclose(res.x, np.linalg.lstsq(A, y, rcond=None)[0], rtol=1e-10)
+    np.testing.assert_allclose(res.x, np.linalg.lstsq(A, y, rcond=None)[0], rtol=LSTSQ_RTOL)
 
 
 def test_rank_deficient_sets_are_flagged_and_nan():
@@ -104,16 +136,15 @@ def test_batched_sets_equal_one_by_one_and_gather_path():
     for b in range(B):
         idx = sets[b]
         ref = _lstsq(A[idx].reshape(-1, 4), y[idx].reshape(-1), w[idx].reshape(-1))
-        np.testing.assert_allclose(res.x[b], ref, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(res.x[b], ref, rtol=LSTSQ_RTOL, atol=LSTSQ_ATOL)
     batched = wls_batched(
         jnp.asarray(A[sets].reshape(B, -1, 4)),
         jnp.asarray(y[sets].reshape(B, -1)),
         jnp.asarray(w[sets].reshape(B, -1)),
     )
-    np.testing.assert_allclose(batched.x, res.x, rtol=1e-10)
+    # Every field of the WLSResult (x, condition, flags, residual), not x alone.
+    assert_tree_close(batched, res, rtol=PATHS_RTOL, what="wls_batched vs solve_sets")
     # The gather path (used for very large sets x samples) gives the same statistics.
-    import jaxinertia.identification as ident
-
     mm = set_statistics(jnp.asarray(A), jnp.asarray(y), jnp.asarray(w), jnp.asarray(sets))
     old = ident.MAX_SELECTION_ENTRIES
     ident.MAX_SELECTION_ENTRIES = 0
@@ -121,8 +152,10 @@ def test_batched_sets_equal_one_by_one_and_gather_path():
         ga = set_statistics(jnp.asarray(A), jnp.asarray(y), jnp.asarray(w), jnp.asarray(sets))
     finally:
         ident.MAX_SELECTION_ENTRIES = old
-    for u, v in zip(mm, ga):
-        np.testing.assert_allclose(u, v, rtol=1e-12)
+    names = ("AtWA", "AtWy", "ytWy")
+    assert len(mm) == len(ga) == len(names)
+    assert_tree_close(dict(zip(names, mm)), dict(zip(names, ga)), rtol=GATHER_RTOL,
+                      what="gather vs selection-matrix set statistics")
 
 
 def test_gradient_through_batched_wls_equals_finite_differences():
@@ -136,10 +169,8 @@ def test_gradient_through_batched_wls_equals_finite_differences():
         w = jax.nn.softmax(logits, axis=-1)
         return jnp.sum(solve_sets(A, y, w, sets).x ** 2)
 
-    from jax.test_util import check_grads
-
     check_grads(loss, (jnp.asarray(rng.standard_normal((S, N))),), order=1, modes=["rev"],
-                atol=1e-6, rtol=1e-6)
+                atol=FD_TOL, rtol=FD_TOL)
 
 
 def test_symmetric_eigvals_and_cholesky_solve_match_numpy():
@@ -148,17 +179,17 @@ def test_symmetric_eigvals_and_cholesky_solve_match_numpy():
     S = M @ np.swapaxes(M, 1, 2) + 1e-3 * np.eye(4)
     ev = np.sort(np.asarray(symmetric_eigvals(jnp.asarray(S))), axis=-1)
     ref = np.linalg.eigvalsh(S)
-    assert np.max(np.abs(ev - ref) / ref.max(axis=-1, keepdims=True)) < 1e-13
+    assert np.max(np.abs(ev - ref) / ref.max(axis=-1, keepdims=True)) < EIGVALS_RTOL
     b = rng.standard_normal((500, 4))
     np.testing.assert_allclose(cholesky_solve(jnp.asarray(S), jnp.asarray(b)),
-                               np.linalg.solve(S, b[..., None])[..., 0], rtol=1e-8, atol=1e-10)
+                               np.linalg.solve(S, b[..., None])[..., 0], **CHOLESKY_TOL)
 
 
 def test_mass_and_com():
     x = jnp.array([[0.2, 0.2 * 0.01, -0.2 * 0.02, 0.2 * 0.03]])
     m, p = mass_and_com(x)
     np.testing.assert_allclose(m, [0.2])
-    np.testing.assert_allclose(p, [[0.01, -0.02, 0.03]], rtol=1e-14)
+    np.testing.assert_allclose(p, [[0.01, -0.02, 0.03]], rtol=COM_RTOL)
 
 
 @pytest.mark.parametrize("name", ["cube", "white"])
@@ -176,9 +207,9 @@ def test_float32_against_float64_on_real_regressors(lbipe_dir, name):
     for b in range(0, 200, 20):
         idx = sets[b]
         ref = np.linalg.lstsq(ds.A[idx].reshape(-1, 4), y[idx].reshape(-1), rcond=None)[0]
-        np.testing.assert_allclose(r64.x[b], ref, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(r64.x[b], ref, **LSTSQ_REAL_TOL)
     # The true x is recovered from the ground-truth torques (tau - tau_g = A x holds).
-    np.testing.assert_allclose(r64.x, np.broadcast_to(ds.x[0], r64.x.shape), rtol=1e-3, atol=1e-6)
+    np.testing.assert_allclose(r64.x, np.broadcast_to(ds.x[0], r64.x.shape), **TRUTH_TOL)
     m64, p64 = mass_and_com(r64.x)
     m32, p32 = mass_and_com(jnp.asarray(r32.x, jnp.float64))
     mass_rel = float(np.max(np.abs(m32 - m64) / m64))
@@ -188,5 +219,5 @@ def test_float32_against_float64_on_real_regressors(lbipe_dir, name):
           f"COM {com_mm:.2e} mm")
     assert kappa < 100
     # float32 is good to far below the method's own error (grams, millimetres) ...
-    assert mass_rel < 1e-4 and com_mm < 1e-2
+    assert mass_rel < FLOAT32_MASS_RTOL and com_mm < FLOAT32_COM_MM
     # ... but float64 is the default: identification of near-singular sets needs it.

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 from mujoco import mjx
+from support.asserts import assert_tree_close
 
 from jaxinertia.kinematics import (
     ee_jacobian,
@@ -47,7 +48,19 @@ G_MOUNT = np.array([-9.81, 0.0, 0.0])
 URDF_EE_IN_LINK5 = np.array([0.126, 0.0, 0.0])
 
 N_CONFIGS = 128  # >= 100 random configurations within the joint limits per arm
-TOL = 1e-9  # float64 acceptance tolerance vs MuJoCo C and MJX (m, rad, N m)
+
+# Tolerances (max |error|, float64 throughout; m, rad, N m), one per reference:
+# MuJoCo C (mj_kinematics, mj_jac, mj_rne, a welded payload body) and MJX: the acceptance
+# tolerance. Both compute the same float64 chain products in another order and form.
+MUJOCO_TOL = 1e-9
+# The shared URDF through load_robot vs the embedded MJCF: the same digits through the same
+# compiler (MuJoCo), so equal to rounding (measured: bit-equal).
+URDF_MJCF_TOL = 1e-15
+# Our own functions against themselves: vmap vs a loop, jit vs eager, and jax.jacfwd of the
+# FK position vs the geometric Jacobian; only the order of float64 operations differs.
+ROUNDING_TOL = 1e-14
+# point_mass_torques at twice the mass vs twice the torques (exactly linear in the mass).
+LINEARITY_TOL = {"rtol": 1e-13, "atol": 1e-15}
 
 
 def _urdf_path() -> Path:
@@ -236,19 +249,14 @@ def _mjx(case: Case, q, r_local):
     return jax.jit(jax.vmap(one))(jnp.asarray(q), jnp.asarray(r_local))
 
 
-def _max_errors(a: dict, b: dict) -> dict[str, float]:
-    return {k: float(np.max(np.abs(np.asarray(a[k]) - np.asarray(b[k])))) for k in a}
-
-
 def _assert_close(ours: dict, ref: dict, tol: float, what: str):
+    """Same fields and shapes, ours in float64, every field within ``tol`` (max |error|);
+    a failure names the fields (rot, pos, ee_rot, ee_pos, J_ee, J_pts, tau_g)."""
     assert set(ours) == set(ref)
     for k in ours:
         assert np.asarray(ours[k]).shape == np.asarray(ref[k]).shape, k
         assert np.asarray(ours[k]).dtype == np.float64, k
-    errs = _max_errors(ours, ref)
-    bad = {k: e for k, e in errs.items() if not e <= tol}
-    assert not bad, f"{what}: max |error| above {tol}: {bad} (all: {errs})"
-    return errs
+    assert_tree_close(ours, ref, rtol=0, atol=tol, equal_nan=False, what=what)
 
 
 # --------------------------------------------------------------------------------------
@@ -265,7 +273,7 @@ def test_kinematics_and_gravity_equal_mujoco_c(name):
     # Not vacuous: the arms move and gravity loads every joint somewhere in the sample.
     assert np.ptp(ref["pos"][:, -1], axis=0).max() > 0.05
     assert np.all(np.abs(ref["tau_g"]).max(axis=0) > 1e-3)
-    _assert_close(ours, ref, TOL, f"{name} vs MuJoCo C")
+    _assert_close(ours, ref, MUJOCO_TOL, f"{name} vs MuJoCo C")
 
 
 @pytest.mark.parametrize("name", ["omx_mjcf", "arm6"])
@@ -278,7 +286,7 @@ def test_kinematics_and_gravity_equal_mjx(name):
         assert v.dtype == np.float64, k
     ours = jax.tree.map(np.asarray, _ours_batch(case.robot, jnp.asarray(q), jnp.asarray(r)))
     assert np.all(np.abs(ref["tau_g"]).max(axis=0) > 1e-3)
-    _assert_close(ours, ref, TOL, f"{name} vs MJX")
+    _assert_close(ours, ref, MUJOCO_TOL, f"{name} vs MJX")
 
 
 # --------------------------------------------------------------------------------------
@@ -292,21 +300,12 @@ def test_urdf_equals_embedded_mjcf():
     assert urdf.n_joints == mjcf.n_joints == 4
     assert urdf.joint_names == mjcf.joint_names == ("joint1", "joint2", "joint3", "joint4")
     assert urdf.parent == mjcf.parent and urdf.ee_body == mjcf.ee_body
-    # Same digits through the same compiler (MuJoCo): equal to rounding (measured: bit-equal).
-    leaves_u = jax.tree_util.tree_leaves_with_path(urdf)
-    leaves_m = dict(jax.tree_util.tree_leaves_with_path(mjcf))
-    for path, a in leaves_u:
-        np.testing.assert_allclose(
-            np.asarray(a),
-            np.asarray(leaves_m[path]),
-            rtol=0,
-            atol=1e-15,
-            err_msg=jax.tree_util.keystr(path),
-        )
+    # Same digits through the same compiler (MuJoCo): every array field equal to rounding.
+    assert_tree_close(urdf, mjcf, rtol=0, atol=URDF_MJCF_TOL, static=False, what="URDF vs MJCF")
     q, r = _sample(_case("omx_mjcf"), seed=3)
     out_u = jax.tree.map(np.asarray, _ours_batch(urdf, jnp.asarray(q), jnp.asarray(r)))
     out_m = jax.tree.map(np.asarray, _ours_batch(mjcf, jnp.asarray(q), jnp.asarray(r)))
-    _assert_close(out_u, out_m, 1e-15, "URDF vs MJCF")
+    _assert_close(out_u, out_m, URDF_MJCF_TOL, "URDF vs MJCF")
 
 
 # --------------------------------------------------------------------------------------
@@ -325,10 +324,10 @@ def test_jit_equals_eager_and_vmap_equals_loop(name):
         one_jit = jax.tree.map(np.asarray, jitted(robot, jnp.asarray(q[s]), jnp.asarray(r[s])))
         row = {k: v[s] for k, v in batched.items()}
         # vmap == a Python loop over the same (jitted) function, to rounding.
-        _assert_close(one_jit, row, 1e-14, "vmap vs loop")
+        _assert_close(one_jit, row, ROUNDING_TOL, "vmap vs loop")
         if s < 2:  # eager runs op by op (slow): two configurations suffice
             eager = jax.tree.map(np.asarray, _ours_one(robot, jnp.asarray(q[s]), jnp.asarray(r[s])))
-            _assert_close(eager, one_jit, 1e-14, "jit vs eager")
+            _assert_close(eager, one_jit, ROUNDING_TOL, "jit vs eager")
 
 
 @pytest.mark.parametrize("name", ["omx_mjcf", "arm6"])
@@ -357,7 +356,7 @@ def test_gradients_equal_finite_differences(name):
     # The geometric Jacobian's linear rows are the derivative of the FK position.
     dp = jax.jacfwd(lambda q: ee_pose(robot, q)[1])(qs)
     np.testing.assert_allclose(
-        np.asarray(dp), np.asarray(ee_jacobian(robot, qs)[:3]), rtol=0, atol=1e-14
+        np.asarray(dp), np.asarray(ee_jacobian(robot, qs)[:3]), rtol=0, atol=ROUNDING_TOL
     )
 
 
@@ -420,10 +419,10 @@ def test_point_mass_torques_equal_mujoco_welded_body(name, path, site):
     ours = np.asarray(batched(case.robot, jnp.asarray(q_all), m_rep, c_rep))
     assert np.abs(ref).max() > 1e-2  # the payload loads the joints
     err = np.abs(ours - ref).max()
-    assert err <= TOL, err
+    assert err <= MUJOCO_TOL, err
     # linear in the mass
     doubled = np.asarray(batched(case.robot, jnp.asarray(q_all), 2.0 * m_rep, c_rep))
-    np.testing.assert_allclose(doubled, 2.0 * ours, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(doubled, 2.0 * ours, **LINEARITY_TOL)
 
 
 # --------------------------------------------------------------------------------------

@@ -9,13 +9,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from support.asserts import assert_tree_equal
+from support.compiles import compile_counter
 
 from jaxinertia.app.pipeline import estimate
 from jaxinertia.app.reproduce import Scale, reproduce
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import load_models, save_models
 from jaxinertia.errors import FileFormatError, ModelFolderError, RobotMismatchError, UsageError
-from jaxinertia.estimation import ModelPair
+from jaxinertia.estimation import ModelPair, estimate_sets
 from jaxinertia.evaluation import evaluate, mean_filter, sliding_windows
 from jaxinertia.features import FeatureConfig
 from jaxinertia.metrics import inertial_metrics
@@ -29,6 +31,21 @@ from jaxinertia.training import (
     torque_predictions,
     train_torque_models,
 )
+
+# Tolerances, one per reference:
+# The constants of the exact synthetic law (_synthetic) recovered by the baselines' fits:
+# float64 least squares on noiseless data.
+EXACT_LAW_RTOL = 1e-9  # the PE gains (~10-18 N m/rad)
+EXACT_LAW_ATOL = 1e-10  # frictions and offsets [N m], and the PE torques
+# Central finite differences (eps 1e-6, float64) of the attention loss.
+FD_TOL = {"rtol": 1e-5, "atol": 1e-12}
+# The attention loss of exact torques: zero up to float64 rounding of squared errors.
+EXACT_LOSS_MAX = 1e-20
+# Validation MSE recomputed here (float32 networks) against the one recorded while training.
+HISTORY_RTOL = 1e-4
+# numpy lstsq set by set (the Sensor estimates) and metrics computed by hand in numpy.
+LSTSQ_TOL = {"rtol": 1e-8, "atol": 1e-12}
+METRICS_RTOL = 1e-9
 
 
 def _synthetic(rng, n=400, n_obj=3, *, k=(16.0, 18.0, 17.0, 10.0), f=(0.02, 0.05, 0.03, 0.01)):
@@ -50,12 +67,12 @@ def _synthetic(rng, n=400, n_obj=3, *, k=(16.0, 18.0, 17.0, 10.0), f=(0.02, 0.05
 def test_baselines_recover_the_constants_of_an_exact_law():
     d = _synthetic(np.random.default_rng(0))
     b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.tau)
-    np.testing.assert_allclose(b.pe_gain, [16.0, 18.0, 17.0, 10.0], rtol=1e-9)
-    np.testing.assert_allclose(b.pe_friction, [0.02, 0.05, 0.03, 0.01], atol=1e-10)
-    np.testing.assert_allclose(b.pe_offset, 0.01, atol=1e-10)
-    np.testing.assert_allclose(b.sensor_friction, -0.03, atol=1e-10)
-    np.testing.assert_allclose(b.sensor_offset, -0.004, atol=1e-10)
-    np.testing.assert_allclose(b.pe(d.q_d, d.q, d.direction), d.tau, atol=1e-10)
+    np.testing.assert_allclose(b.pe_gain, [16.0, 18.0, 17.0, 10.0], rtol=EXACT_LAW_RTOL)
+    np.testing.assert_allclose(b.pe_friction, [0.02, 0.05, 0.03, 0.01], atol=EXACT_LAW_ATOL)
+    np.testing.assert_allclose(b.pe_offset, 0.01, atol=EXACT_LAW_ATOL)
+    np.testing.assert_allclose(b.sensor_friction, -0.03, atol=EXACT_LAW_ATOL)
+    np.testing.assert_allclose(b.sensor_offset, -0.004, atol=EXACT_LAW_ATOL)
+    np.testing.assert_allclose(b.pe(d.q_d, d.q, d.direction), d.tau, atol=EXACT_LAW_ATOL)
 
 
 def test_attention_loss_gradient_through_batched_wls_equals_finite_differences():
@@ -75,7 +92,7 @@ def test_attention_loss_gradient_through_batched_wls_equals_finite_differences()
     for idx in [(0, 0, 0), (1, 5, 2), (2, 15, 3), (0, 7, 1)]:
         e = jnp.zeros_like(w0).at[idx].set(eps)
         fd = (loss(w0 + e) - loss(w0 - e)) / (2 * eps)
-        np.testing.assert_allclose(g[idx], fd, rtol=1e-5, atol=1e-12)
+        np.testing.assert_allclose(g[idx], fd, **FD_TOL)
     # The empty-gripper set (m = 0) carries no COM loss: its COM column cannot matter.
     x2 = x_true.at[1, 1:].set(0.5)
     assert loss(w0) == attention_loss(w0, A, y, x2, w_mass=1.0, w_com=0.3)[0]
@@ -89,7 +106,7 @@ def test_attention_loss_is_zero_for_exact_torques_and_flags_singular_sets():
     A[1, :, :, 2] = 0.0  # set 1 cannot see the y coordinate of the COM
     loss, (e_m, e_p) = attention_loss(jnp.ones((2, 8, 4)), jnp.asarray(A), jnp.asarray(y),
                                       jnp.asarray(x), w_mass=1.0, w_com=0.3)
-    assert float(loss) < 1e-20
+    assert float(loss) < EXACT_LOSS_MAX
     assert np.isfinite(e_m[0]) and np.isnan(e_m[1]) and np.isnan(e_p[1])
 
 
@@ -114,7 +131,7 @@ def test_torque_training_learns_and_keeps_the_best_validation_epoch():
     # The kept parameters are the best epoch's: their validation MSE is the minimum.
     pred = np.asarray(torque_predictions(res.model, res.variables, fc, val))
     mse = np.mean(((pred - val.tau) / np.asarray(fc.tau_scale)) ** 2, axis=(1, 2))
-    np.testing.assert_allclose(mse, hist[best, 1, [0, 1]], rtol=1e-4)
+    np.testing.assert_allclose(mse, hist[best, 1, [0, 1]], rtol=HISTORY_RTOL)
     # Two seeds, two different models.
     leaf = jax.tree_util.tree_leaves(res.variables)[0]
     assert not np.allclose(leaf[0], leaf[1])
@@ -140,12 +157,13 @@ def test_checkpoints_round_trip_and_refuse_another_robot(tmp_path):
     pair = _tiny_pair()
     save_models(tmp_path / "m", pair, b, _fc(), robot="open_manipulator_x", extra={"a": 1})
     pair2, b2, fc2, cfg = load_models(tmp_path / "m", robot="open_manipulator_x")
-    for u, v in zip(jax.tree_util.tree_leaves((pair.torque_vars, pair.attention_vars)),
-                    jax.tree_util.tree_leaves((pair2.torque_vars, pair2.attention_vars))):
-        np.testing.assert_array_equal(np.asarray(u), np.asarray(v))
+    # Bit for bit, field by field (a failure names the parameter, e.g.
+    # .torque_vars['params']['joint0']['hidden']['kernel']): the variables, tau_scale and
+    # both module definitions; all the baselines' and the feature configuration's fields.
+    assert_tree_equal(pair2, pair, what="ModelPair after a round trip")
     assert pair2.torque_model == pair.torque_model and cfg["a"] == 1
-    np.testing.assert_array_equal(b2.pe_gain, b.pe_gain)
-    np.testing.assert_array_equal(fc2.qe_scale, _fc().qe_scale)
+    assert_tree_equal(b2, b, what="Baselines after a round trip")
+    assert_tree_equal(fc2, _fc(), what="FeatureConfig after a round trip")
     with pytest.raises(RobotMismatchError, match="trained for robot 'open_manipulator_x'"):
         load_models(tmp_path / "m", robot="another_arm")
     with pytest.raises(ModelFolderError, match="not a jaxinertia model folder"):
@@ -170,16 +188,16 @@ def test_tables_equal_a_direct_numpy_computation():
         xs = np.stack([np.linalg.lstsq(ds.A[i].reshape(-1, 4),
                                        (tau_hat - ds.tau_g)[i].reshape(-1), rcond=None)[0]
                        for i in sets[o]])
-        np.testing.assert_allclose(res["estimates"]["Sensor"][o], xs, rtol=1e-8, atol=1e-12)
+        np.testing.assert_allclose(res["estimates"]["Sensor"][o], xs, **LSTSQ_TOL)
         m, p = ds.mass, ds.com
         e_m = xs[:, 0] - m
         e_p = np.linalg.norm(xs[:, 1:] / xs[:, :1] - p, axis=1)
         got = res["objects"][ds.name]["Sensor"]
-        assert got["mass_MAE_g"] == pytest.approx(np.mean(np.abs(e_m)) * 1e3, rel=1e-9)
+        assert got["mass_MAE_g"] == pytest.approx(np.mean(np.abs(e_m)) * 1e3, rel=METRICS_RTOL)
         assert got["com_NMAE_pct"] == pytest.approx(
-            100 * np.mean(e_p) / [0.07, 0.08][o], rel=1e-9)
+            100 * np.mean(e_p) / [0.07, 0.08][o], rel=METRICS_RTOL)
         assert got["com_NRMSE_pct"] == pytest.approx(
-            100 * np.sqrt(np.mean(e_p**2)) / [0.07, 0.08][o], rel=1e-9)
+            100 * np.sqrt(np.mean(e_p**2)) / [0.07, 0.08][o], rel=METRICS_RTOL)
         # T-A through the networks equals inertial_metrics of its own estimates.
         x_ta = res["estimates"]["T-A"][o].reshape(-1, 4)
         assert res["objects"][ds.name]["T-A"] == inertial_metrics(x_ta, ds.x[0],
@@ -188,7 +206,46 @@ def test_tables_equal_a_direct_numpy_computation():
     tau = np.concatenate([o.tau for o in objs])
     pe = np.concatenate([np.asarray(b.pe(o.q_d, o.q, o.direction)) for o in objs])
     mae = np.mean(np.abs(pe - tau), axis=0) * 1e3
-    np.testing.assert_allclose(res["torque"]["PE"]["MAE_Nmm"], mae, rtol=1e-9)
+    np.testing.assert_allclose(res["torque"]["PE"]["MAE_Nmm"], mae, rtol=METRICS_RTOL)
+
+
+def _estimate_inputs(rng, S, O=2, B=3, M=7):
+    """features (O, S, N, 4) float32, A (O, S, N, 4), tau_g (O, S, N), sets (O, B, M)."""
+    sets = [np.stack([rng.choice(S, M, replace=False) for _ in range(B)]) for _ in range(O)]
+    return (jnp.asarray(rng.normal(size=(O, S, 4, 4)), jnp.float32),
+            jnp.asarray(rng.normal(size=(O, S, 4, 4)) * [1.0, 0.1, 0.1, 0.1]),
+            jnp.asarray(rng.normal(size=(O, S, 4)) * 0.2), jnp.asarray(np.stack(sets)))
+
+
+def test_estimate_sets_compiles_once_per_shape():
+    """Other model pairs (built apart) and other data of the same shapes reuse the program;
+    a new shape compiles again (so the counter counts). Shapes not used elsewhere here."""
+    rng = np.random.default_rng(8)
+    with compile_counter("estimate_sets") as seen:
+        a = estimate_sets(_tiny_pair(seed=0), *_estimate_inputs(rng, 29))
+        b = estimate_sets(_tiny_pair(seed=1), *_estimate_inputs(rng, 29))
+    assert seen.traces["estimate_sets"] == 1 and seen.compiles["estimate_sets"] == 1, seen
+    assert not np.allclose(a.tau_hat, b.tau_hat) and not np.allclose(a.TA.x, b.TA.x)
+    with compile_counter("estimate_sets") as seen:
+        estimate_sets(_tiny_pair(seed=0), *_estimate_inputs(rng, 31))
+    assert seen.compiles["estimate_sets"] == 1, seen
+
+
+def test_evaluate_compiles_once_for_new_objects_of_the_same_shapes():
+    """The evaluator's two jitted programs, estimate_sets (T, T-A) and the identity-weight
+    solve_sets of the baselines (evaluation._solve_identity, Sensor and PE), compile once
+    for two evaluations of other objects with the same sample and set counts."""
+    rng = np.random.default_rng(9)
+    pair = _tiny_pair()
+    with compile_counter("estimate_sets", "_solve_identity") as seen:
+        for seed in (10, 11):
+            d = _synthetic(np.random.default_rng(seed), n=90, n_obj=2)
+            b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.tau)
+            objs = d.by_object()
+            sets = [np.stack([rng.choice(o.n_samples, 11, replace=False) for _ in range(5)])
+                    for o in objs]
+            evaluate(objs, sets, pair=pair, baselines=b, fc=_fc(), l_max=[0.07, 0.08])
+    assert seen.compiles == {"estimate_sets": 1, "_solve_identity": 1}, seen
 
 
 def test_sliding_windows_and_mean_filter():
@@ -210,6 +267,15 @@ def _write(path, d: Samples, drop=()):
             fields = {k: z[k] for k in z.files if k not in drop}
         np.savez_compressed(path, **fields)
     return path
+
+
+def test_native_file_round_trips_field_by_field(tmp_path):
+    d = _synthetic(np.random.default_rng(6), n=50)
+    loaded, meta = load_samples(_write(tmp_path / "a.npz", d))
+    assert meta["robot"] == "open_manipulator_x" and meta["objects"] == list(d.names)
+    assert_tree_equal(loaded, d, what="Samples after save_native/load_samples")
+    unknown, _ = load_samples(_write(tmp_path / "u.npz", d.without_truth()), need_truth=False)
+    assert_tree_equal(unknown, d.without_truth(), what="unknown-object Samples")
 
 
 def test_bad_sample_files_give_one_clear_error(tmp_path):
@@ -234,7 +300,7 @@ def test_bad_sample_files_give_one_clear_error(tmp_path):
 
 
 def test_estimate_refuses_a_singular_sample_set(tmp_path):
-    d = _synthetic(np.random.default_rng(7), n=64)
+    d = _synthetic(np.random.default_rng(7), n=64, n_obj=1)
     d = d.replace(A=np.repeat(d.A[:1], 64, axis=0) * [1, 1, 0, 1])  # no y information
     p = _write(tmp_path / "s.npz", d.without_truth())
     b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.q_d)

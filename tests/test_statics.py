@@ -16,6 +16,7 @@ import mujoco
 import numpy as np
 import pytest
 from jax.test_util import check_grads
+from support.asserts import assert_tree_close
 
 from jaxinertia.kinematics import gravity_torques
 from jaxinertia.robot import OPEN_MANIPULATOR_X_XML, data_path, load_robot, open_manipulator_x
@@ -40,6 +41,36 @@ TICK = 2 * np.pi / 4096  # DYNAMIXEL XM430: 4096 ticks per revolution
 A_MASS_COL_MAX = 2e-3  # N m / kg
 A_ALL_MAX = 0.015
 A_MEAN_ABS = 0.005
+
+# Tolerances, one per reference (max |error| unless rtol is given):
+# shared/lbipe/README: the files' tau - tau_g == A x exactly to 1e-15 N m (both sides are
+# float64 sums of a few O(0.1) terms).
+LBIPE_IDENTITY_TOL = 1e-15
+# The files' q (joint_data row 1) are encoder ticks stored through float32: on the tick grid
+# to one float32 rounding, relative.
+ENCODER_GRID_RTOL = 2.0**-23
+# The files' own rows: q_d - q (rows 0, 1) == row 2 [rad], float64 rounding of O(1) numbers.
+FILE_ROUNDING_TOL = 1e-12
+# The fitted tag rotation against an exact rotation (R^T R = I, det R = 1).
+ROTATION_TOL = 1e-12
+# The files' tau_g against 8 base parameters identified on one object's file and applied to
+# both [N m] (shared/lbipe/README: tau_g is reproduced by 8 identified base parameters).
+LBIPE_TAU_G_TOL = 1e-6
+# TagFit's own error report against the errors recomputed here (same float64 numbers,
+# other summation order).
+FIT_REPORT_TOL = {"rtol": 1e-9, "atol": 1e-15}
+# MuJoCo C (a welded payload body's bias force) vs load_regressor @ x: the float64
+# acceptance tolerance [N m], as in test_kinematics.
+MUJOCO_TOL = 1e-9
+# The link gravity regressors (full and base) vs gravity_torques, and the dependent columns
+# vs their stated combination of the independent ones: float64 sums of 4N products.
+REGRESSOR_TOL = 1e-9
+# Identification of the base parameters from noiseless gravity_torques vs the true ones.
+IDENTIFY_TOL = {"rtol": 1e-9, "atol": 1e-12}
+# Two forms of the regressor from the same FK (tag pose in the base vs fixed in the EE).
+FORMS_TOL = 1e-14
+# load_regressor against itself under vmap, jit and eager: only the operation order differs.
+TRANSFORM_TOL = 1e-15
 
 _fixed_tag = jax.jit(jax.vmap(load_regressor_fixed_tag, in_axes=(None, 0, None, None)))
 # Not jitted on purpose: identify_gravity_base_parameters and gravity_base_parameters run
@@ -77,8 +108,7 @@ def tag_fits(omx, real):
 def test_real_tau_minus_tau_g_equals_A_x(lbipe_dir, real, name):
     ds = real[name]
     resid = (ds.tau - ds.tau_g) - ds.A @ ds.x[0]
-    # README: exact to 1e-15 (both sides are float64 sums of a few O(0.1) terms).
-    assert np.abs(resid).max() <= 1e-15
+    assert np.abs(resid).max() <= LBIPE_IDENTITY_TOL
     assert np.abs(ds.tau - ds.tau_g).max() > 0.01  # not a vacuous identity
     # The file's own flattened `tau` is the same thing, row = joint, sample-major (as A).
     raw = np.load(lbipe_dir / "data" / f"data_test_{name}.npz")
@@ -91,10 +121,10 @@ def test_real_q_is_the_present_position_row(lbipe_dir, real, name):
     """joint_data row 1 (q) is on the encoder grid (to float32 rounding), row 0 (q_d) is not."""
     ds = real[name]
     ticks = np.round(ds.q / TICK)
-    np.testing.assert_allclose(ds.q, ticks * TICK, rtol=2.0**-23, atol=0)
+    np.testing.assert_allclose(ds.q, ticks * TICK, rtol=ENCODER_GRID_RTOL, atol=0)
     assert np.abs(ds.q_d / TICK - np.round(ds.q_d / TICK)).max() > 0.4
     raw = np.load(lbipe_dir / "data" / f"data_test_{name}.npz")["joint_data"]
-    np.testing.assert_allclose(raw[:, 0] - raw[:, 1], raw[:, 2], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(raw[:, 0] - raw[:, 1], raw[:, 2], rtol=0, atol=FILE_ROUNDING_TOL)
     np.testing.assert_array_equal(ds.q, raw[:, 1])
 
 
@@ -102,8 +132,8 @@ def test_real_q_is_the_present_position_row(lbipe_dir, real, name):
 def test_real_A_rebuilt_from_q_with_one_fitted_tag_pose(omx, real, tag_fits, name):
     ds, fit = real[name], tag_fits[name]
     R, p = np.asarray(fit.R_ee_tag), np.asarray(fit.p_ee_tag)
-    np.testing.assert_allclose(R.T @ R, np.eye(3), rtol=0, atol=1e-12)
-    assert abs(np.linalg.det(R) - 1.0) <= 1e-12
+    np.testing.assert_allclose(R.T @ R, np.eye(3), rtol=0, atol=ROTATION_TOL)
+    assert abs(np.linalg.det(R) - 1.0) <= ROTATION_TOL
     assert np.linalg.norm(p) < 0.1  # the tag sits in the gripper, within 10 cm of the EE
     # Rebuild A independently of the fit's own error report, from q (row 1) only.
     A = np.asarray(_fixed_tag(omx, jnp.asarray(ds.q), jnp.asarray(R), jnp.asarray(p)))
@@ -112,8 +142,12 @@ def test_real_A_rebuilt_from_q_with_one_fitted_tag_pose(omx, real, tag_fits, nam
     assert col_max[0] <= A_MASS_COL_MAX, col_max
     assert col_max.max() <= A_ALL_MAX, col_max
     assert err.mean() <= A_MEAN_ABS, err.mean(axis=0)
-    np.testing.assert_allclose(fit.max_abs_error, col_max, rtol=1e-9, atol=1e-15)
-    np.testing.assert_allclose(fit.mean_abs_error, err.mean(axis=0), rtol=1e-9, atol=1e-15)
+    assert_tree_close(
+        {"max_abs_error": fit.max_abs_error, "mean_abs_error": fit.mean_abs_error},
+        {"max_abs_error": col_max, "mean_abs_error": err.mean(axis=0)},
+        **FIT_REPORT_TOL,
+        what=f"{name}: TagFit's error report vs recomputed",
+    )
     # The same regressor from the tag's base pose (load_regressor) agrees to rounding.
     Rb, pb = jax.vmap(tag_pose, in_axes=(None, 0, None, None))(
         omx, jnp.asarray(ds.q), jnp.asarray(R), jnp.asarray(p)
@@ -121,7 +155,7 @@ def test_real_A_rebuilt_from_q_with_one_fitted_tag_pose(omx, real, tag_fits, nam
     A2 = np.asarray(
         jax.jit(jax.vmap(load_regressor, in_axes=(None, 0, 0, 0)))(omx, jnp.asarray(ds.q), Rb, pb)
     )
-    np.testing.assert_allclose(A2, A, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(A2, A, rtol=0, atol=FORMS_TOL)
     # Torques of the object through the rebuilt A stay close to the data's tau - tau_g.
     assert np.abs(A @ ds.x[0] - (ds.tau - ds.tau_g)).max() <= A_ALL_MAX * np.abs(ds.x[0]).sum()
 
@@ -144,7 +178,7 @@ def test_real_tau_g_reproduced_by_identified_base_parameters(omx, omx_base, real
     for ds in (src, dst):
         Y = _link_Y(omx, jnp.asarray(ds.q))
         pred = np.asarray(base.regressor(Y) @ theta)
-        assert np.abs(pred - ds.tau_g).max() <= 1e-6, np.abs(pred - ds.tau_g).max()
+        assert np.abs(pred - ds.tau_g).max() <= LBIPE_TAU_G_TOL, np.abs(pred - ds.tau_g).max()
     # The URDF's own inertials do not give tau_g (README): the identification is doing work.
     Y = _link_Y(omx, jnp.asarray(dst.q))
     urdf_err = np.abs(np.asarray(Y @ link_gravity_parameters(omx)) - dst.tau_g).max()
@@ -225,7 +259,7 @@ def test_payload_torques_of_mujoco_equal_load_regressor_times_x(which):
         )
     )
     err = np.abs(np.einsum("snk,sk->sn", A, xs) - ref).max()
-    assert err <= 1e-9, err
+    assert err <= MUJOCO_TOL, err
     # The fixed-tag form (tag pose from our FK instead of MuJoCo's) gives the same.
     A_fixed = np.asarray(
         jax.jit(jax.vmap(load_regressor_fixed_tag, in_axes=(None, 0, 0, 0)))(
@@ -235,7 +269,7 @@ def test_payload_torques_of_mujoco_equal_load_regressor_times_x(which):
             jnp.asarray(np.array(p_ee_tags)),
         )
     )
-    assert np.abs(np.einsum("snk,sk->sn", A_fixed, xs) - ref).max() <= 1e-9
+    assert np.abs(np.einsum("snk,sk->sn", A_fixed, xs) - ref).max() <= MUJOCO_TOL
 
 
 def test_load_regressor_is_jit_vmap_and_grad_safe(omx):
@@ -249,10 +283,10 @@ def test_load_regressor_is_jit_vmap_and_grad_safe(omx):
     jitted = jax.jit(load_regressor)
     for s in range(S):
         one = np.asarray(jitted(omx, q[s], R[s], p[s]))
-        np.testing.assert_allclose(batched[s], one, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(batched[s], one, rtol=0, atol=TRANSFORM_TOL)
         if s == 0:
             np.testing.assert_allclose(
-                np.asarray(load_regressor(omx, q[s], R[s], p[s])), one, rtol=0, atol=1e-15
+                np.asarray(load_regressor(omx, q[s], R[s], p[s])), one, rtol=0, atol=TRANSFORM_TOL
             )
     assert np.abs(batched).max() > 1e-2
     R_et, p_et = R[0], p[0] * 0.1
@@ -281,9 +315,13 @@ def test_gravity_base_parameters_reproduce_gravity_torques(which, omx, omx_base)
     tau = np.asarray(_grav(robot, q))
     assert np.abs(tau).max() > 1e-2
     # the full regressor and the base regressor both reproduce gravity_torques
-    np.testing.assert_allclose(np.asarray(Y @ theta), tau, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(
-        np.asarray(base.regressor(Y) @ base.from_full(theta)), tau, rtol=0, atol=1e-9
+    by_base = np.asarray(base.regressor(Y) @ base.from_full(theta))
+    assert_tree_close(
+        {"full": np.asarray(Y @ theta), "base": by_base},
+        {"full": tau, "base": tau},
+        rtol=0,
+        atol=REGRESSOR_TOL,
+        what=f"{which}: link gravity regressors vs gravity_torques",
     )
     # the number of base parameters is the rank of the stacked regressor: an SVD on other
     # samples (within the joint limits here) agrees with the pivoted QR
@@ -295,10 +333,10 @@ def test_gravity_base_parameters_reproduce_gravity_torques(which, omx, omx_base)
     assert sorted(np.concatenate([base.independent, base.dependent]).tolist()) == list(range(4 * n))
     # and the dependent columns are the stated combinations of the independent ones
     np.testing.assert_allclose(
-        Ys[:, base.dependent], Ys[:, base.independent] @ base.K, rtol=0, atol=1e-9
+        Ys[:, base.dependent], Ys[:, base.independent] @ base.K, rtol=0, atol=REGRESSOR_TOL
     )
     if which == "omx":
         assert base.independent.size == 8  # shared/lbipe/README: 8 identifiable parameters
     # identification from noiseless simulated torques recovers the base parameters
     theta_hat, _ = identify_gravity_base_parameters(robot, q, tau, base)
-    np.testing.assert_allclose(theta_hat, np.asarray(base.from_full(theta)), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(theta_hat, np.asarray(base.from_full(theta)), **IDENTIFY_TOL)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support.asserts import difference
 
 from jaxinertia.torch_state_dict import StateDictError, UnsupportedPickleError, load_state_dict
 
@@ -24,6 +25,8 @@ LBIPE_HELP = (
     "or place it at ../shared/lbipe"
 )
 LBIPE_STEMS = [f"dict_{net}_{i}" for net in ("torque", "attn") for i in range(1, 11)]
+# The reference, lbipe's own .npz export of each checkpoint, is matched byte for byte (keys
+# in order, dtype, shape, layout, bits): no tolerance; a failure reports the difference.
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +53,8 @@ def test_lbipe_checkpoint_matches_npz(lbipe_weights: Path, stem: str) -> None:
             assert array.dtype == want.dtype, f"{stem}[{key}]: dtype {array.dtype} != {want.dtype}"
             assert array.shape == want.shape, f"{stem}[{key}]: shape {array.shape} != {want.shape}"
             assert array.flags.c_contiguous and array.flags.writeable, f"{stem}[{key}]: layout"
-            assert array.tobytes() == np.ascontiguousarray(want).tobytes(), f"{stem}[{key}]: bits"
+            assert array.tobytes() == np.ascontiguousarray(want).tobytes(), (
+                f"{stem}[{key}]: bits differ ({difference(array, want, equal_nan=False)})")
 
 
 # --- synthetic archives -------------------------------------------------------------------------
