@@ -11,17 +11,18 @@ import numpy as np
 import pytest
 from support.asserts import assert_tree_equal
 from support.compiles import compile_counter
+from support.synthetic import feature_config as _fc
+from support.synthetic import synthetic_samples as _synthetic
+from support.synthetic import tiny_pair as _tiny_pair
 
 from jaxinertia.app.pipeline import estimate
 from jaxinertia.app.reproduce import Scale, reproduce
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import load_models, save_models
 from jaxinertia.errors import FileFormatError, ModelFolderError, RobotMismatchError, UsageError
-from jaxinertia.estimation import ModelPair, estimate_sets
+from jaxinertia.estimation import estimate_sets
 from jaxinertia.evaluation import evaluate, mean_filter, sliding_windows
-from jaxinertia.features import FeatureConfig
 from jaxinertia.metrics import inertial_metrics
-from jaxinertia.networks import AttentionModel, TorqueModel
 from jaxinertia.samples import Samples, load_samples, save_native
 from jaxinertia.training import (
     TrainConfig,
@@ -46,22 +47,6 @@ HISTORY_RTOL = 1e-4
 # numpy lstsq set by set (the Sensor estimates) and metrics computed by hand in numpy.
 LSTSQ_TOL = {"rtol": 1e-8, "atol": 1e-12}
 METRICS_RTOL = 1e-9
-
-
-def _synthetic(rng, n=400, n_obj=3, *, k=(16.0, 18.0, 17.0, 10.0), f=(0.02, 0.05, 0.03, 0.01)):
-    """Samples whose torque is an exact PE law of (q_d - q, s) and A a random regressor."""
-    k, f = np.asarray(k), np.asarray(f)
-    q = rng.uniform(-0.5, 0.5, (n, 4))
-    s = rng.choice([-1.0, 1.0], (n, 4))
-    A = rng.normal(size=(n, 4, 4)) * [1.0, 0.1, 0.1, 0.1]
-    x = np.column_stack([rng.uniform(0.04, 0.15, n_obj), rng.normal(size=(n_obj, 3)) * 0.003])
-    oid = np.arange(n) % n_obj
-    tau_g = rng.normal(size=(n, 4)) * 0.2
-    tau = tau_g + np.einsum("snp,sp->sn", A, x[oid])
-    qe = (tau + s * f - 0.01) / k
-    return Samples(q_d=q + qe, q=q, direction=s, current_tau=tau - 0.03 * s + 0.004,
-                   tau=tau, tau_g=tau_g, A=A, object_id=oid, x=x,
-                   names=tuple(f"o{i}" for i in range(n_obj)))
 
 
 def test_baselines_recover_the_constants_of_an_exact_law():
@@ -135,20 +120,6 @@ def test_torque_training_learns_and_keeps_the_best_validation_epoch():
     # Two seeds, two different models.
     leaf = jax.tree_util.tree_leaves(res.variables)[0]
     assert not np.allclose(leaf[0], leaf[1])
-
-
-def _tiny_pair(K=2, seed=0):
-    tm, am = TorqueModel(), AttentionModel()
-    feats = jnp.zeros((1, 4, 4), jnp.float32)
-    keys = jax.random.split(jax.random.key(seed), K)
-    return ModelPair(torque_vars=jax.vmap(lambda k: tm.init(k, feats))(keys),
-                     attention_vars=jax.vmap(lambda k: am.init(k, feats))(keys),
-                     tau_scale=jnp.asarray([0.4, 1.2, 0.6, 0.3], jnp.float32),
-                     torque_model=tm, attention_model=am)
-
-
-def _fc():
-    return FeatureConfig.create([-0.6] * 4, [0.6] * 4, [0.05] * 4, [0.4, 1.2, 0.6, 0.3])
 
 
 def test_checkpoints_round_trip_and_refuse_another_robot(tmp_path):
