@@ -82,6 +82,14 @@ def _outputs(args, *options: str) -> None:
             check_output(path, overwrite=args.overwrite, option=option)
 
 
+def _write_json(args, obj) -> int:
+    """``obj`` into ``--json`` when given; the command's exit code."""
+    if args.json:
+        write_json(args.json, obj)
+        print(f"wrote {args.json}")
+    return 0
+
+
 def cmd_lbipe_benchmark(args) -> int:
     _enable_x64()
     _outputs(args, "--json", "--plot")
@@ -101,9 +109,7 @@ def cmd_lbipe_benchmark(args) -> int:
     t = res["timing_s"]
     print(f"load {t['load']:.2f} s, batched evaluation incl. compilation "
           f"{t['evaluate_incl_compile']:.2f} s")
-    if args.json:
-        write_json(args.json, objects)
-        print(f"wrote {args.json}")
+    _write_json(args, objects)
     if args.plot:
         plot_lbipe_estimates(res["real"].objects, res["estimates"], args.plot)
         print(f"wrote {args.plot}")
@@ -224,10 +230,7 @@ def cmd_evaluate(args) -> int:
     print(table2(torque, "Table II: joint torque"))
     print()
     print(table3(objects, "Table III: mean attention weights"))
-    if args.json:
-        write_json(args.json, objects)
-        print(f"wrote {args.json}")
-    return 0
+    return _write_json(args, objects)
 
 
 def cmd_estimate(args) -> int:
@@ -246,10 +249,7 @@ def cmd_estimate(args) -> int:
             c = np.asarray(r["com_tag_m"]) * 1e3
             print(f"{m:<7} {r['mass_kg'] * 1e3:>9.1f} {c[0]:>11.1f} {c[1]:>11.1f} "
                   f"{c[2]:>11.1f}")
-    if args.json:
-        write_json(args.json, res)
-        print(f"wrote {args.json}")
-    return 0
+    return _write_json(args, res)
 
 
 def cmd_reproduce(args) -> int:
