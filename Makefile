@@ -19,7 +19,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q --durations=15
 
 # The paper end to end (quick scale): simulate, train, evaluate, switching loads,
 # sim-to-real on shared/lbipe beside the released models; report in runs/demo/report.md.

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 import jax
@@ -11,6 +12,11 @@ import pytest
 import jaxinertia  # noqa: F401  (applies the XLA:CPU settings before JAX starts)
 
 jax.config.update("jax_enable_x64", True)
+
+# The command line keeps compiled programs in a persistent cache; tests point it at one
+# folder per session (never the user's ~/.cache), shared with the CLI and virtual-robot
+# subprocesses they start, so each program compiles once per session.
+os.environ.setdefault("JAXINERTIA_CACHE_DIR", tempfile.mkdtemp(prefix="jaxinertia-test-xla-"))
 
 from jaxinertia.lbipe import default_lbipe_dir  # noqa: E402
 
