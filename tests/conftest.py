@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -16,7 +17,12 @@ jax.config.update("jax_enable_x64", True)
 # The command line keeps compiled programs in a persistent cache; tests point it at one
 # folder per session (never the user's ~/.cache), shared with the CLI and virtual-robot
 # subprocesses they start, so each program compiles once per session.
-os.environ.setdefault("JAXINERTIA_CACHE_DIR", tempfile.mkdtemp(prefix="jaxinertia-test-xla-"))
+if "JAXINERTIA_CACHE_DIR" not in os.environ:
+    _CACHE = tempfile.mkdtemp(prefix="jaxinertia-test-xla-")
+    os.environ["JAXINERTIA_CACHE_DIR"] = _CACHE
+
+    def pytest_sessionfinish(session, exitstatus):  # noqa: ARG001
+        shutil.rmtree(_CACHE, ignore_errors=True)
 
 from jaxinertia.lbipe import default_lbipe_dir  # noqa: E402
 
