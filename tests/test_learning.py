@@ -284,6 +284,7 @@ def test_tiny_end_to_end_report_numbers_come_from_the_run(tmp_path, lbipe_dir):
     """simulate -> train -> evaluate -> continuous -> sim-to-real -> report, tiny."""
     scale = Scale(planning=False, random_per_load=80, test_per_object=70,
                   continuous_samples=160, switch_every=40, n_sets=20,
+                  fold_calibration_iterations=0,  # the folds: tests/test_folds.py
                   train=TrainConfig(n_models=2, torque_epochs=5, attention_epochs=2,
                                     attention_sets=8, attention_val_sets=4, set_size=64,
                                     val_fraction=0.2))

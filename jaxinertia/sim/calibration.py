@@ -12,14 +12,17 @@ and applies it.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxinertia.errors import UsageError
 from jaxinertia.lbipe import find_layout, test_files
 from jaxinertia.objects import HeldObject
 from jaxinertia.robot import Robot
+from jaxinertia.samples import Samples
 from jaxinertia.sim.run import run_plans
 from jaxinertia.sim.simulator import SimParams
 from jaxinertia.statics import (
@@ -29,19 +32,35 @@ from jaxinertia.statics import (
 )
 
 __all__ = ["OFFSET_ITERATIONS", "baseline_statistics", "calibrate_servo_friction",
-           "fit_link_gravity", "real_plan", "simulate_real_plan"]
+           "fit_link_gravity", "real_files", "real_plan", "simulate_real_plan"]
 
 
-def fit_link_gravity(robot: Robot, lbipe_dir: str | os.PathLike) -> tuple[Robot, dict]:
-    """Fits link masses/first moments to every real test file's ``tau_g``."""
-    layout = find_layout(lbipe_dir)
-    data = test_files(layout)
+def real_files(lbipe_dir: str | os.PathLike,
+               objects: Sequence[str] | None = None) -> list[Samples]:
+    """The real test files of ``lbipe_dir`` that a fit may look at: those of ``objects``
+    (all when None). Held-out protocol: a fit is judged on the objects it did not see."""
+    data = test_files(find_layout(lbipe_dir))
+    if objects is None:
+        return data
+    have = [d.name for d in data]
+    unknown = [o for o in objects if o not in have]
+    if unknown or not objects:
+        raise UsageError(f"--real-objects {list(objects)}: {lbipe_dir} has real files of "
+                         f"{have}")
+    return [d for d in data if d.name in objects]
+
+
+def fit_link_gravity(robot: Robot, lbipe_dir: str | os.PathLike,
+                     objects: Sequence[str] | None = None) -> tuple[Robot, dict]:
+    """Fits link masses/first moments to the real test files' ``tau_g`` (those of
+    ``objects``; all when None)."""
+    data = real_files(lbipe_dir, objects)
     q = np.concatenate([d.q for d in data])
     tau_g = np.concatenate([d.tau_g for d in data])
     theta, base = identify_gravity_base_parameters(robot, jnp.asarray(q), tau_g)
     fitted = robot_with_gravity_parameters(robot, theta, base)
     info = {
-        "source": sorted(layout.test_files),
+        "source": sorted(d.name for d in data),
         "n_samples": int(len(q)),
         "link_mass": np.asarray(fitted.mass).tolist(),
         "link_com": np.asarray(fitted.com).tolist(),
@@ -87,14 +106,14 @@ def baseline_statistics(q_d, q, direction, tau, current_tau) -> dict[str, np.nda
     return {k: np.asarray(v) for k, v in out.items()}
 
 
-def real_plan(robot: Robot, lbipe_dir) -> list[tuple[str, HeldObject, object]]:
+def real_plan(robot: Robot, lbipe_dir,
+              objects: Sequence[str] | None = None) -> list[tuple[str, HeldObject, object]]:
     """``[(name, object, data)]`` per real test file: the object (mass, COM and a fitted
-    tag pose) and the file's data (goals, directions and the real measurements)."""
-    layout = find_layout(lbipe_dir)
+    tag pose) and the file's data (goals, directions and the real measurements); only the
+    files of ``objects`` when given."""
     plans = []
-    for d in test_files(layout):
-        x = np.asarray(d.x)[0]  # [m, m p_tag] of the file's one object
-        mass, com = float(x[0]), x[1:] / x[0]
+    for d in real_files(lbipe_dir, objects):
+        mass, com = d.mass, d.com
         fit = fit_tag_pose(robot, jnp.asarray(d.q), jnp.asarray(d.A))
         side = 0.04
         obj = HeldObject(jnp.asarray(mass), jnp.asarray(com), jnp.asarray(fit.R_ee_tag),
@@ -126,7 +145,7 @@ def _intercept(d: dict, ref: dict) -> np.ndarray:
 
 def calibrate_servo_friction(params, lbipe_dir, *, iterations: int = 6, seed: int = 0,
                              kinetic_ratio: float = 0.6, fit_offset: bool = False, log=print,
-                             progress: bool = False):
+                             progress: bool = False, objects: Sequence[str] | None = None):
     """Fixed-point fit of per-joint servo gain, torque constant and friction parameters so
     that the simulated real plan reproduces the real baseline statistics (k, f0, mu,
     current gain, PE MAE). Kinetic (Coulomb) friction is ``kinetic_ratio`` times the
@@ -134,8 +153,9 @@ def calibrate_servo_friction(params, lbipe_dir, *, iterations: int = 6, seed: in
     load such as cable forces or a gravity-model error) so that the intercept at the real
     PE gain and friction, ``mean(tau - k qe + s f)``, matches the real one; without it the
     simulated arm has the real gains and friction but not the real intercepts, which is
-    most of the sim-to-real gap (docs/results.md). Returns ``(params, history)``."""
-    plans = real_plan(params.robot, lbipe_dir)
+    most of the sim-to-real gap (docs/results.md). Only the real files of ``objects`` are
+    looked at (all when None). Returns ``(params, history)``."""
+    plans = real_plan(params.robot, lbipe_dir, objects)
     real = baseline_statistics(
         np.concatenate([d.q_d for _, _, d in plans]), np.concatenate([d.q for _, _, d in plans]),
         np.concatenate([d.direction for _, _, d in plans]),

@@ -14,12 +14,20 @@ import os
 import jax.numpy as jnp
 import numpy as np
 
-from jaxinertia.open_manipulator_x import calibrated_robot, load_calibration
+from jaxinertia.errors import ConfigError
+from jaxinertia.open_manipulator_x import (
+    CALIBRATION_FILE,
+    DEFAULT_ARMATURE,
+    calibrated_robot,
+    load_calibration,
+)
+from jaxinertia.robot import Robot, open_manipulator_x
 from jaxinertia.sim.friction import FrictionParams
 from jaxinertia.sim.servo import ServoParams
 from jaxinertia.sim.simulator import SimParams
 
-__all__ = ["apply_servo_friction", "default_sim_params", "params_to_dict"]
+__all__ = ["apply_servo_friction", "datasheet_sim_params", "default_sim_params",
+           "params_to_dict"]
 
 
 def default_sim_params(calibration_file: str | os.PathLike | None = None) -> SimParams:
@@ -27,10 +35,32 @@ def default_sim_params(calibration_file: str | os.PathLike | None = None) -> Sim
     ``data/open_manipulator_x_sim.json``: link gravity, servo and friction), falling back
     to datasheet servos and default friction where the file has no servo calibration."""
     calibration = load_calibration(calibration_file)
-    robot = calibrated_robot(calibration)
+    where = calibration_file or CALIBRATION_FILE
+    try:
+        robot = calibrated_robot(calibration)
+        n = robot.n_joints
+        params = SimParams(robot, ServoParams.xm430_w350(n), FrictionParams.create(n))
+        params = apply_servo_friction(params, calibration)
+    except (KeyError, TypeError, ValueError) as e:  # a field missing or of the wrong shape
+        raise ConfigError(where, None, f"not a usable calibration ({type(e).__name__}: "
+                          f"{e})") from None
+    for name, leaf in (("servo", params.servo), ("friction", params.friction)):
+        for k, v in leaf.__dict__.items():
+            if np.shape(v) != (n,) or not np.all(np.isfinite(np.asarray(v, np.float64))):
+                raise ConfigError(where, f"servo_friction.{name}.{k}",
+                                  f"must be {n} finite values, got {np.asarray(v).tolist()}")
+    return params
+
+
+def datasheet_sim_params(robot: Robot | None = None) -> SimParams:
+    """The arm before any calibration: the description's link parameters (the embedded
+    OpenMANIPULATOR-X by default), the default armature, datasheet XM430 servos and default
+    friction; the start of a calibration that must not see the shipped one (a held-out
+    fold)."""
+    robot = open_manipulator_x() if robot is None else robot
     n = robot.n_joints
-    params = SimParams(robot, ServoParams.xm430_w350(n), FrictionParams.create(n))
-    return apply_servo_friction(params, calibration)
+    robot = robot.replace(armature=jnp.full(n, DEFAULT_ARMATURE, robot.mass.dtype))
+    return SimParams(robot, ServoParams.xm430_w350(n), FrictionParams.create(n))
 
 
 def apply_servo_friction(params: SimParams, calibration: dict) -> SimParams:

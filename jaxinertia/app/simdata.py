@@ -1,0 +1,70 @@
+"""Simulated data files for the pipeline: simulate what is missing, reuse what an earlier
+run made from the same request (scenario, size, seed and simulator parameters)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+from jaxinertia import __version__
+from jaxinertia.samples import Samples, load_native, save_native
+from jaxinertia.sim.params import params_to_dict
+from jaxinertia.sim.run import ScenarioRequest, native_fields, simulate_scenarios
+from jaxinertia.sim.simulator import SimParams
+
+__all__ = ["cached", "params_digest", "reusable", "save", "simulate_files"]
+
+
+def params_digest(params: SimParams) -> str:
+    """A short digest of the simulator's parameters (a file made with others is not reused)."""
+    d = {"servo_friction": params_to_dict(params), "link_mass": params.robot.mass.tolist(),
+         "link_com": params.robot.com.tolist()}
+    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def reusable(path: Path, request: dict) -> bool:
+    """Whether the file at ``path`` was made by the same request (a re-run reuses it)."""
+    try:
+        return path.exists() and load_native(path)[1].get("request") == request
+    except ValueError:
+        return False
+
+
+def save(path: Path, request: dict, fields: dict, meta: dict) -> Path:
+    meta.update(request=request, version=__version__)
+    save_native(path, Samples.from_fields(fields, meta["objects"], need_truth=True), meta)
+    return path
+
+
+def cached(path: Path, request: dict, make) -> Path:
+    """Writes ``make() -> (fields, meta)`` to ``path`` unless the file there was made by the
+    same request."""
+    if reusable(path, request):
+        print(f"reusing {path}")
+        return path
+    return save(path, request, *make())
+
+
+def simulate_files(params, wanted: list[tuple[Path, str, int | None, int]]) -> list[Path]:
+    """Simulates the scenarios ``(path, scenario, n, seed)`` whose files are not there yet,
+    all in one stream (one compiled program, one settling tail)."""
+    digest = params_digest(params)
+
+    def request(scenario, n, seed):
+        return {"scenario": scenario, "seed": seed, "n": n, "simulator": digest}
+
+    missing = []
+    for path, scenario, n, seed in wanted:
+        if reusable(path, request(scenario, n, seed)):
+            print(f"reusing {path}")
+        else:
+            missing.append((path, scenario, n, seed))
+    if missing:
+        results = simulate_scenarios(
+            params, [ScenarioRequest(scenario, n, None, seed) for _, scenario, n, seed in missing])
+        for (path, scenario, n, seed), res in zip(missing, results):
+            fields, meta = native_fields(res, params, scenario=scenario, seed=seed,
+                                         version=__version__)
+            save(path, request(scenario, n, seed), fields, meta)
+    return [w[0] for w in wanted]

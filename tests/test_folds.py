@@ -1,0 +1,78 @@
+"""The held-out protocol: a fold fitted on one real object never looks at the other one's
+samples until it is judged on them (issue 15 item 1)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from jaxinertia.app.cli import main
+from jaxinertia.app.folds import FoldScale, format_folds, run_folds
+from jaxinertia.errors import UsageError
+from jaxinertia.samples import lbipe_arrays, load_lbipe
+from jaxinertia.sim import calibration
+from jaxinertia.training import TrainConfig
+
+N_REAL = 120  # real samples kept per object: the protocol does not depend on how many
+
+
+@pytest.fixture(scope="module")
+def small_layout(lbipe_dir, tmp_path_factory):
+    """The real cube and white files cut to their first samples, and the released weights
+    (no golden sets: they index the full files)."""
+    root = tmp_path_factory.mktemp("lbipe")
+    (root / "data").mkdir()
+    for name in ("cube", "white"):
+        full = load_lbipe(lbipe_dir / "data" / f"data_test_{name}.npz")
+        np.savez(root / "data" / f"data_test_{name}.npz",
+                 **lbipe_arrays(full.take(np.arange(N_REAL))))
+    (root / "weights").symlink_to(lbipe_dir / "weights")
+    return root
+
+
+def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_layout, tmp_path,
+                                                                   monkeypatch):
+    seen = []
+    real_files = calibration.real_files
+
+    def spy(lbipe_dir, objects=None):
+        seen.append(None if objects is None else list(objects))
+        return real_files(lbipe_dir, objects)
+
+    monkeypatch.setattr(calibration, "real_files", spy)
+    scale = FoldScale(calibration_iterations=1, random_per_load=40, planning=False,
+                      train=TrainConfig(n_models=2, torque_epochs=3, attention_epochs=2,
+                                        attention_sets=8, attention_val_sets=4,
+                                        val_fraction=0.2))
+    res = run_folds(tmp_path / "folds", small_layout, scale, progress=False, log=lambda m: None)
+    assert set(res["folds"]) == {"cube", "white"}
+    # Every look at real samples is restricted: to the fold's object while fitting, to the
+    # held-out one for the replay; never all files at once.
+    assert None not in seen
+    assert seen == [["cube"], ["cube"], ["white"], ["white"], ["white"], ["cube"]], seen
+    for fit_on, other in (("cube", "white"), ("white", "cube")):
+        f = res["folds"][fit_on]
+        assert f["held_out"] == [other]
+        assert set(f["ours"]) == set(f["released"]) == {other}
+        for m in ("Sensor", "PE", "T", "T-A"):
+            assert np.isfinite(f["ours"][other][m]["mass_MAE_g"]), (fit_on, m)
+        cal = json.loads((tmp_path / "folds" / f"fit_{fit_on}" / "calibration.json").read_text())
+        assert cal["fit"]["real_objects"] == [fit_on]
+        assert cal["link_gravity"]["source"] == [fit_on]
+        assert cal["link_gravity"]["n_samples"] == N_REAL
+        replay = f["replay"]
+        assert len(replay["real"]["k"]) == len(replay["sim"]["k"]) == 4
+    text = format_folds(res)
+    assert "Calibrated and trained with cube only, judged on white" in text
+    assert "white's real plan replayed in the simulator calibrated on cube" in text
+
+
+def test_fits_refuse_objects_the_folder_does_not_have(small_layout, capsys):
+    with pytest.raises(UsageError, match="mystery"):
+        calibration.real_files(small_layout, ["mystery"])
+    assert [d.name for d in calibration.real_files(small_layout, ["white"])] == ["white"]
+    assert main(["calibrate", "--lbipe-dir", str(small_layout), "--real-objects", "cube",
+                 "cube"]) == 2
+    assert "--real-objects" in capsys.readouterr().err
