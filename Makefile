@@ -21,6 +21,15 @@ venv: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q --durations=15
 
+# The hardware tests (real driver, virtual robot) beside a busy loop on every core: they
+# must hold on a saturated host. The loops are killed when the tests end (or fail).
+.PHONY: test-stress
+test-stress: $(STAMP)
+	@pids=""; trap 'kill $$pids 2>/dev/null' EXIT INT TERM; \
+	for i in $$(seq $$(nproc)); do $(BIN)/python -c "while True: pass" & pids="$$pids $$!"; done; \
+	echo "test-stress: $$(nproc) busy loops:$$pids"; \
+	$(BIN)/python -m pytest -q tests/test_hardware_*.py
+
 # The paper end to end (quick scale): simulate, train, evaluate, switching loads,
 # sim-to-real on shared/lbipe beside the released models; report in runs/demo/report.md.
 demo: $(STAMP)

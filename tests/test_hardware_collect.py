@@ -31,6 +31,12 @@ N = 20
 OBJECT = "cube"
 SPEED = "15"
 TICK = 2 * np.pi / 4096  # [rad]
+#: Generous limits, for a host that may be busy: the bus may stay silent for a few
+#: seconds (``--retries`` 40: about 3 s), and the wall-clock limits allow 20 x the
+#: collection's simulated time (2 moves of at most 6 s each per sample) beside 10 minutes
+#: for the interpreters to start and compile.
+RETRIES = "40"
+WALL_LIMIT_S = 600 + 20 * N * 2 * 6.0 / float(SPEED)
 
 #: The tolerances of this module (the virtual robot against the simulator), by what they
 #: bound; why each value, where it is used.
@@ -62,7 +68,7 @@ def reference():
 
     th = threading.Thread(target=run, daemon=True)
     th.start()
-    yield lambda: (th.join(timeout=300), out["samples"])[1]
+    yield lambda: (th.join(timeout=WALL_LIMIT_S), out["samples"])[1]
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +80,8 @@ def collected(tmp_path_factory, reference):
         run = subprocess.run(
             [sys.executable, "-m", "jaxinertia", "collect", "--port", robot.path,
              "--plan", "random", "--n", str(N), "--seed", "0", "--object", OBJECT,
-             "--out", str(out)], capture_output=True, text=True, timeout=240)
+             "--out", str(out), "--retries", RETRIES], capture_output=True, text=True,
+            timeout=WALL_LIMIT_S)
         assert robot.proc.poll() is None, "the virtual robot died during the collection"
     assert run.returncode == 0, run.stderr
     samples, meta = load_native(out, only_at_rest=False)

@@ -7,6 +7,13 @@ that the operator then clears). The driver must retry
 through the bus faults, stop cleanly on the overload with every finished sample in the
 journal, and ``--resume --clear-errors`` must complete the plan with exactly the planned
 samples: none lost, none duplicated.
+
+Then what is refused before anything moves (exit code 2, one line): ``--n`` that is not
+positive, ``--ids`` of the wrong count, a journal damaged before its last line; and a port
+that cannot be opened (exit code 3, one line, no journal left behind).
+
+Limits are generous (a busy host): ``--retries`` 40 (the bus may stay silent about 3 s),
+and wall-clock limits far beyond the collections' simulated time.
 """
 
 from __future__ import annotations
@@ -15,11 +22,13 @@ import json
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
+from support.hardware import journal_indices, one_line, running, wait_for_samples
 
+from jaxinertia.app.cli import main
+from jaxinertia.hardware.collect import DELTA, RECORD_FIELDS, plan_digest
 from jaxinertia.plans import random_plan
 from jaxinertia.samples import load_native
 from jaxinertia.virtual.testing import VirtualRobotProcess
@@ -28,6 +37,10 @@ pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
                                 reason="the virtual servo bus needs a Linux pseudo-terminal")
 
 N = 6
+SPEED = 15
+#: Each collection: 10 minutes to start beside 20 x its simulated time (2 moves of at most
+#: 6 s per sample).
+WALL_LIMIT_S = 600 + 20 * N * 2 * 6.0 / SPEED
 FAULTS = ["--drop-rate", "0.01", "--corrupt-rate", "0.01", "--delay-rate", "0.01",
           "--delay-ms", "10", "--overload-id", "13", "--overload-after", "5",
           "--fault-seed", "7"]
@@ -36,7 +49,7 @@ FAULTS = ["--drop-rate", "0.01", "--corrupt-rate", "0.01", "--delay-rate", "0.01
 @pytest.fixture(scope="module")
 def robot(tmp_path_factory):
     log = tmp_path_factory.mktemp("faults") / "virtual.log"
-    with VirtualRobotProcess(["--object", "50g", "--speed", "15", *FAULTS],
+    with VirtualRobotProcess(["--object", "50g", "--speed", str(SPEED), *FAULTS],
                              stderr=log) as r:
         yield r
 
@@ -44,13 +57,7 @@ def robot(tmp_path_factory):
 def collect_cmd(port: str, out, *extra: str) -> list[str]:
     return [sys.executable, "-m", "jaxinertia", "collect", "--port", port,
             "--plan", "random", "--n", str(N), "--seed", "4", "--object", "50g",
-            "--out", str(out), "--no-progress", "--retries", "5", *extra]
-
-
-def journal_indices(out) -> list[int]:
-    lines = (out.parent / (out.name + ".journal.jsonl")).read_text().splitlines()
-    assert json.loads(lines[0])["kind"] == "header"
-    return [json.loads(line)["index"] for line in lines[1:]]
+            "--out", str(out), "--no-progress", "--retries", "40", *extra]
 
 
 def check_complete(out) -> None:
@@ -66,7 +73,7 @@ def check_complete(out) -> None:
 def test_overload_stops_cleanly_and_resume_completes_the_plan(robot, tmp_path):
     out = tmp_path / "load.npz"
     first = subprocess.run(collect_cmd(robot.path, out), capture_output=True, text=True,
-                           timeout=180)
+                           timeout=WALL_LIMIT_S)
     # Goal writes 1-4 are samples 0 and 1 (pre-position, goal); the 6th, sample 2's goal.
     assert first.returncode == 3, first.stderr
     assert "overload" in first.stderr and "ID 13" in first.stderr
@@ -78,11 +85,11 @@ def test_overload_stops_cleanly_and_resume_completes_the_plan(robot, tmp_path):
         f.write('{"index": 2, "q_d": [0.1')
     # Without clearing the error the arm refuses to start.
     refused = subprocess.run(collect_cmd(robot.path, out, "--resume"), capture_output=True,
-                             text=True, timeout=180)
+                             text=True, timeout=WALL_LIMIT_S)
     assert refused.returncode == 3 and "overload" in refused.stderr
     assert journal_indices(out) == [0, 1]
     done = subprocess.run(collect_cmd(robot.path, out, "--resume", "--clear-errors"),
-                          capture_output=True, text=True, timeout=180)
+                          capture_output=True, text=True, timeout=WALL_LIMIT_S)
     assert done.returncode == 0, done.stderr
     retried = int(done.stderr.split("bus: ")[1].split()[0])
     assert retried > 0, "the injected faults must have been met and retried"
@@ -93,33 +100,109 @@ def test_refuses_to_overwrite_a_journal_without_resume(robot, tmp_path):
     out = tmp_path / "x.npz"
     (tmp_path / "x.npz.journal.jsonl").write_text('{"kind": "header"}\n')
     r = subprocess.run(collect_cmd(robot.path, out), capture_output=True, text=True,
-                       timeout=120)
+                       timeout=WALL_LIMIT_S)
     assert r.returncode == 2 and "--resume" in r.stderr
 
 
 def test_ctrl_c_leaves_the_journal_consistent_and_resume_completes(robot, tmp_path):
     out = tmp_path / "int.npz"
-    journal = tmp_path / "int.npz.journal.jsonl"
-    proc = subprocess.Popen(collect_cmd(robot.path, out), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:  # wait for the first sample on disk
-            if journal.exists() and len(journal.read_text().splitlines()) >= 2:
-                break
-            time.sleep(0.05)
+    with running(collect_cmd(robot.path, out)) as proc:
+        wait_for_samples(out, 1, WALL_LIMIT_S, proc)  # the first sample on disk
         proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(timeout=10)
+        _, err = proc.communicate(timeout=WALL_LIMIT_S)
     assert proc.returncode == 130, err
     assert "interrupted (hold)" in err
     got = journal_indices(out)
     assert 1 <= len(got) < N and got == list(range(len(got)))
     done = subprocess.run(collect_cmd(robot.path, out, "--resume"), capture_output=True,
-                          text=True, timeout=180)
+                          text=True, timeout=WALL_LIMIT_S)
     assert done.returncode == 0, done.stderr
     assert f"{len(got)} of {N} samples already" in done.stderr
     check_complete(out)
+
+
+# ---- refused before anything moves (in this process; the port does not exist) ------------
+
+NO_PORT = "/dev/jaxinertia-no-such-port"
+
+
+def collect_args(out, *extra: str) -> list[str]:
+    return ["collect", "--port", NO_PORT, "--plan", "random", "--n", str(N), "--seed", "4",
+            "--object", "50g", "--out", str(out), "--no-progress", *extra]
+
+
+def run(argv: list[str]) -> int:
+    """``jaxinertia ARGV`` in this process: its exit code (argparse's errors included)."""
+    try:
+        return main(argv)
+    except SystemExit as e:
+        return e.code
+
+
+def one_line_error(capsys, *words: str) -> str:
+    line = one_line(capsys.readouterr().err)
+    for w in words:
+        assert w in line, (w, line)
+    return line
+
+
+@pytest.mark.parametrize(("args", "words"), [
+    (["--n", "0"], ["--n", "positive"]),
+    (["--n", "-2"], ["--n", "positive"]),
+    (["--ids", "11,12,13"], ["--ids", "4 joint servo IDs", "got 3"]),
+    (["--ids", "11,12,12,14"], ["--ids", "distinct"]),
+    (["--retries", "-1"], ["--retries"]),
+    (["--settle-time", "nan"], ["--settle-time"]),
+])
+def test_bad_options_are_refused_before_the_port_is_opened(tmp_path, capsys, args, words):
+    out = tmp_path / "x.npz"
+    argv = collect_args(out)
+    for k in range(0, len(args), 2):  # replace or add the option
+        if args[k] in argv:
+            argv[argv.index(args[k]) + 1] = args[k + 1]
+        else:
+            argv += args[k:k + 2]
+    assert run(argv) == 2, "exit code"  # 3 would mean it went on to the port
+    one_line_error(capsys, *words)
+    assert not out.exists() and not (tmp_path / "x.npz.journal.jsonl").exists()
+
+
+def header_for(out) -> dict:
+    q_d, d = random_plan(N, 4)
+    return {"kind": "header", "plan": "random", "seed": 4, "n_samples": N, "object": "50g",
+            "plan_digest": plan_digest(q_d, d), "port": NO_PORT,
+            "servo_ids": [11, 12, 13, 14], "delta": DELTA}
+
+
+def record(index: int) -> dict:
+    rec = {k: [0.0] * 4 for k in RECORD_FIELDS}
+    rec.update(index=index, R_base_tag=np.eye(3).tolist(), p_base_tag=[0.0] * 3,
+               at_rest=True, settle_time=0.5, timestamp=float(index))
+    return rec
+
+
+@pytest.mark.parametrize(("content", "words"), [
+    (lambda h: "\n".join([json.dumps(h), json.dumps(record(0)), '{"index": 1, "q_d": [0.',
+                          json.dumps(record(2))]) + "\n", ["[line 3]", "corrupt record"]),
+    (lambda h: json.dumps(h)[:20], ["[line 1]", "torn header"]),
+    (lambda h: "\n".join([json.dumps(h), json.dumps({"index": 0})]) + "\n",
+     ["[line 2]", "record without"]),
+    (lambda h: "\n".join([json.dumps(h), json.dumps(record(N + 3))]) + "\n",
+     ["[line 2]", "not a sample of the plan"]),
+])
+def test_a_damaged_journal_is_one_line_and_exit_2(tmp_path, capsys, content, words):
+    out = tmp_path / "j.npz"
+    journal = tmp_path / "j.npz.journal.jsonl"
+    journal.write_text(content(header_for(out)))
+    before = journal.read_bytes()
+    assert run(collect_args(out, "--resume")) == 2
+    one_line_error(capsys, str(journal), *words)
+    assert journal.read_bytes() == before, "the journal is left as it was"
+
+
+def test_a_port_that_cannot_be_opened_leaves_no_journal(tmp_path, capsys):
+    out = tmp_path / "p.npz"
+    assert run(collect_args(out)) == 3
+    one_line_error(capsys, f"cannot open {NO_PORT}", "No such file")
+    assert not (tmp_path / "p.npz.journal.jsonl").exists(), "no journal of nothing"
+    assert not out.exists()

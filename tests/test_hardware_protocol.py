@@ -1,7 +1,13 @@
 """Protocol 2.0 conformance of the virtual servo bus, checked with dynamixel-sdk's own
-packet handler through the pseudo-terminal; plus the driver's safety checks.
+packet handler through the pseudo-terminal; the driver's safety checks; the transport
+(status packets matched to their request, the port lock); hardware errors confirmed
+before they are reported; the physics compiled before the bus opens and reporting a
+moving arm as moving until it has simulated the move.
 
 Registers are integers and compared exactly; failures name the register and the servo.
+Nothing here depends on the host's speed: the SDK's port waits generously for a status
+packet (:class:`PatientPort`), and waits for bytes are conditions with generous
+deadlines, never sleeps.
 """
 
 from __future__ import annotations
@@ -21,21 +27,27 @@ from dynamixel_sdk import (
     PacketHandler,
     PortHandler,
 )
+from support.compiles import compile_counter
 
 from jaxinertia.hardware import control_table as ct
-from jaxinertia.hardware.driver import ArmConfig, DynamixelArm
+from jaxinertia.hardware.driver import ArmConfig, DynamixelArm, HardwareError
 from jaxinertia.hardware.protocol import (
     Instruction,
+    PacketParser,
     add_stuffing,
     crc16,
     encode_packet,
     remove_stuffing,
+    status_packet,
 )
 from jaxinertia.hardware.safety import SafetyError, SafetyLimits
+from jaxinertia.hardware.transport import LockedPortHandler, MatchingPacketHandler, PortInUse
 from jaxinertia.objects import resolve
 from jaxinertia.open_manipulator_x import calibrated_robot
 from jaxinertia.sim.params import default_sim_params
-from jaxinertia.virtual.physics import VirtualServoBus
+from jaxinertia.virtual.bus import open_pty
+from jaxinertia.virtual.physics import ArmPhysics, PhysicsLoop, publish
+from jaxinertia.virtual.robot import VirtualServoBus
 from jaxinertia.virtual.testing import VirtualRobotProcess
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
@@ -45,19 +57,45 @@ IDS = (11, 12, 13, 14)
 #: The one tolerance of this module: register gains mapped onto the simulator's (float64
 #: arithmetic on the same numbers).
 RTOL = 1e-7
+#: How long a test waits for bytes that must come [s] (a deadline, not a pace).
+PATIENCE_S = 60.0
+Q0 = np.radians([0.0, -30.0, 30.0, 0.0])
+
+
+class PatientPort(PortHandler):
+    """dynamixel-sdk's port, waiting ``patience_ms`` for a status packet instead of ~35 ms:
+    these tests check what the bus answers, not how fast a busy host lets it answer. (A
+    check that nothing comes waits less: a reply that a slow host delays past it can only
+    make such a check pass, never fail.)"""
+
+    patience_ms = PATIENCE_S * 1000.0
+
+    def setPacketTimeout(self, packet_length):  # noqa: N802 (the SDK's name)
+        super().setPacketTimeout(packet_length)
+        self.packet_timeout = self.patience_ms
+
+    def setPacketTimeoutMillis(self, msec):  # noqa: N802
+        super().setPacketTimeoutMillis(max(msec, 1000.0))  # broadcast ping waits it out
+
+
+def wait_for_bytes(port, n: int) -> int:
+    """Waits until at least ``n`` bytes are in ``port`` (deadline ``PATIENCE_S``)."""
+    deadline = time.monotonic() + PATIENCE_S
+    while port.getBytesAvailable() < n and time.monotonic() < deadline:
+        time.sleep(0.001)
+    return port.getBytesAvailable()
 
 
 @pytest.fixture(scope="module")
 def bus():
-    b = VirtualServoBus(default_sim_params(), resolve("cube"),
-                        q0=np.radians([0.0, -30.0, 30.0, 0.0]), speed=5.0)
+    b = VirtualServoBus(default_sim_params(), resolve("cube"), q0=Q0, speed=5.0)
     with b:
         yield b
 
 
 @pytest.fixture()
 def sdk(bus):
-    port = PortHandler(bus.path)
+    port = PatientPort(bus.path)
     assert port.openPort()
     yield port, PacketHandler(2.0)
     port.closePort()
@@ -79,7 +117,9 @@ def test_ping_read_write_with_the_sdk(sdk):
     port, ph = sdk
     for dxl_id in (*IDS, 15):
         assert ph.ping(port, dxl_id) == (1020, COMM_SUCCESS, 0), f"ping ID {dxl_id}"
+    port.patience_ms = 500.0
     assert ph.ping(port, 99)[1] == COMM_RX_TIMEOUT, "ping ID 99"  # no such servo: silence
+    port.patience_ms = PatientPort.patience_ms
     found, result = ph.broadcastPing(port)
     assert result == COMM_SUCCESS and sorted(found) == [*IDS, 15], f"broadcast ping: {found}"
     assert ph.read1ByteTxRx(port, 11, 11) == (3, COMM_SUCCESS, 0), "operating_mode of ID 11"
@@ -122,14 +162,18 @@ def test_a_corrupted_packet_gets_no_reply_and_changes_nothing(bus, sdk):
     port, ph = sdk
     good = encode_packet(12, Instruction.WRITE, bytes([112, 0, 9, 0, 0, 0]))
     bad = good[:-1] + bytes([good[-1] ^ 0xFF])
+    ping = encode_packet(12, Instruction.PING)
     port.clearPort()
-    port.writePort(bad)
-    time.sleep(0.1)
-    assert port.getBytesAvailable() == 0, "reply bytes to a corrupted packet"
+    # The bus answers in order: whatever the corrupted packet got would come before the
+    # ping's 14-byte status packet.
+    port.writePort(bad + ping)
+    got = wait_for_bytes(port, 14)
+    assert got - 14 == 0, "reply bytes to a corrupted packet"
+    port.clearPort()
     assert ph.read4ByteTxRx(port, 12, 112)[0] == 0, "profile_velocity of ID 12"
     port.writePort(good)  # the same packet with its CRC intact is executed and answered
-    time.sleep(0.1)
-    assert port.getBytesAvailable() == 11, "reply bytes to the intact packet"
+    assert wait_for_bytes(port, 11) == 11, "reply bytes to the intact packet"
+    port.clearPort()
     assert ph.read4ByteTxRx(port, 12, 112)[0] == 9, "profile_velocity of ID 12"
     ph.write4ByteTxRx(port, 12, 112, 0)
 
@@ -206,10 +250,179 @@ def test_register_gains_map_onto_the_simulator(bus):
 def test_virtual_robot_cli_prints_its_device_first(tmp_path):
     with VirtualRobotProcess(["--speed", "2", "--gripper-id", "none"]) as r:
         assert r.path.startswith("/dev/") and os.path.exists(r.path)
-        port = PortHandler(r.path)
+        port = PatientPort(r.path)
         assert port.openPort()
         ph = PacketHandler(2.0)
         assert ph.ping(port, 11)[1] == COMM_SUCCESS, "ping ID 11"
+        port.patience_ms = 500.0
         assert ph.ping(port, 15)[1] == COMM_RX_TIMEOUT, "ping ID 15 (no gripper)"
         port.closePort()
     assert r.proc.returncode is not None
+
+
+# ---- the transport: status packets matched to their request, the port lock --------------
+
+
+@pytest.fixture()
+def wire():
+    """A pseudo-terminal with dynamixel-sdk on one side and the test on the other."""
+    master, slave, path = open_pty()
+    port = LockedPortHandler(path)
+    assert port.openPort()
+    yield port, master
+    port.closePort()
+    os.close(master)
+    os.close(slave)
+
+
+def test_a_late_status_packet_is_not_the_answer_to_the_next_request(wire):
+    port, master = wire
+    # ID 11 answers a Present Position block read (27 bytes) too late: the master has
+    # already asked for Hardware Error Status (1 byte), whose answer (0) follows.
+    late = status_packet(11, 0, bytes(range(8, 35)))  # first data byte 8: "encoder"
+    answer = status_packet(11, 0, bytes([0]))
+    sdk = PacketHandler(2.0)
+    assert sdk.readTx(port, 11, 70, 1) == COMM_SUCCESS
+    os.write(master, late + answer)
+    data, result, _ = sdk.readRx(port, 11, 1)
+    assert result == COMM_SUCCESS and data == [8], "the SDK alone takes the late packet"
+    matching = MatchingPacketHandler()
+    assert matching.readTx(port, 11, 70, 1) == COMM_SUCCESS
+    os.write(master, late + answer)
+    data, result, _ = matching.readRx(port, 11, 1)
+    assert result == COMM_SUCCESS and data == [0], "Hardware Error Status of ID 11"
+    assert matching.stale_packets == 1, "late packets discarded"
+    # A status packet of another servo, or of the right servo and the wrong length, is no
+    # answer either; an error status without data is.
+    assert matching.readTx(port, 12, 132, 4) == COMM_SUCCESS
+    os.write(master, status_packet(13, 0, bytes(4)) + status_packet(12, 0, bytes(1))
+             + status_packet(12, 7))
+    data, result, error = matching.readRx(port, 12, 4)
+    assert (result, error) == (COMM_SUCCESS, 7), "access error of ID 12"
+    assert matching.stale_packets == 3, "late packets discarded"
+
+
+def test_the_port_is_locked_while_open(wire):
+    port, _ = wire
+    with pytest.raises(PortInUse, match="in use"):
+        LockedPortHandler(port.getPortName()).openPort()
+    port.closePort()
+    again = LockedPortHandler(port.getPortName())
+    assert again.openPort(), "the lock is released on close"
+    again.closePort()
+
+
+# ---- hardware errors are confirmed by register 70 ----------------------------------------
+
+
+def test_a_hardware_error_reading_is_confirmed_before_it_is_reported(bus, monkeypatch):
+    arm = DynamixelArm(ArmConfig(port=bus.path, gripper_id=None))
+    with arm:
+        real = arm._sync_read
+
+        def garbled(address, length):  # as a late packet taken for the answer would be
+            data = real(address, length)
+            if address == ct.ITEMS["hardware_error_status"].address:
+                data = {i: bytes([ct.HW_ERROR_ENCODER | ct.HW_ERROR_OVERLOAD]) for i in data}
+            return data
+
+        monkeypatch.setattr(arm, "_sync_read", garbled)
+        arm.check_hardware_errors()  # register 70 reads 0 on every servo: no error
+        assert arm.unconfirmed_alarms == 1, "unconfirmed hardware-error readings"
+        with bus._lock:  # a real one: ID 13 overloaded
+            bus.servos[13].set("hardware_error_status", ct.HW_ERROR_OVERLOAD)
+        try:
+            with pytest.raises(HardwareError, match="ID 13: overload") as e:
+                arm.check_hardware_errors()
+            assert e.value.errors == {13: ct.HW_ERROR_OVERLOAD}, "confirmed errors"
+        finally:
+            with bus._lock:
+                bus.servos[13].set("hardware_error_status", 0)
+            monkeypatch.undo()
+
+
+# ---- the physics: compiled before the bus opens, moving until simulated -------------------
+
+
+@pytest.fixture()
+def stepped():
+    """A virtual servo bus whose physics the test steps itself, in this process (no
+    physics process, no threads): the bus answers through ``handle``."""
+    b = VirtualServoBus(default_sim_params(), resolve("cube"), q0=Q0, speed=1.0)
+    arm = ArmPhysics(b._spec.params, q0=Q0, chunk=b._spec.chunk, seed=0)
+    loop = PhysicsLoop(arm, [b.servos[i] for i in IDS], b._lock, b._events_in,
+                       b._shared_goal_writes)
+    yield b, loop
+    b.close()
+
+
+def write(bus, dxl_id: int, name: str, value: int) -> None:
+    item = ct.ITEMS[name]
+    params = item.address.to_bytes(2, "little") + ct.to_unsigned(value, item.size).to_bytes(
+        item.size, "little")
+    (packet,) = PacketParser().feed(encode_packet(dxl_id, Instruction.WRITE, params))
+    (reply,) = bus.handle(packet)
+    assert reply[8] == 0, f"write {name} of ID {dxl_id}: error {reply[8]}"
+
+
+def test_every_physics_path_is_compiled_before_the_bus_opens(stepped):
+    bus, loop = stepped
+    loop.arm.compile()
+    with compile_counter("_advance", "at_rest") as seen:
+        loop.step()  # torque off
+        for i in IDS:
+            write(bus, i, "torque_enable", 1)
+        loop.step()  # torque on, hold
+        write(bus, 11, "goal_position", 2048 + 40)
+        for _ in range(5):
+            loop.step()
+        write(bus, 12, "torque_enable", 0)
+        loop.step()
+    assert not seen.traces and not seen.compiles, f"compiled after the bus opened: {seen}"
+
+
+def test_a_moving_arm_reports_moving_until_simulated_time_has_caught_up(stepped):
+    bus, loop = stepped
+    for i in IDS:
+        write(bus, i, "profile_velocity", 20)  # 0.48 rad/s
+        write(bus, i, "profile_acceleration", 20)
+        write(bus, i, "torque_enable", 1)
+    loop.step()
+    m = bus.servos[11]
+    before = m.get("present_position")
+    write(bus, 11, "goal_position", before + 100)  # 8.8 deg: a profile of ~0.4 s
+    # Written, not simulated yet: moving, where it was.
+    assert m.get("moving") == 1, "moving of ID 11 right after the goal write"
+    assert m.get("moving_status") & 0x02, "moving_status profile bit of ID 11"
+    assert m.get("present_position") == before, "present_position of ID 11"
+    t0 = loop.arm.sim_time
+    moving_at = []
+    while loop.arm.sim_time < t0 + 3.0:
+        p = loop.step()
+        moving_at.append((p.sim_time, m.get("moving"), m.get("present_position")))
+    t_end = next(t for t, moving, _ in moving_at if not moving)
+    # Until the profile has run in simulated time (~0.4 s) the arm reports moving; it
+    # never reports rest half-way.
+    assert t_end - t0 > 0.3, f"moving reported 0 after {t_end - t0:.2f} s of simulated time"
+    resting = [pos for t, _, pos in moving_at if t >= t_end]
+    assert abs(resting[0] - (before + 100)) < 15, "present_position of ID 11 at rest"
+    # A goal written while a chunk was being computed is pending: reported moving.
+    pending = np.array([True, False, False, False])
+    with bus._lock:
+        publish([bus.servos[i] for i in IDS], p, pending)
+    assert m.get("moving") == 1, "moving of ID 11 with its goal pending"
+
+
+def test_the_physics_process_serves_the_bus_and_stops_with_it():
+    b = VirtualServoBus(default_sim_params(), None, q0=Q0, speed=5.0)
+    with b:
+        port = PatientPort(b.path)
+        assert port.openPort()
+        clock = [PacketHandler(2.0).read2ByteTxRx(port, 11, 120)[0] for _ in range(2)]
+        deadline = time.monotonic() + PATIENCE_S
+        while clock[-1] == clock[0] and time.monotonic() < deadline:
+            clock.append(PacketHandler(2.0).read2ByteTxRx(port, 11, 120)[0])
+        assert clock[-1] != clock[0], "realtime_tick of ID 11 advances"
+        port.closePort()
+        process = b._process
+    assert not process.is_alive(), "the physics process ended with the bus"

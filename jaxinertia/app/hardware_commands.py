@@ -46,7 +46,7 @@ from jaxinertia.open_manipulator_x import GRIPPER_ID, JOINT_IDS, TAG_IN_EE, cali
 from jaxinertia.samples import save_native
 from jaxinertia.sim.params import default_sim_params
 from jaxinertia.virtual.bus import Faults
-from jaxinertia.virtual.physics import VirtualServoBus
+from jaxinertia.virtual.robot import VirtualServoBus
 
 __all__ = ["register"]
 
@@ -300,7 +300,9 @@ def register(sub) -> None:
                    help="no tick may change for this long to count as at rest [s, servo clock]")
     c.add_argument("--timeout", type=positive_float, default=6.0,
                    help="per move [s, servo clock]")
-    c.add_argument("--retries", type=_count, default=3, help="per bus transaction")
+    c.add_argument("--retries", type=_count, default=ArmConfig.retries,
+                   help="per bus transaction (each after the bus has gone quiet, about 70 ms "
+                   "a try: a dead bus is reported within a second)")
     c.add_argument("--on-stop", choices=["hold", "torque_off"], default="hold",
                    help="state to leave the arm in after an error or Ctrl-C")
     c.add_argument("--clear-errors", action="store_true",

@@ -6,7 +6,10 @@ direction ``s``, as :func:`jaxinertia.sim.sampling.simulate_samples` does) and i
 once at rest. Each record is appended to a JSON-lines journal (``<out>.journal.jsonl``)
 and flushed to disk before the next move, so an interruption loses nothing; ``resume``
 skips the plan indices already in the journal (a torn last line is discarded) and
-never records an index twice. At the end the native sample file is written from the
+never records an index twice. The journal file is created with the first sample: a
+collection that stops before any sample leaves none behind. A journal damaged elsewhere
+than its last line (a corrupt record, a torn header) is a :class:`JournalError` naming
+the line. At the end the native sample file is written from the
 journal, with ``A`` and ``tau_g`` of the bare arm computed at the measured ``q`` and
 tag pose.
 """
@@ -23,7 +26,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from jaxinertia.errors import UsageError
+from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.hardware.driver import DynamixelArm
 from jaxinertia.kinematics import gravity_torques
 from jaxinertia.robot import Robot
@@ -34,6 +37,7 @@ from jaxinertia.xm430 import NOMINAL_TORQUE_CONSTANT
 __all__ = [
     "DELTA",
     "Journal",
+    "JournalError",
     "JournalExists",
     "JournalMismatch",
     "KinematicTagPose",
@@ -70,6 +74,16 @@ class JournalExists(UsageError, FileExistsError):
     """A journal is on disk and ``resume`` was not asked for (nothing is overwritten)."""
 
 
+class JournalError(FileFormatError):
+    """A journal that cannot be continued: a corrupt line before the last, a torn header,
+    a record without its fields (exit code 2; names the file and the line)."""
+
+
+#: The fields of a journal record (``samples_from_records`` reads them).
+RECORD_FIELDS = ("index", "q_d", "q", "current_tau", "direction", "R_base_tag", "p_base_tag",
+                 "at_rest", "settle_time", "timestamp", "temperature", "voltage")
+
+
 def journal_path(out: str | os.PathLike) -> Path:
     out = Path(out)
     return out.with_name(out.name + ".journal.jsonl")
@@ -82,14 +96,39 @@ def plan_digest(q_d: np.ndarray, direction: np.ndarray) -> str:
     return h.hexdigest()
 
 
+def _parse_line(path: Path, number: int, line: bytes) -> dict:
+    try:
+        value = json.loads(line)
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        what = "header" if number == 1 else "record"
+        raise JournalError(path, f"line {number}",
+                           f"corrupt {what} (not JSON); only a torn last line is repaired: "
+                           "fix or remove the journal") from None
+    if not isinstance(value, dict):
+        raise JournalError(path, f"line {number}", "not a JSON object")
+    return value
+
+
+def _check_record(path: Path, number: int, rec: dict, n_samples: int) -> int:
+    missing = [k for k in RECORD_FIELDS if k not in rec]
+    if missing:
+        raise JournalError(path, f"line {number}", f"record without {', '.join(missing)}")
+    index = rec["index"]
+    if not isinstance(index, int) or isinstance(index, bool) or not 0 <= index < n_samples:
+        raise JournalError(path, f"line {number}",
+                           f"index {index!r} is not a sample of the plan (0..{n_samples - 1})")
+    return index
+
+
 class Journal:
-    """Append-only JSON lines: a header, then one record per sample (fsynced each)."""
+    """Append-only JSON lines: a header, then one record per sample (fsynced each). The
+    file is created (with its header) by the first :meth:`append`."""
 
     def __init__(self, path: Path, header: dict, records: dict[int, dict]) -> None:
         self.path = path
         self.header = header
         self.records = records
-        self._file = open(path, "a", encoding="utf-8")  # noqa: SIM115 (closed by close())
+        self._file = None  # opened by the first append
 
     @classmethod
     def open(cls, path: str | os.PathLike, header: dict, *, resume: bool) -> Journal:
@@ -97,7 +136,9 @@ class Journal:
 
         Raises :class:`JournalExists` (a FileExistsError) when a journal exists and
         ``resume`` is False (nothing is overwritten), :class:`JournalMismatch` when the
-        header's identity differs."""
+        header's identity differs, :class:`JournalError` when it is damaged elsewhere
+        than in its last line. A new journal is not written here (the first
+        :meth:`append` does); a torn last line of an existing one is cut off."""
         path = Path(path)
         records: dict[int, dict] = {}
         if path.exists() and path.stat().st_size:
@@ -108,37 +149,49 @@ class Journal:
             # A crash can tear the last line only (every line is flushed before the next);
             # drop a torn tail so the next record starts on its own line.
             complete, tail = lines[:-1], lines[-1]
-            old = json.loads(complete[0])
+            if not complete:
+                raise JournalError(path, "line 1", "torn header (the collection stopped as "
+                                   "it started): remove the journal to start over")
+            old = _parse_line(path, 1, complete[0])
+            if old.get("kind") != "header":
+                raise JournalError(path, "line 1", "not a journal header")
             for key in ("plan_digest", "object", "n_samples"):
                 if old.get(key) != header.get(key):
                     raise JournalMismatch(f"{path}: {key} is {old.get(key)!r} in the journal, "
                                           f"{header.get(key)!r} now")
-            for line in complete[1:]:
-                rec = json.loads(line)
-                if rec["index"] in records:
-                    raise JournalMismatch(f"{path}: sample {rec['index']} recorded twice")
-                records[rec["index"]] = rec
+            for number, line in enumerate(complete[1:], start=2):
+                rec = _parse_line(path, number, line)
+                index = _check_record(path, number, rec, int(old["n_samples"]))
+                if index in records:
+                    raise JournalMismatch(f"{path}: sample {index} recorded twice")
+                records[index] = rec
             if tail:
                 with open(path, "r+b") as f:
                     f.truncate(path.stat().st_size - len(tail))
             header = old
-        else:
-            with open(path, "w", encoding="utf-8") as f:
-                f.write(json.dumps(header) + "\n")
-                f.flush()
-                os.fsync(f.fileno())
         return cls(path, header, records)
+
+    def _open_for_append(self) -> None:
+        if self.path.exists() and self.path.stat().st_size:
+            self._file = open(self.path, "a", encoding="utf-8")  # noqa: SIM115 (close())
+        else:
+            self._file = open(self.path, "w", encoding="utf-8")  # noqa: SIM115 (close())
+            self._file.write(json.dumps(self.header) + "\n")
 
     def append(self, record: dict) -> None:
         if record["index"] in self.records:
             raise ValueError(f"sample {record['index']} is already recorded")
+        if self._file is None:
+            self._open_for_append()
         self._file.write(json.dumps(record) + "\n")
         self._file.flush()
         os.fsync(self._file.fileno())
         self.records[record["index"]] = record
 
     def close(self) -> None:
-        self._file.close()
+        if self._file is not None:
+            self._file.close()
+            self._file = None
 
 
 def collect(

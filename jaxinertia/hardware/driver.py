@@ -10,33 +10,58 @@ the servos' own Min/Max Position Limit registers are set to the same joint limit
 A hardware error (Hardware Error Status or the alert bit), a bus failure that outlasts
 ``retries``, a timeout or Ctrl-C leaves the arm in the state ``on_stop`` names: ``hold``
 (goal = present position, torque on) or ``torque_off``.
+
+The bus is :mod:`jaxinertia.hardware.transport`: the port is locked while open, every
+status packet is matched to its request (late ones are discarded), and the bus is drained
+before a failed transaction is retried. A Hardware Error Status reading, or an alert bit,
+is confirmed by reading register 70 of each servo concerned on its own before
+:class:`HardwareError` tells the user to power-cycle; an unconfirmed one is counted
+(``unconfirmed_alarms``) and the collection goes on. A device that cannot be opened, is
+locked by another program or disappears (``OSError``, pyserial's ``SerialException``,
+``termios.error``) is a :class:`CommError` (:class:`PortError` when opening).
+
+One module (a little over 400 lines): one class, whose bus primitives, lifecycle and
+motion share the port, the retry policy and the bus diagnostics, with its configuration
+and errors.
 """
 
 from __future__ import annotations
 
+import itertools
+import os
+import termios
 import time
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from dynamixel_sdk import (
-    COMM_SUCCESS,
-    GroupSyncRead,
-    GroupSyncWrite,
-    PacketHandler,
-    PortHandler,
-)
+from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite
 
 from jaxinertia import errors
 from jaxinertia.hardware import control_table as ct
 from jaxinertia.hardware.safety import SafetyLimits, default_joint_limits
+from jaxinertia.hardware.transport import (
+    LockedPortHandler,
+    MatchingPacketHandler,
+    PortInUse,
+    drain,
+)
 from jaxinertia.robot import Robot
 
-__all__ = ["ArmConfig", "ArmState", "CommError", "DynamixelArm", "HardwareError"]
+__all__ = ["ArmConfig", "ArmState", "CommError", "DynamixelArm", "HardwareError", "PortError"]
+
+#: What the serial device raises when it fails or disappears (pyserial's SerialException is
+#: an OSError; tcflush on a vanished tty raises termios.error, which is not).
+BUS_ERRORS = (OSError, termios.error)
 
 
 class CommError(errors.HardwareError):
-    """The bus failed (no or corrupt status packet) after all retries (exit code 3)."""
+    """The bus failed (no or corrupt status packet) after all retries, or the device went
+    away (exit code 3)."""
+
+
+class PortError(CommError):
+    """The serial device cannot be opened or is locked by another program (exit code 3)."""
 
 
 class HardwareError(errors.HardwareError):
@@ -72,7 +97,8 @@ class ArmConfig:
     settle_time: float = 0.2  # no tick may change for this long [s]
     move_timeout: float = 6.0  # per move [s]
     poll_period: float = 0.002  # [s]
-    retries: int = 3
+    max_reading_gap: float = 0.5  # counted of a gap between two readings [s, servo clock]
+    retries: int = 10  # per transaction; each retry waits for a quiet bus (~70 ms a try)
     on_stop: Literal["hold", "torque_off"] = "hold"
     #: On connect, REBOOT servos that report a hardware error (after its cause is fixed).
     reboot_on_error: bool = False
@@ -102,24 +128,49 @@ class DynamixelArm:
         self.config = config
         self.robot = robot
         self.safety = safety or SafetyLimits(np.asarray(config.joint_limits, np.float64))
-        self.port = PortHandler(config.port)
-        self.packet = PacketHandler(2.0)
+        self.port = LockedPortHandler(config.port)
+        self.packet = MatchingPacketHandler()
         self._connected = False
-        self.failed_transactions = 0  # bus transactions that were retried (diagnostics)
+        # Diagnostics: bus transactions that were retried, hardware-error readings that
+        # register 70 did not confirm, state readings older than the last one (discarded).
+        self.failed_transactions = 0
+        self.most_attempts = 0  # of one successful transaction
+        self.unconfirmed_alarms = 0
+        self.stale_readings = 0
+
+    def bus_report(self) -> str:
+        """One line of bus diagnostics (starts with the number of retried transactions)."""
+        return (f"{self.failed_transactions} failed transactions retried (at most "
+                f"{self.most_attempts} attempts of --retries + 1 = {self.config.retries + 1} "
+                f"for one), {self.packet.stale_packets} late status packets discarded, "
+                f"{self.unconfirmed_alarms} unconfirmed hardware-error readings, "
+                f"{self.stale_readings} late readings skipped")
+
+    def _drain(self) -> None:
+        try:
+            drain(self.port)
+        except BUS_ERRORS as e:
+            raise CommError(f"{self.config.port}: {e}") from e
+
+    def _failed(self) -> None:
+        """A transaction failed: count it and let late answers to it arrive and go."""
+        self.failed_transactions += 1
+        self._drain()
 
     # ---- bus primitives (with retries) -----------------------------------------------
 
     def _retry(self, what: str, call):
         """Runs ``call() -> (value, comm_result, status_error)`` until the bus succeeds."""
         result = None
-        for _ in range(self.config.retries + 1):
+        for attempt in range(1, self.config.retries + 2):
             try:
                 value, result, error = call()
-            except OSError as e:  # serial.SerialException: the device went away
+            except BUS_ERRORS as e:  # the device went away
                 raise CommError(f"{what}: {e}") from e
             if result != COMM_SUCCESS:
-                self.failed_transactions += 1
+                self._failed()
             else:
+                self.most_attempts = max(self.most_attempts, attempt)
                 if error & 0x7F:
                     raise CommError(f"{what}: {self.packet.getRxPacketError(error)}")
                 return value, error
@@ -133,8 +184,8 @@ class DynamixelArm:
         raw = ct.to_unsigned(value, item.size)
         _, error = self._retry(f"write {name} = {value} to ID {dxl_id}",
                                lambda: (None, *fn(self.port, dxl_id, item.address, raw)))
-        if error & 0x80:
-            self._raise_hardware_error()
+        if error & 0x80:  # the alert bit: confirmed (or not) by register 70
+            self._confirm_hardware_errors({*self.config.joint_ids, dxl_id})
 
     def _read(self, dxl_id: int, name: str) -> int:
         item = ct.ITEMS[name]
@@ -152,17 +203,8 @@ class DynamixelArm:
         group = GroupSyncRead(self.port, self.packet, address, length)
         for dxl_id in self.config.joint_ids:
             group.addParam(dxl_id)
-        result = None
-        for _ in range(self.config.retries + 1):
-            try:
-                result = group.txRxPacket()
-            except OSError as e:
-                raise CommError(f"sync read {address}+{length}: {e}") from e
-            self.failed_transactions += result != COMM_SUCCESS
-            if result == COMM_SUCCESS:
-                return {i: bytes(group.data_dict[i]) for i in self.config.joint_ids}
-        raise CommError(f"sync read {address}+{length}: {self.packet.getTxRxResult(result)} "
-                        f"({self.config.retries + 1} attempts)")
+        self._retry(f"sync read {address}+{length}", lambda: (None, group.txRxPacket(), 0))
+        return {i: bytes(group.data_dict[i]) for i in self.config.joint_ids}
 
     @property
     def n_joints(self) -> int:
@@ -170,11 +212,26 @@ class DynamixelArm:
 
     # ---- lifecycle ---------------------------------------------------------------------
 
+    def open(self) -> None:
+        """Opens and locks the port (:class:`PortError` when it cannot be had)."""
+        if self._connected:
+            return
+        c = self.config
+        try:
+            ok = self.port.setBaudRate(c.baudrate)  # opens the device
+        except PortInUse as e:
+            raise PortError(e.strerror) from None
+        except BUS_ERRORS as e:
+            why = os.strerror(e.errno) if getattr(e, "errno", None) else str(e)
+            raise PortError(f"cannot open {c.port}: {why}") from None
+        if not ok:
+            raise PortError(f"cannot open {c.port}: {c.baudrate} bit/s is not a supported "
+                            "baud rate")
+        self._connected = True
+
     def connect(self) -> None:
         """Opens the port, pings every servo and checks its model number."""
-        if not self.port.openPort() or not self.port.setBaudRate(self.config.baudrate):
-            raise CommError(f"cannot open {self.config.port} at {self.config.baudrate} bit/s")
-        self._connected = True
+        self.open()
         ids = list(self.config.joint_ids)
         if self.config.gripper_id is not None:
             ids.append(self.config.gripper_id)
@@ -195,15 +252,21 @@ class DynamixelArm:
 
     def reboot(self, dxl_id: int, wait: float = 2.0) -> None:
         """REBOOT one servo (clears Hardware Error Status; torque off) and wait until it
-        answers a ping again."""
+        answers a ping again (``wait`` seconds, and at least ``retries + 1`` pings)."""
         self._retry(f"reboot ID {dxl_id}",
                     lambda: (None, *self.packet.reboot(self.port, dxl_id)))
         deadline = time.monotonic() + wait
-        while time.monotonic() < deadline:
-            if self.packet.ping(self.port, dxl_id)[1] == COMM_SUCCESS:
-                return
+        for attempt in itertools.count():
+            if time.monotonic() >= deadline and attempt > self.config.retries:
+                break
+            try:
+                if self.packet.ping(self.port, dxl_id)[1] == COMM_SUCCESS:
+                    return
+            except BUS_ERRORS as e:
+                raise CommError(f"ping ID {dxl_id}: {e}") from e
             time.sleep(0.05)
-        raise CommError(f"ID {dxl_id} did not answer within {wait} s of its reboot")
+        raise CommError(f"ID {dxl_id} did not answer {attempt} pings within {wait} s of its "
+                        "reboot")
 
     def configure(self) -> None:
         """Position mode, velocity-based profile, position limits, PD gains, torque on."""
@@ -226,8 +289,11 @@ class DynamixelArm:
 
     def close(self) -> None:
         if self._connected:
-            self.port.closePort()
             self._connected = False
+            try:
+                self.port.closePort()
+            except BUS_ERRORS:
+                pass  # the device is gone already
 
     def __enter__(self) -> DynamixelArm:
         try:
@@ -248,16 +314,28 @@ class DynamixelArm:
     # ---- state and motion --------------------------------------------------------------
 
     def check_hardware_errors(self) -> None:
-        """Raises :class:`HardwareError` if any joint servo has Hardware Error Status set."""
+        """Raises :class:`HardwareError` if any joint servo has Hardware Error Status set
+        (a nonzero reading is confirmed first: :meth:`_confirm_hardware_errors`)."""
         item = ct.ITEMS["hardware_error_status"]
         data = self._sync_read(item.address, item.size)
-        errors = {i: d[0] for i, d in data.items() if d[0]}
-        if errors:
-            raise HardwareError(errors)
+        suspects = [i for i, d in data.items() if d[0]]
+        if suspects:
+            self._confirm_hardware_errors(suspects)
 
-    def _raise_hardware_error(self) -> None:
-        self.check_hardware_errors()
-        raise HardwareError({})  # alert bit without a readable status
+    def _confirm_hardware_errors(self, ids) -> None:
+        """Reads Hardware Error Status (70) of each servo in ``ids`` on its own, on a
+        drained bus: raises :class:`HardwareError` for those where it is set (the register
+        latches until a reboot, so a real error reads the same again); otherwise the
+        reading or alert bit was not the servos' and is counted in ``unconfirmed_alarms``."""
+        self._drain()
+        confirmed = {}
+        for dxl_id in sorted(ids):
+            value = self._read(dxl_id, "hardware_error_status")
+            if value:
+                confirmed[dxl_id] = value
+        if confirmed:
+            raise HardwareError(confirmed)
+        self.unconfirmed_alarms += 1
 
     def read_state(self) -> ArmState:
         address, length = ct.STATE_BLOCK
@@ -294,7 +372,7 @@ class DynamixelArm:
             group.addParam(dxl_id, ct.to_unsigned(int(t), 4).to_bytes(4, "little"))
         try:
             result = group.txPacket()
-        except OSError as e:
+        except BUS_ERRORS as e:
             raise CommError(f"sync write goal: {e}") from e
         if result != COMM_SUCCESS:  # a sync write has no reply: only a tx failure shows
             raise CommError(f"sync write goal: {self.packet.getTxRxResult(result)}")
@@ -303,19 +381,26 @@ class DynamixelArm:
         """Polls until no joint moves and no tick changed for ``settle_time``.
 
         Times are kept on the servo's own clock (Realtime Tick), so a virtual robot that
-        runs faster or slower than real time sees the same protocol. Returns ``(state,
-        at_rest, elapsed [s])``; ``at_rest`` is False on ``move_timeout``. Checks Hardware
-        Error Status on every poll."""
+        runs faster or slower than real time sees the same protocol; ``elapsed`` is the
+        time the arm was watched: a gap between two readings (a bus that did not answer
+        for a while) counts at most ``max_reading_gap``, so a stretch of bus retries never
+        times a move out by itself. Returns ``(state, at_rest, elapsed [s])``;
+        ``at_rest`` is False on ``move_timeout``. Checks Hardware Error Status on every
+        poll."""
         c = self.config
         elapsed, still_since = 0.0, 0.0
         last = None
         while True:
             state = self.read_state()
             self.check_hardware_errors()
+            moved = last is None or np.any(state.ticks != last.ticks)
             if last is not None:
                 dt_ms = (state.servo_clock - last.servo_clock) % ct.REALTIME_TICK_WRAP
-                elapsed += dt_ms * ct.REALTIME_TICK_S
-            if state.moving.any() or last is None or np.any(state.ticks != last.ticks):
+                if dt_ms > ct.REALTIME_TICK_WRAP // 2:  # the clock went back: a late reading
+                    self.stale_readings += 1
+                    dt_ms, moved = 0, True  # no time watched; stillness starts again
+                elapsed += min(dt_ms * ct.REALTIME_TICK_S, c.max_reading_gap)
+            if state.moving.any() or moved:
                 still_since = elapsed
             elif elapsed - still_since >= c.settle_time:
                 return state, True, elapsed

@@ -6,7 +6,9 @@ The virtual robot is a simulator with a servo bus in front, so it sits above bot
 
 * :mod:`jaxinertia.virtual.bus`: the servos' control tables, the Protocol 2.0 replies on
   the pty (bus thread) and fault injection; servos that answer but do not move;
-* :mod:`jaxinertia.virtual.physics`: :class:`~jaxinertia.virtual.physics.VirtualServoBus`,
-  the bus with the joint servos driven by the simulated arm (physics thread);
+* :mod:`jaxinertia.virtual.physics`: the simulated arm behind the joint servos, one chunk
+  at a time, and the loop that publishes it into their control tables;
+* :mod:`jaxinertia.virtual.robot`: :class:`~jaxinertia.virtual.robot.VirtualServoBus`,
+  the bus with that loop in a process of its own (the bus never waits on the physics);
 * :mod:`jaxinertia.virtual.testing`: ``jaxinertia virtual-robot`` in a subprocess.
 """

@@ -5,9 +5,12 @@ Protocol 2.0 on a pseudo-terminal.
 access rules) and runs the **bus** thread: it reads instruction packets from the pty master
 and answers with status packets as a servo does (PING, READ, WRITE, SYNC_READ, SYNC_WRITE,
 BULK_READ, REBOOT; a packet with a bad CRC gets no reply; broadcast writes get none).
-Servos on this bus answer but do not move: :class:`jaxinertia.virtual.physics.VirtualServoBus`
+Servos on this bus answer but do not move: :class:`jaxinertia.virtual.robot.VirtualServoBus`
 drives the joint servos' Present registers from the simulator, told of every new goal and
-every hold through :meth:`ServoBus._goal_changed` and :meth:`ServoBus._held`.
+every hold through :meth:`ServoBus._goal_changed` and :meth:`ServoBus._held`. The control
+tables may live in a shared buffer (``tables``) and be guarded by a lock shared with another
+process (``lock``): the simulator then runs in a process of its own, and the bus thread
+never waits for the interpreter while the physics computes.
 
 Fault injection (:class:`Faults`): dropped, CRC-corrupted or delayed status packets, and
 an overload (Hardware Error Status bit 5, alert bit in every status packet, torque off)
@@ -38,7 +41,7 @@ from jaxinertia.hardware.protocol import (
     status_packet,
 )
 
-__all__ = ["Faults", "ServoBus", "ServoMemory", "open_pty"]
+__all__ = ["TABLE_SIZE", "Faults", "ServoBus", "ServoMemory", "open_pty", "table_views"]
 
 TABLE_SIZE = 256
 
@@ -58,11 +61,14 @@ class Faults:
 
 
 class ServoMemory:
-    """One servo's control table (bytes) with the e-manual's access rules."""
+    """One servo's control table (bytes) with the e-manual's access rules: its own, or
+    ``table``, a writable ``TABLE_SIZE``-byte view into a shared buffer (``reset``: filled
+    with the factory defaults; False: attached as it is)."""
 
-    def __init__(self, dxl_id: int) -> None:
-        self.table = bytearray(TABLE_SIZE)
-        self.reset_all(dxl_id)
+    def __init__(self, dxl_id: int, table=None, *, reset: bool = True) -> None:
+        self.table = bytearray(TABLE_SIZE) if table is None else table
+        if reset:
+            self.reset_all(dxl_id)
 
     def reset_all(self, dxl_id: int) -> None:
         for item in ct.ITEMS.values():
@@ -112,6 +118,12 @@ class ServoMemory:
         return Error.NONE
 
 
+def table_views(tables, n: int) -> list[memoryview]:
+    """The ``n`` servo tables of a shared byte buffer (``TABLE_SIZE`` bytes each)."""
+    view = memoryview(tables).cast("B")
+    return [view[k * TABLE_SIZE:(k + 1) * TABLE_SIZE] for k in range(n)]
+
+
 def open_pty() -> tuple[int, int, str]:
     """A raw pseudo-terminal: (master fd, slave fd, slave path)."""
     master, slave = os.openpty()
@@ -123,7 +135,9 @@ def open_pty() -> tuple[int, int, str]:
 class ServoBus:
     """Servos ``joint_ids`` then ``extra_ids`` (such as a gripper) on a pty. Every servo
     answers; the joint servos' motion is a subclass's (:meth:`_goal_changed`,
-    :meth:`_held`, :meth:`_loops`). Servo state is shared under ``_lock``."""
+    :meth:`_held`, :meth:`_loops`). Servo state is shared under ``_lock``; ``tables`` (a
+    writable byte buffer of ``TABLE_SIZE`` per servo, in this order) and ``lock`` let
+    another process share them."""
 
     def __init__(
         self,
@@ -133,9 +147,13 @@ class ServoBus:
         faults: Faults = Faults(),  # noqa: B008  (frozen dataclass)
         temperature: int = 30,
         input_voltage: float = 12.0,
+        tables=None,
+        lock=None,
     ) -> None:
         self.joint_ids = tuple(joint_ids)
-        self.servos = {i: ServoMemory(i) for i in (*joint_ids, *extra_ids)}
+        ids = (*joint_ids, *extra_ids)
+        views = [None] * len(ids) if tables is None else table_views(tables, len(ids))
+        self.servos = {i: ServoMemory(i, v) for i, v in zip(ids, views, strict=True)}
         self.faults = faults
         self._fault_rng = np.random.default_rng(faults.seed)
         self._goal_writes = {i: 0 for i in self.servos}
@@ -143,7 +161,7 @@ class ServoBus:
         for mem in self.servos.values():
             mem.set("present_temperature", temperature)
             mem.set("present_input_voltage", round(input_voltage / ct.VOLTAGE_LSB))
-        self._lock = threading.Lock()
+        self._lock = threading.Lock() if lock is None else lock
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self.master, self._slave, self.path = open_pty()

@@ -1,12 +1,24 @@
 """The physics side of the virtual robot: the simulated OpenMANIPULATOR-X behind the
 joint servos of a :class:`jaxinertia.virtual.bus.ServoBus`.
 
-:class:`VirtualServoBus` adds a **physics** thread to the bus: it advances
-:func:`jaxinertia.sim.simulator.step` (1 ms servo periods, ``chunk`` steps per jitted
-``lax.scan``) paced at ``speed`` x real time, with the goal fed through the servo's
-velocity-based trapezoidal profile (Profile Velocity/Acceleration registers), and
-publishes Present Position/Velocity/Current/PWM, Moving and Moving Status. The two
-threads share the control tables under the bus's lock.
+:class:`ArmPhysics` advances :func:`jaxinertia.sim.simulator.step` (1 ms servo periods,
+``chunk`` steps per jitted ``lax.scan``), with each joint's goal fed through the servo's
+velocity-based trapezoidal profile (Profile Velocity/Acceleration registers); both of its
+programs (torque on, torque off) are compiled by :meth:`ArmPhysics.compile`.
+:class:`PhysicsLoop` couples it to the servos' control tables: it applies the bus's news
+(goal writes, holds, in order), copies the registers a chunk needs under the tables' lock,
+computes the chunk without it and publishes Present Position/Velocity/Current/PWM, Moving,
+Moving Status and Realtime Tick under it, paced at ``speed`` x real time.
+:func:`physics_main` runs that loop in the process of its own that
+:class:`jaxinertia.virtual.robot.VirtualServoBus` starts.
+
+Answers follow simulated time whatever the host's speed: Realtime Tick is the simulated
+clock, and a joint whose Goal Position was written reports Moving (and the profile bit of
+Moving Status) from that write until a published chunk has simulated the new goal
+(``pending`` in :func:`publish`), so a slow host shows a moving arm as moving, never at its
+old position at rest. The random draws are reproducible: each joint's friction draws come
+from its own stream, one per Goal Position write, whatever the number of chunks computed
+in between.
 
 Physics as in :func:`jaxinertia.sim.sampling.simulate_samples`: the arm feels
 ``-robot.gravity`` (the recorded convention is the opposite of the physical gravity),
@@ -25,30 +37,50 @@ servo supply voltage); Return Delay Time is not modelled.
 
 from __future__ import annotations
 
+import os
+import sys
 import time
+import traceback
+from dataclasses import dataclass
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jaxinertia.hardware import control_table as ct
 from jaxinertia.objects import HeldObject
-from jaxinertia.open_manipulator_x import GRIPPER_ID, JOINT_IDS
-from jaxinertia.sim.servo import goal_ticks
+from jaxinertia.sim.servo import ServoParams, goal_ticks
 from jaxinertia.sim.simulator import SimParams, SimState, attach_payload, step, trapezoid
-from jaxinertia.virtual.bus import Faults, ServoBus
+from jaxinertia.virtual.bus import ServoMemory, table_views
 from jaxinertia.xm430 import PWM_FULL_SCALE
 
-__all__ = ["VirtualServoBus"]
+__all__ = ["REGISTERS", "ArmPhysics", "PhysicsLoop", "PhysicsSpec", "Present", "physical_params",
+           "physics_main", "publish", "servo_from_registers"]
 
 #: Profile register 0 means "no profile": a step goal. Stand-ins that the trapezoid takes.
 _UNLIMITED_VELOCITY = 1e6  # [rad/s]
 _UNLIMITED_ACCELERATION = 1e9  # [rad/s^2]
+#: The registers each chunk reads, in this order (rows of the register array).
+REGISTERS = ("position_p_gain", "position_i_gain", "position_d_gain", "pwm_limit",
+              "profile_velocity", "profile_acceleration")
+
+
+def servo_from_registers(base: ServoParams, gain_scale, registers) -> ServoParams:
+    """ServoParams of the register rows (P, I, D gains through the calibrated ratio, PWM
+    limit)."""
+    return base.replace(p_gain=registers[0] * gain_scale, i_gain=registers[1] * gain_scale,
+                        d_gain=registers[2] * gain_scale, pwm_limit=registers[3])
 
 
 @jax.jit
-def _advance(params: SimParams, state: SimState, start, end, t_rel, v_max, a_max):
-    """``len(t_rel)`` servo periods; returns the new state and the last profile goal [rad]."""
+def _advance(params: SimParams, gain_scale, registers, friction_scale, state: SimState,
+             start, end, t_rel, v_max, a_max):
+    """``len(t_rel)`` servo periods with the gains of ``registers`` and the friction bounds
+    scaled by ``friction_scale``; returns the new state and the last profile goal [rad]."""
+    fr = params.friction
+    params = params.replace(
+        servo=servo_from_registers(params.servo, gain_scale, registers),
+        friction=fr.replace(coulomb=fr.coulomb * friction_scale,
+                            static=fr.static * friction_scale))
 
     def body(s, t):
         q_goal, _ = trapezoid(start, end, t, v_max, a_max)
@@ -59,181 +91,227 @@ def _advance(params: SimParams, state: SimState, start, end, t_rel, v_max, a_max
     return state, goals[-1], t_total
 
 
-class VirtualServoBus(ServoBus):
-    """Servos ``ids`` (one per joint of ``params.robot``, then optional extra servos such as
-    a gripper, which answer but do not move) on a pty, driven by the simulator."""
+#: The arm held still with the torque off (the servo's memory cleared).
+_at_rest = jax.jit(SimState.at_rest)
 
-    def __init__(
-        self,
-        params: SimParams,
-        obj: HeldObject | None,
-        *,
-        ids: tuple[int, ...] = JOINT_IDS,
-        extra_ids: tuple[int, ...] = (GRIPPER_ID,),
-        q0: np.ndarray | None = None,
-        speed: float = 1.0,
-        chunk: int = 20,
-        faults: Faults = Faults(),  # noqa: B008  (frozen dataclass)
-        seed: int = 0,
-        ambient_temperature: int = 30,
-    ) -> None:
-        n = len(ids)
-        if n != params.robot.n_joints:
-            raise ValueError(f"{n} servo ids for {params.robot.n_joints} joints")
-        super().__init__(ids, extra_ids, faults=faults, temperature=ambient_temperature,
-                         input_voltage=float(params.servo.supply_voltage[0]))
-        physical = params.robot.with_gravity(-params.robot.gravity)
-        if obj is not None:
-            R = obj.R_ee_tag
-            physical = attach_payload(physical, obj.mass, obj.com_ee(),
-                                      R @ obj.inertia @ R.T)
-        self._base_params = params.replace(robot=physical)
+
+def physical_params(params: SimParams, obj: HeldObject | None) -> SimParams:
+    """The simulator's parameters of the arm as it moves: gravity as felt (the opposite of
+    the recorded convention) and the object fused into the end effector."""
+    physical = params.robot.with_gravity(-params.robot.gravity)
+    if obj is not None:
+        R = obj.R_ee_tag
+        physical = attach_payload(physical, obj.mass, obj.com_ee(), R @ obj.inertia @ R.T)
+    return params.replace(robot=physical)
+
+
+@dataclass(frozen=True)
+class Present:
+    """One published chunk: the joints' present values (N,) each, at ``sim_time`` [s]."""
+
+    q: np.ndarray  # [rad]
+    qd: np.ndarray  # [rad/s]
+    current: np.ndarray  # the reading, with its noise [A]
+    pwm: np.ndarray  # [PWM register units]
+    traj_pos: np.ndarray  # profile goal [rad]
+    profile_on: np.ndarray  # bool
+    sim_time: float
+
+
+class ArmPhysics:
+    """The simulated arm behind the joint servos, one chunk at a time (no threads, no bus):
+    :meth:`goal` and :meth:`hold` tell it what the servos were told, :meth:`advance` runs
+    a chunk with the registers given and returns what the servos present."""
+
+    def __init__(self, params: SimParams, *, q0: np.ndarray, chunk: int = 20,
+                 seed: int = 0) -> None:
+        """``params``: :func:`physical_params` (leaves may be numpy arrays)."""
+        n = len(q0)
+        self.params = params
         # Register -> simulator gain: the calibrated effective gains belong to the factory
         # P = 800 (the calibration absorbs the PWM-to-torque scale of the real servos).
-        self._gain_scale = np.asarray(params.servo.p_gain) / ct.ITEMS["position_p_gain"].default
-        self._friction = params.friction
-        self.speed = float(speed)
+        self.gain_scale = (np.asarray(params.servo.p_gain, np.float64)
+                           / ct.ITEMS["position_p_gain"].default)
+        self._jitter = np.asarray(params.friction.jitter, np.float64)
         self.chunk = int(chunk)
         self.dt = float(params.dt)
-        self._rng = np.random.default_rng(seed)
-        q0 = np.zeros(n) if q0 is None else np.asarray(q0, np.float64)
-        self._state = SimState.at_rest(jnp.asarray(q0))
+        # One friction stream per joint (its k-th goal write always gets the same draw)
+        # and one for the current-reading noise.
+        streams = np.random.SeedSequence(seed).spawn(n + 1)
+        self._friction_rngs = [np.random.default_rng(s) for s in streams[:n]]
+        self._noise_rng = np.random.default_rng(streams[n])
+        q0 = np.asarray(q0, np.float64)
+        self.state = _at_rest(q0)
         self._resting: SimState | None = None  # cached state while the torque is off
-        self._sim_time = 0.0
-        self._traj_start = q0.copy()
-        self._traj_end = q0.copy()
-        self._traj_t0 = np.zeros(n)
-        self._traj_pos = q0.copy()  # profile goal now [rad]
-        self._traj_total = np.zeros(n)
+        self.sim_time = 0.0
+        self._start, self._end, self._traj_pos = q0.copy(), q0.copy(), q0.copy()
+        self._t0 = np.zeros(n)
+        self._total = np.zeros(n)
         self._friction_scale = np.ones(n)
-        self._jitter_pending = np.zeros(n, bool)
-        self._publish(q0, np.zeros(n), np.zeros(n), np.zeros(n))
-
-    # ---- lifecycle -------------------------------------------------------------------
+        self.goals_applied = np.zeros(n, np.int64)
 
     def compile(self) -> None:
-        """Compiles the physics step before the bus opens (so the first reply is prompt)."""
-        q = jnp.asarray(self._traj_pos)
-        t = jnp.zeros((self.chunk, len(q)))
-        with self._lock:
-            servo = self._servo_params()
-        params = self._base_params.replace(servo=servo)
-        jax.block_until_ready(_advance(params, self._state, q, q, t, q + 1.0, q + 1.0))
+        """Compiles both paths (torque on, torque off) with the types :meth:`advance`
+        uses; the state is left as it was."""
+        state, resting = self.state, self._resting
+        registers = np.zeros((len(REGISTERS), len(self._t0)))
+        jax.block_until_ready(self._compute(registers, torque=True))
+        jax.block_until_ready(self._compute(registers, torque=False))
+        self.state, self._resting = state, resting
 
-    def _loops(self):
-        return [*super()._loops(), (self._physics_loop, "dxl-physics")]
+    def goal(self, j: int, q_goal: float) -> None:
+        """Joint j got a new Goal Position [rad]: its profile starts now from where the
+        profile goal is."""
+        self._start[j] = self._traj_pos[j]
+        self._end[j] = q_goal
+        self._t0[j] = self.sim_time
+        # Friction varies from move to move (the simulator: sample to sample).
+        self._friction_scale[j] = np.exp(self._jitter[j]
+                                         * self._friction_rngs[j].standard_normal())
+        self.goals_applied[j] += 1
 
-    def __enter__(self) -> VirtualServoBus:
-        self.compile()
-        self.start()
-        return self
+    def hold(self, j: int, q: float) -> None:
+        """Joint j holds at ``q`` [rad] (torque enabled, reboot)."""
+        self._start[j] = self._end[j] = self._traj_pos[j] = q
+        self._t0[j] = self.sim_time
 
-    # ---- the bus's news about the joints (under the lock) ------------------------------
-
-    def _goal_changed(self, j: int, q_goal: float) -> None:
-        # The profile starts from where the profile goal is now.
-        self._traj_start[j] = self._traj_pos[j]
-        self._traj_end[j] = q_goal
-        self._traj_t0[j] = self._sim_time
-        self._jitter_pending[j] = True
-
-    def _held(self, j: int, q: float) -> None:
-        self._traj_start[j] = self._traj_end[j] = self._traj_pos[j] = q
-        self._traj_t0[j] = self._sim_time
-
-    # ---- physics ---------------------------------------------------------------------
-
-    def _servo_params(self):
-        """ServoParams from the registers of the joint servos (under the lock)."""
-        mem = [self.servos[i] for i in self.joint_ids]
-        reg = lambda name: np.array([m.get(name) for m in mem], np.float64)  # noqa: E731
-        s = self._base_params.servo
-        return s.replace(p_gain=jnp.asarray(reg("position_p_gain") * self._gain_scale),
-                         i_gain=jnp.asarray(reg("position_i_gain") * self._gain_scale),
-                         d_gain=jnp.asarray(reg("position_d_gain") * self._gain_scale),
-                         pwm_limit=jnp.asarray(reg("pwm_limit")))
-
-    def _profile_limits(self):
-        mem = [self.servos[i] for i in self.joint_ids]
-        v = np.array([m.get("profile_velocity") for m in mem]) * ct.VELOCITY_LSB
-        a = np.array([m.get("profile_acceleration") for m in mem]) * ct.ACCELERATION_LSB
-        return (np.where(v > 0, v, _UNLIMITED_VELOCITY),
-                np.where(a > 0, a, _UNLIMITED_ACCELERATION))
-
-    def _advance(self) -> None:
-        """Runs ``chunk`` servo periods from the present sim time (the lock is held while
-        reading the registers and publishing, not while computing)."""
-        with self._lock:
-            torque = all(self.servos[i].get("torque_enable") == 1 for i in self.joint_ids)
-            servo = self._servo_params()
-            v, a = self._profile_limits()
-            pending = self._jitter_pending.copy()
-            self._jitter_pending[:] = False
-            start, end = self._traj_start.copy(), self._traj_end.copy()
-            t0 = self._traj_t0.copy()
-            t_now = self._sim_time
-        n_new = int(pending.sum())
-        if n_new:  # friction varies from move to move (the simulator: sample to sample)
-            draw = np.exp(np.asarray(self._friction.jitter)[pending]
-                          * self._rng.standard_normal(n_new))
-            self._friction_scale[pending] = draw
-        fr = self._friction
-        scale = jnp.asarray(self._friction_scale)
-        params = self._base_params.replace(
-            servo=servo, friction=fr.replace(coulomb=fr.coulomb * scale, static=fr.static * scale))
-        times = t_now + self.dt * np.arange(self.chunk)
-        t_rel = jnp.asarray(times[:, None] - t0[None, :])
-        if torque:
-            state, q_goal, t_total = _advance(params, self._state, jnp.asarray(start),
-                                              jnp.asarray(end), t_rel, jnp.asarray(v),
-                                              jnp.asarray(a))
-            state = jax.block_until_ready(state)
-            self._resting = None
-        else:  # held still; the servo memory (integral, previous error) is cleared
+    def _compute(self, registers: np.ndarray, *, torque: bool):
+        if not torque:  # held still; the servo memory (integral, previous error) is cleared
             if self._resting is None:
-                self._resting = SimState.at_rest(self._state.q)
-            state, q_goal, t_total = self._resting, end, np.zeros_like(end)
+                self._resting = _at_rest(self.state.q)
+            return self._resting, self._end.copy(), np.zeros_like(self._end)
+        self._resting = None
+        v = registers[4] * ct.VELOCITY_LSB
+        a = registers[5] * ct.ACCELERATION_LSB
+        v = np.where(v > 0, v, _UNLIMITED_VELOCITY)
+        a = np.where(a > 0, a, _UNLIMITED_ACCELERATION)
+        times = self.sim_time + self.dt * np.arange(self.chunk)
+        t_rel = times[:, None] - self._t0[None, :]
+        return _advance(self.params, self.gain_scale, registers, self._friction_scale.copy(),
+                        self.state, self._start.copy(), self._end.copy(), t_rel, v, a)
+
+    def advance(self, registers: np.ndarray, torque: bool) -> Present:
+        """Runs ``chunk`` servo periods with ``registers`` ((len(REGISTERS), N) float64)."""
+        state, q_goal, t_total = self._compute(registers, torque=torque)
+        self.state = state = jax.block_until_ready(state)
         q = np.asarray(state.q)
         qd = np.asarray(state.qd)
         current = np.asarray(state.servo.current)
-        noise = np.asarray(self._base_params.servo.current_noise)
-        current = current + noise * self._rng.standard_normal(current.shape)
+        s = self.params.servo
+        reading = current + np.asarray(s.current_noise) * self._noise_rng.standard_normal(
+            current.shape)
         # Present PWM from the motor equation V = R I + k_e qd (before the reading noise).
-        s = self._base_params.servo
-        volts = np.asarray(s.resistance) * np.asarray(state.servo.current) + np.asarray(
-            s.back_emf) * qd
-        pwm = volts / np.asarray(s.supply_voltage) * PWM_FULL_SCALE if torque else np.zeros_like(q)
-        with self._lock:
-            self._state = state
-            self._sim_time = t_now + self.chunk * self.dt
-            self._traj_pos = np.array(q_goal)  # a writable copy (goal writes edit it)
-            self._traj_total = np.array(t_total)
-            profile_on = (self._sim_time - self._traj_t0) < self._traj_total
-            self._publish(q, qd, current if torque else np.zeros_like(q), pwm, profile_on)
+        volts = np.asarray(s.resistance) * current + np.asarray(s.back_emf) * qd
+        if torque:
+            pwm = volts / np.asarray(s.supply_voltage) * PWM_FULL_SCALE
+        else:
+            pwm, reading = np.zeros_like(q), np.zeros_like(q)
+        self.sim_time += self.chunk * self.dt
+        self._traj_pos = np.array(q_goal)
+        self._total = np.array(t_total)
+        profile_on = (self.sim_time - self._t0) < self._total
+        return Present(q, qd, reading, pwm, self._traj_pos.copy(), profile_on, self.sim_time)
 
-    def _publish(self, q, qd, current, pwm, profile_on=None) -> None:
-        profile_on = np.zeros(len(q), bool) if profile_on is None else profile_on
-        ticks = ct.rad_to_ticks(q)  # Present Position: the encoder's integer ticks
-        traj_ticks = ct.rad_to_ticks(self._traj_pos)
-        for j, dxl_id in enumerate(self.joint_ids):
-            m = self.servos[dxl_id]
-            vel = int(round(qd[j] / ct.VELOCITY_LSB))
-            threshold = m.get("moving_threshold")
-            moving = abs(vel) > threshold or bool(profile_on[j])
-            in_position = abs(m.get("goal_position") - int(ticks[j])) <= threshold
-            m.set("present_position", int(ticks[j]))
-            m.set("present_velocity", vel)
-            m.set("present_current", int(ct.current_to_register(current[j])))
-            m.set("present_pwm", int(round(pwm[j])))
-            m.set("position_trajectory", int(traj_ticks[j]))
-            m.set("moving", int(moving))
-            m.set("moving_status", int(in_position) | (int(bool(profile_on[j])) << 1))
-            m.set("realtime_tick", round(self._sim_time * 1000) % ct.REALTIME_TICK_WRAP)
 
-    def _physics_loop(self) -> None:
-        wall0, sim0 = time.monotonic(), self._sim_time
-        while not self._stop.is_set():
-            ahead = (self._sim_time - sim0) / self.speed - (time.monotonic() - wall0)
+def publish(servos: list[ServoMemory], p: Present, pending: np.ndarray) -> None:
+    """Writes a chunk into the joint servos' tables (under the lock); ``pending``: joints
+    with a goal written that the chunk did not simulate yet (reported as moving)."""
+    ticks = ct.rad_to_ticks(p.q)  # Present Position: the encoder's integer ticks
+    traj_ticks = ct.rad_to_ticks(p.traj_pos)
+    clock = round(p.sim_time * 1000) % ct.REALTIME_TICK_WRAP
+    for j, m in enumerate(servos):
+        vel = int(round(p.qd[j] / ct.VELOCITY_LSB))
+        threshold = m.get("moving_threshold")
+        profile_on = bool(p.profile_on[j] or pending[j])
+        moving = abs(vel) > threshold or profile_on
+        in_position = abs(m.get("goal_position") - int(ticks[j])) <= threshold
+        m.set("present_position", int(ticks[j]))
+        m.set("present_velocity", vel)
+        m.set("present_current", int(ct.current_to_register(p.current[j])))
+        m.set("present_pwm", int(round(p.pwm[j])))
+        m.set("position_trajectory", int(traj_ticks[j]))
+        m.set("moving", int(moving))
+        m.set("moving_status", int(in_position) | (int(profile_on) << 1))
+        m.set("realtime_tick", clock)
+
+
+class PhysicsLoop:
+    """An :class:`ArmPhysics` behind the joint servos' tables: :meth:`step` applies the
+    bus's news (``events``: a pipe of ``("goal" | "hold", joint, rad)``, in order), copies
+    the registers under ``lock``, computes a chunk without it and publishes the chunk
+    under it. ``goal_writes`` (shared, per joint) counts the goals the bus accepted."""
+
+    def __init__(self, arm: ArmPhysics, servos: list[ServoMemory], lock, events,
+                 goal_writes) -> None:
+        self.arm, self.servos, self.lock = arm, servos, lock
+        self.events, self.goal_writes = events, goal_writes
+
+    def step(self) -> Present:
+        while self.events.poll():
+            kind, j, value = self.events.recv()
+            (self.arm.goal if kind == "goal" else self.arm.hold)(j, value)
+        with self.lock:
+            torque = all(m.get("torque_enable") == 1 for m in self.servos)
+            registers = np.array([[m.get(name) for m in self.servos] for name in REGISTERS],
+                                 np.float64)
+        present = self.arm.advance(registers, torque)
+        with self.lock:
+            pending = np.asarray(self.goal_writes[:len(self.servos)]) != self.arm.goals_applied
+            publish(self.servos, present, pending)
+        return present
+
+    def run(self, speed: float, stop, parent_pid: int | None = None) -> None:
+        """Steps paced at ``speed`` x real time until ``stop`` is set (or the parent
+        process is gone)."""
+        wall0, sim0 = time.monotonic(), self.arm.sim_time
+        while not stop.is_set():
+            if parent_pid is not None and os.getppid() != parent_pid:
+                return  # the bus's process died: nobody is listening
+            ahead = (self.arm.sim_time - sim0) / speed - (time.monotonic() - wall0)
             if ahead > 0:
                 time.sleep(ahead)
-            self._advance()
+            self.step()
+
+
+@dataclass(frozen=True)
+class PhysicsSpec:
+    """What the physics process is built from (picklable: numpy leaves)."""
+
+    params: SimParams
+    joint_ids: tuple[int, ...]
+    q0: np.ndarray
+    chunk: int
+    seed: int
+    speed: float
+    cache_dir: str | None
+
+
+def physics_main(spec: PhysicsSpec, tables, goal_writes, lock, events, ready, stop,
+                 parent_pid: int) -> None:
+    """Entry of the physics process."""
+    try:
+        jax.config.update("jax_enable_x64", True)
+        if spec.cache_dir:
+            jax.config.update("jax_compilation_cache_dir", spec.cache_dir)
+        arm = ArmPhysics(spec.params, q0=spec.q0, chunk=spec.chunk, seed=spec.seed)
+        arm.compile()
+        servos = [ServoMemory(i, v, reset=False)
+                  for i, v in zip(spec.joint_ids, table_views(tables, len(spec.joint_ids)),
+                                  strict=True)]
+        loop = PhysicsLoop(arm, servos, lock, events, goal_writes)
+        with lock:
+            publish(servos, _initial(arm), np.zeros(len(servos), bool))
+        ready.set()
+        loop.run(spec.speed, stop, parent_pid)
+    except KeyboardInterrupt:  # Ctrl-C reaches the whole process group: the bus stops us
+        pass
+    except BaseException:
+        traceback.print_exc(file=sys.stderr)
+        sys.exit(1)
+
+
+def _initial(arm: ArmPhysics) -> Present:
+    """The arm at rest where it starts (before any chunk)."""
+    q = np.asarray(arm.state.q)
+    zeros = np.zeros_like(q)
+    return Present(q, zeros, zeros, zeros, q.copy(), np.zeros(len(q), bool), arm.sim_time)

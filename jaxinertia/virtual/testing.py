@@ -15,11 +15,12 @@ __all__ = ["VirtualRobotProcess"]
 class VirtualRobotProcess:
     """``jaxinertia virtual-robot ARGS`` in a subprocess; ``path`` is its pty.
 
-    A context manager: waits (``startup_timeout``) for the device path on the first line
-    of stdout, and on exit terminates the process (then kills it if it lingers)."""
+    A context manager: waits (``startup_timeout``, generous: two interpreters start and
+    the physics compiles, on a host that may be busy) for the device path on the first
+    line of stdout, and on exit terminates the process (then kills it if it lingers)."""
 
     def __init__(self, args: list[str], *, stderr: Path | None = None,
-                 startup_timeout: float = 120.0) -> None:
+                 startup_timeout: float = 900.0) -> None:
         self.args = [sys.executable, "-m", "jaxinertia", "virtual-robot", *args]
         self.stderr_path = stderr
         self.startup_timeout = startup_timeout

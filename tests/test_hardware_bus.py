@@ -1,0 +1,96 @@
+"""Acceptance (issue 18): a bad bus never raises a false alarm or loses a run.
+
+* ``collect`` of a 20-sample plan on a virtual robot whose status packets are 10 % late by
+  50 ms (longer than dynamixel-sdk's ~35 ms wait, so a late packet arrives while the
+  master waits for the answer to its next request), and on one that drops and corrupts
+  5 % each: both complete without a hardware error, every sample at rest, with the goal
+  positions and directions of the plan (those a fault-free collection records,
+  ``test_hardware_collect``), each sample once.
+* The port is locked for one collection: a second ``collect`` on it gets one line and exit
+  code 3 and writes nothing; a port that disappears mid-collection (the virtual robot
+  killed) gives one line and exit code 3, and the journal keeps every finished sample.
+
+Limits are generous (a busy host): ``--retries`` 40, wall-clock limits far beyond the
+collections' simulated time; waits are for conditions, never sleeps of a set length.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from support.hardware import journal_indices, one_line, running, wait_for_samples
+
+from jaxinertia.plans import random_plan
+from jaxinertia.samples import load_native
+from jaxinertia.virtual.testing import VirtualRobotProcess
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
+                                reason="the virtual servo bus needs a Linux pseudo-terminal")
+
+N = 20
+SEED = 0
+SPEED = 15
+#: A collection: 10 minutes to start beside 20 x its simulated time (2 moves of at most
+#: 6 s per sample).
+WALL_LIMIT_S = 600 + 20 * N * 2 * 6.0 / SPEED
+RETRIES = "40"
+
+
+def collect_cmd(port: str, out, *extra: str, n: int = N) -> list[str]:
+    return [sys.executable, "-m", "jaxinertia", "collect", "--port", port, "--plan", "random",
+            "--n", str(n), "--seed", str(SEED), "--object", "cube", "--out", str(out),
+            "--no-progress", "--retries", RETRIES, *extra]
+
+
+@pytest.mark.parametrize("faults", [
+    ["--delay-rate", "0.1", "--delay-ms", "50"],
+    ["--drop-rate", "0.05", "--corrupt-rate", "0.05"],
+], ids=["late", "dropped-and-corrupt"])
+def test_a_faulty_bus_completes_the_plan_without_a_false_alarm(tmp_path, faults):
+    out = tmp_path / "faulty.npz"
+    with VirtualRobotProcess(["--object", "cube", "--speed", str(SPEED), "--seed", "3",
+                              "--fault-seed", "11", *faults],
+                             stderr=tmp_path / "virtual.log") as robot:
+        run = subprocess.run(collect_cmd(robot.path, out), capture_output=True, text=True,
+                             timeout=WALL_LIMIT_S)
+    assert "hardware error" not in run.stderr, run.stderr
+    assert run.returncode == 0, run.stderr
+    retried = int(run.stderr.split("bus: ")[1].split()[0])
+    assert retried > 0, "the injected faults must have been met and retried"
+    samples, _ = load_native(out, only_at_rest=False)
+    fields = samples.fields()
+    q_d, d = random_plan(N, SEED)  # what the fault-free collection records
+    np.testing.assert_array_equal(fields["q_d"], q_d, err_msg="q_d")
+    np.testing.assert_array_equal(fields["direction"], d, err_msg="direction")
+    np.testing.assert_array_equal(fields["plan_index"], np.arange(N), err_msg="plan_index")
+    assert fields["at_rest"].all(), "at_rest"
+    assert sorted(journal_indices(out)) == list(range(N)), "each sample exactly once"
+
+
+def test_one_collect_per_port_and_a_vanishing_port_stops_cleanly(tmp_path):
+    first, second = tmp_path / "first.npz", tmp_path / "second.npz"
+    # Slow enough that the first collection is still running when the second starts.
+    robot = VirtualRobotProcess(["--object", "cube", "--speed", "1"],
+                                stderr=tmp_path / "virtual.log")
+    with robot, running(collect_cmd(robot.path, first, n=1000)) as proc:
+        wait_for_samples(first, 1, WALL_LIMIT_S, proc)
+        assert proc.poll() is None, "the first collection stopped early"
+        refused = subprocess.run(collect_cmd(robot.path, second), capture_output=True,
+                                 text=True, timeout=WALL_LIMIT_S)
+        assert refused.returncode == 3, refused.stderr
+        assert "in use" in one_line(refused.stderr)
+        assert not (tmp_path / "second.npz.journal.jsonl").exists(), "second journal"
+        assert proc.poll() is None, "the first collection goes on"
+        # The device disappears under the first collection.
+        robot.proc.send_signal(signal.SIGKILL)
+        _, err = proc.communicate(timeout=WALL_LIMIT_S)
+    assert proc.returncode == 3, err
+    line = one_line(err)
+    assert "samples are in" in line and "--resume" in line, line
+    got = journal_indices(first)
+    assert len(got) >= 1 and got == list(range(len(got))), "finished samples, in order"
+    assert not first.exists(), "no sample file from an unfinished collection"
