@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxinertia.baselines import fit_baselines
@@ -42,6 +43,15 @@ from jaxinertia.training import (
     split_validation,
     train_attention_models,
     train_torque_models,
+)
+from jaxinertia.uncertainty import (
+    DEFAULT_TORQUE_NOISE_NM,
+    LEVELS,
+    identifiability,
+    mass_com_covariance,
+    training_validation_error,
+    uncertainty_of,
+    z_of,
 )
 
 __all__ = ["RealData", "estimate", "evaluate_models", "evaluate_samples", "load_real",
@@ -202,21 +212,65 @@ def _gate(x: np.ndarray, *, max_mass: float, max_com: float) -> str | None:
     return None
 
 
+def _identifiable(obj: Samples, noise: np.ndarray, where: str) -> None:
+    """Refuses samples whose poses cannot determine x = [m, m p] at all (singular load
+    regressor: e.g. every sample at one pose), before any estimate."""
+    ident = identifiability(jnp.asarray(obj.A), jnp.arange(obj.n_samples)[None],
+                            jnp.asarray(noise), jnp.asarray([1.0, 0.0, 0.0, 0.0]))
+    if bool(ident.rank_deficient[0]):
+        n_poses = len(np.unique(np.round(np.asarray(obj.q), 6), axis=0))
+        raise UsageError(f"{where}: no method gives a physically possible estimate: the poses "
+                         f"do not determine mass and COM (load regressor singular; "
+                         f"{n_poses} distinct pose(s) in {obj.n_samples} samples): sample "
+                         "configurations that vary joints 2-4 (jaxinertia plan-poses)")
+
+
+def _uncertainty_fields(u, o: int) -> dict:
+    """One object's answer of one method: value, standard errors, intervals, covariance."""
+    x, cov = np.asarray(u.x[o, 0]), np.asarray(u.cov[o, 0])
+    mc, cov_mc = (np.asarray(a) for a in mass_com_covariance(x, cov))
+    se = np.sqrt(np.maximum(np.diag(cov_mc), 0.0))
+    out = {"mass_se_kg": float(se[0]), "com_se_m": se[1:].tolist()}
+    for level in LEVELS:
+        half = z_of(level) * se
+        out[f"interval_{round(level * 100)}"] = {
+            "mass_kg": [float(mc[0] - half[0]), float(mc[0] + half[0])],
+            "com_tag_m": np.stack([mc[1:] - half[1:], mc[1:] + half[1:]], axis=-1).tolist()}
+    out.update(covariance_x=cov.tolist(), covariance_mass_com=cov_mc.tolist(),
+               covariance_terms={"noise": np.asarray(u.cov_noise[o, 0]).tolist(),
+                                 "ensemble": np.asarray(u.cov_ensemble[o, 0]).tolist()},
+               torque_error_level_Nm=np.asarray(u.noise_std[o, 0]).tolist())
+    return out
+
+
 def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_size: int = 64,
              n_sets: int = 200, seed: int = 0, max_mass: float = 5.0,
-             max_com: float = 0.5) -> dict:
+             max_com: float = 0.5, max_com_se: float | None = None) -> dict:
     """Mass and COM of each object in a sample file (ground truth, if any, is not used),
-    by every method.
+    by every method, with standard errors, intervals and covariance.
 
     Per object: all its samples in one WLS (the estimate) and ``n_sets`` random sets of
     ``set_size`` samples for a spread. A method whose estimate is singular or physically
     impossible (mass not in (0, ``max_mass``], COM farther than ``max_com`` from the tag)
     is reported as failed, with the reason, never as a number; an object no method can
     estimate is an error.
+
+    Uncertainty (:mod:`jaxinertia.uncertainty`): residual scatter with a floor at the
+    torque models' validation error (recomputed from the training files the model folder
+    names, when they are still there; else residuals only, said in ``torque_error_floor``)
+    plus the spread over the model pairs. Identifiability: poses whose load regressor is
+    singular are refused before any estimate; with ``max_com_se`` [m], so is an object
+    whose COM the poses alone determine worse than that (predicted standard error at the
+    estimated mass, for the floor's torque error level, else
+    :data:`~jaxinertia.uncertainty.DEFAULT_TORQUE_NOISE_NM`).
     """
     data, meta = load_samples(sample_file, need_truth=False)
-    pair, baselines, fc, _ = load_models(models, robot=meta.get("robot"))
+    pair, baselines, fc, config = load_models(models, robot=meta.get("robot"))
     objects = data.without_truth().by_object()
+    floor, floor_source = training_validation_error(pair, fc, config)
+    noise = floor if floor is not None else np.full(data.n_joints, DEFAULT_TORQUE_NOISE_NM)
+    noise_source = ("torque models' validation error" if floor is not None else
+                    f"nominal {DEFAULT_TORQUE_NOISE_NM * 1e3:.0f} N mm per joint")
     for obj in objects:  # every refusal before any estimate
         where = f"{sample_file}" + (f" [{obj.name}]" if len(objects) > 1 else "")
         if obj.n_samples < set_size:
@@ -225,10 +279,16 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
         if np.all(obj.q_d == obj.q):
             raise UsageError(f"{where}: q_d - q is zero on every sample: no discrepancy to "
                              "read a load from (torque off, or q_d recorded as q?)")
-    out: dict = {"file": str(sample_file), "objects": {}}
+        _identifiable(obj, noise, where)
+    out: dict = {"file": str(sample_file), "objects": {},
+                 "torque_error_floor": {"Nm": None if floor is None else floor.tolist(),
+                                        "source": floor_source}}
     for obj in objects:
-        res = evaluate([obj], [np.arange(obj.n_samples)[None]], pair=pair, baselines=baselines,
-                       fc=fc, l_max=[np.nan])
+        all_samples = [np.arange(obj.n_samples)[None]]
+        res = evaluate([obj], all_samples, pair=pair, baselines=baselines, fc=fc,
+                       l_max=[np.nan])
+        unc = uncertainty_of([obj], all_samples, pair=pair, fc=fc, baselines=baselines,
+                             floor=floor)
         sets, _ = choose_sets([obj], n_sets=n_sets, set_size=set_size, seed=seed)
         spread = evaluate([obj], sets, pair=pair, baselines=baselines, fc=fc, l_max=[np.nan])
         methods = {}
@@ -243,6 +303,7 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
             good = np.array([_gate(v, max_mass=max_mass, max_com=max_com) is None for v in xs])
             methods[m] = {
                 "ok": True, "mass_kg": float(x[0]), "com_tag_m": (x[1:] / x[0]).tolist(),
+                **_uncertainty_fields(unc[m], 0),
                 "mass_std_across_models_kg": float(np.std(x_models[:, 0])),
                 f"mass_std_over_{set_size}_sample_sets_kg": float(np.std(xs[good, 0])),
                 f"com_std_over_{set_size}_sample_sets_m":
@@ -253,7 +314,25 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
             raise UsageError(f"{sample_file} [{obj.name}]: no method gives a physically possible "
                              "estimate (" + "; ".join(f"{m}: {r['reason']}"
                                                       for m, r in methods.items()) + ")")
-        out["objects"][obj.name] = {"n_samples": obj.n_samples, "methods": methods}
+        best = next(methods[m] for m in ("T-A", "T", "PE", "Sensor")
+                    if methods.get(m, {}).get("ok"))
+        x_best = np.r_[best["mass_kg"], best["mass_kg"] * np.asarray(best["com_tag_m"])]
+        ident = identifiability(jnp.asarray(obj.A), jnp.asarray(all_samples[0]),
+                                jnp.asarray(noise), jnp.asarray(x_best))
+        pred_se = np.asarray(ident.se[0])
+        out["objects"][obj.name] = {
+            "n_samples": obj.n_samples, "methods": methods,
+            "identifiability": {"condition": float(ident.condition[0]),
+                                "predicted_mass_se_kg": float(pred_se[0]),
+                                "predicted_com_se_m": pred_se[1:].tolist(),
+                                "torque_error_Nm": np.asarray(noise).tolist(),
+                                "torque_error_source": noise_source}}
+        if max_com_se is not None and np.max(pred_se[1:]) > max_com_se:
+            raise UsageError(
+                f"{sample_file} [{obj.name}]: the poses determine the COM only to "
+                f"+-{np.max(pred_se[1:]) * 1e3:.1f} mm (predicted standard error at "
+                f"{x_best[0] * 1e3:.0f} g, torque error {noise_source}), above --max-com-se "
+                f"{max_com_se * 1e3:.1f} mm: sample more varied poses (jaxinertia plan-poses)")
     return out
 
 

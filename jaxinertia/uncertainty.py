@@ -1,0 +1,381 @@
+"""How sure an estimate is: covariance of ``x = [m, m p]``, standard errors, intervals,
+coverage, and what the poses alone can determine.
+
+Per set and per model pair the WLS estimate is ``x_k = G^-1 A^T W y_k`` with
+``G = A^T W A``; its error is ``G^-1 A^T W e_k`` for the torque model's error ``e_k``.
+The covariance of the answer (the mean over the K pairs) adds two terms:
+
+* **noise** (per pair, then averaged over the pairs): the sandwich
+  ``G^-1 (sum_j sigma_j^2 A_j^T W_j^2 A_j) G^-1`` with a per-joint torque error level
+  ``sigma_j``. ``sigma_j^2`` is the set's residual scatter on joint j,
+  ``RSS_j / (M - h_j)`` (``h_j``: the joint's share of the hat matrix's trace, so that the
+  divisors sum to ``M N - 4``), but never below ``floor_j^2``, the torque model's own error
+  level measured on validation data (:func:`validation_torque_error`). The floor covers
+  what residuals cannot show: the part of the model's error that the fit absorbs (it lies
+  in the span of A) and sets whose residuals are small by chance.
+* **ensemble**: the sample covariance of ``x_k`` over the K pairs (ddof 1; zero for one
+  pair), the models' disagreement as a proxy for their shared, systematic error.
+
+The mass and COM ``p = (m p) / m`` get their covariance by the delta method
+(:func:`mass_com_covariance`); intervals are normal, ``value +- z se``.
+
+Everything per set is written as sums of per-sample statistics, like
+:mod:`jaxinertia.identification`: the residual sums of squares are
+``y^T y - 2 x^T A^T y + x^T A^T A x`` per joint, so the sets are never gathered and one
+jitted call (:func:`set_uncertainty`) covers objects x model pairs x sets. In float64 (the
+library's choice for identification) the cancellation in that expansion costs nothing
+measurable: the residuals are ~1-10 % of the torques, i.e. ~1e-13 relative.
+
+:func:`identifiability` is the pose-only part: the condition number, rank and predicted
+standard errors ``(sum_s A_s^T diag(1/sigma^2) A_s)^-1`` of a set before any torque is
+measured (``jaxinertia estimate`` refuses sets that cannot determine the COM).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.stats
+
+from jaxinertia.baselines import Baselines
+from jaxinertia.checkpoints import file_sha256
+from jaxinertia.errors import UsageError
+from jaxinertia.estimation import ModelPair, estimate_sets, predict_torques
+from jaxinertia.evaluation import baseline_torques, stack
+from jaxinertia.features import FeatureConfig, featurize
+from jaxinertia.identification import (
+    DEFAULT_MAX_CONDITION,
+    cholesky_solve,
+    solve_normal,
+    solve_sets,
+    sum_over_sets,
+)
+from jaxinertia.samples import Samples, load_samples
+from jaxinertia.training import split_validation
+
+__all__ = [
+    "DEFAULT_TORQUE_NOISE_NM",
+    "LEVELS",
+    "Identifiability",
+    "SetUncertainty",
+    "coverage",
+    "fit_inflation",
+    "identifiability",
+    "intervals",
+    "mass_com_covariance",
+    "set_uncertainty",
+    "standard_errors",
+    "training_validation_error",
+    "uncertainty_of",
+    "validation_torque_error",
+    "z_of",
+    "z_scores",
+]
+
+#: Per-joint torque error level [N m] assumed for pose-only predictions when no measured
+#: level is known (the simulator-trained torque models reach ~10-20 N mm RMS per joint).
+DEFAULT_TORQUE_NOISE_NM = 0.02
+
+#: The interval levels reported (two-sided).
+LEVELS = (0.68, 0.95)
+
+
+def z_of(level: float) -> float:
+    """Two-sided normal quantile: the half-width of a ``level`` interval in standard errors."""
+    return float(scipy.stats.norm.ppf(0.5 + level / 2))
+
+
+# ---- per-set covariance -----------------------------------------------------------------
+
+
+class SetUncertainty(NamedTuple):
+    """Leading axes (O, B): objects x sets; the K model pairs are reduced.
+
+    x: (O, B, 4) the answer, the mean of the pairs' estimates.
+    cov: (O, B, 4, 4) its covariance, ``cov_noise + cov_ensemble``.
+    cov_noise: the residual / validation-floor sandwich, averaged over the pairs.
+    cov_ensemble: the covariance of the pairs' estimates (zero for one pair).
+    noise_std: (O, B, N) per-joint torque error level used [N m] (RMS over the pairs).
+    floor_used: (O, B, N) fraction of the pairs whose level is the validation floor.
+    """
+
+    x: jnp.ndarray
+    cov: jnp.ndarray
+    cov_noise: jnp.ndarray
+    cov_ensemble: jnp.ndarray
+    noise_std: jnp.ndarray
+    floor_used: jnp.ndarray
+
+
+def _inv_spd(G: jnp.ndarray) -> jnp.ndarray:
+    """Inverse of small SPD matrices (..., P, P), column-scaled first (kg against kg m)."""
+    P = G.shape[-1]
+    d2 = jnp.diagonal(G, axis1=-2, axis2=-1)
+    d = jnp.sqrt(jnp.where(d2 > 0, d2, jnp.nan))
+    Gs = G / (d[..., :, None] * d[..., None, :])
+    eye = jnp.eye(P, dtype=G.dtype)
+    inv_s = cholesky_solve(Gs[..., None, :, :], jnp.broadcast_to(eye, Gs.shape))
+    return inv_s / (d[..., :, None] * d[..., None, :])
+
+
+def _per_set_moments(A, y, w, sets):
+    """Per set and joint: ``sum y^2`` (B, N), ``sum y a`` (B, N, P), ``sum a a^T``,
+    ``sum w a a^T``, ``sum w^2 a a^T`` (B, N, P, P); one selection product for all."""
+    S, N, P = A.shape
+    aa = A[..., :, None] * A[..., None, :]
+    parts = [y * y, (y[..., None] * A).reshape(S, -1), aa.reshape(S, -1),
+             (w[..., None, None] * aa).reshape(S, -1),
+             ((w * w)[..., None, None] * aa).reshape(S, -1)]
+    (summed,) = sum_over_sets(sets, jnp.concatenate(parts, axis=-1))
+    B = sets.shape[0]
+    cuts = np.cumsum([N, N * P, N * P * P, N * P * P])
+    yy, ya, aa_, waa, w2aa = jnp.split(summed, cuts, axis=-1)
+    return (yy, ya.reshape(B, N, P), aa_.reshape(B, N, P, P), waa.reshape(B, N, P, P),
+            w2aa.reshape(B, N, P, P))
+
+
+def _noise_covariance(A, y, w, sets, x, floor):
+    """One object and model: (B, P, P) sandwich covariance, (B, N) level, (B, N) floor used."""
+    yy, ya, aa, waa, w2aa = _per_set_moments(A, y, w, sets)
+    M = sets.shape[1]
+    rss = yy - 2 * jnp.einsum("bnp,bp->bn", ya, x) + jnp.einsum("bp,bnpq,bq->bn", x, aa, x)
+    Gi = _inv_spd(jnp.sum(waa, axis=1))
+    lever = jnp.einsum("bpq,bnqp->bn", Gi, waa)  # sums to P over the joints
+    resid_var = jnp.maximum(rss, 0.0) / jnp.maximum(M - lever, 1.0)
+    var = jnp.maximum(resid_var, floor**2)
+    meat = jnp.einsum("bn,bnpq->bpq", var, w2aa)
+    return Gi @ meat @ Gi, var, (floor**2 > resid_var).astype(A.dtype)
+
+
+@jax.jit
+def set_uncertainty(A: jnp.ndarray, tau_g: jnp.ndarray, tau_hat: jnp.ndarray,
+                    weights: jnp.ndarray | None, sets: jnp.ndarray, x: jnp.ndarray,
+                    floor: jnp.ndarray) -> SetUncertainty:
+    """The covariance of every set's answer, for O objects x K model pairs x B sets at once.
+
+    Args:
+      A: (O, S, N, 4) load regressors; tau_g: (O, S, N) free-motion torques [N m].
+      tau_hat: (O, K, S, N) the pairs' torques [N m] (K = 1 for a single model).
+      weights: (O, K, S, N) the WLS weights (attention), or None for identity weights.
+      sets: (O, B, M) sample indices; x: (O, K, B, 4) the pairs' estimates of each set.
+      floor: (N,) the torque model's validation error level per joint [N m] (zeros: none).
+    """
+    dtype = A.dtype
+    y = tau_hat.astype(dtype) - tau_g[:, None].astype(dtype)
+    w = jnp.ones_like(y) if weights is None else jnp.maximum(weights.astype(dtype), 0.0)
+    x = x.astype(dtype)
+    floor = jnp.asarray(floor, dtype)
+    per_model = jax.vmap(_noise_covariance, in_axes=(None, 0, 0, None, 0, None))
+    per_object = jax.vmap(per_model, in_axes=(0, 0, 0, 0, 0, None))
+    cov_k, var_k, floor_k = per_object(A, y, w, sets, x, floor)  # (O, K, B, ...)
+    K = x.shape[1]
+    mean = jnp.mean(x, axis=1)
+    dev = x - mean[:, None]
+    ens = jnp.einsum("okbp,okbq->obpq", dev, dev) / max(K - 1, 1)
+    noise = jnp.mean(cov_k, axis=1)
+    return SetUncertainty(mean, noise + ens, noise, ens, jnp.sqrt(jnp.mean(var_k, axis=1)),
+                          jnp.mean(floor_k, axis=1))
+
+
+# ---- mass, COM, intervals ---------------------------------------------------------------
+
+
+def mass_com_covariance(x, cov):
+    """``x = [m, m p]`` (..., 4) and its covariance -> ``[m, p]`` (..., 4) and the
+    covariance of ``[m, p]`` by the delta method (``p = (m p) / m``)."""
+    x, cov = jnp.asarray(x), jnp.asarray(cov)
+    m = x[..., :1]
+    p = x[..., 1:] / m
+    J_top = jnp.broadcast_to(jnp.eye(1, 4, dtype=x.dtype), x.shape[:-1] + (1, 4))
+    J_p = jnp.concatenate([-(p / m)[..., None],
+                           jnp.broadcast_to(jnp.eye(3, dtype=x.dtype), x.shape[:-1] + (3, 3))
+                           / m[..., None]], axis=-1)
+    J = jnp.concatenate([J_top, J_p], axis=-2)
+    return jnp.concatenate([m, p], axis=-1), J @ cov @ jnp.swapaxes(J, -1, -2)
+
+
+def standard_errors(x, cov):
+    """(..., 4) standard errors of ``[m, p_x, p_y, p_z]`` [kg, m]."""
+    _, c = mass_com_covariance(x, cov)
+    return jnp.sqrt(jnp.maximum(jnp.diagonal(c, axis1=-2, axis2=-1), 0.0))
+
+
+def intervals(x, cov, level: float = 0.95):
+    """``([m, p], lo, hi)`` (..., 4): the normal ``level`` interval of mass and COM."""
+    v, _ = mass_com_covariance(x, cov)
+    half = z_of(level) * standard_errors(x, cov)
+    return v, v - half, v + half
+
+
+def z_scores(x, cov, x_true):
+    """(..., 4) ``|estimate - truth| / se`` of ``[m, p_x, p_y, p_z]``, and (...,) the COM's
+    squared Mahalanobis distance (for the joint 3-D region)."""
+    v, c = mass_com_covariance(x, cov)
+    m_t = jnp.asarray(x_true)[..., :1]
+    truth = jnp.concatenate([m_t, jnp.asarray(x_true)[..., 1:] / m_t], axis=-1)
+    err = v - truth
+    se = jnp.sqrt(jnp.maximum(jnp.diagonal(c, axis1=-2, axis2=-1), 0.0))
+    d = err[..., 1:]
+    maha = jnp.einsum("...p,...p->...", d, cholesky_solve(c[..., 1:, 1:], d))
+    return jnp.abs(err) / se, maha
+
+
+def coverage(x, cov, x_true, *, levels: Sequence[float] = LEVELS, inflate: float = 1.0) -> dict:
+    """How often the truth lies inside the intervals, over the sets (leading axes) of one
+    object: ``{"n_sets", "n_failed", level: {"mass", "com_xyz" [3], "com", "com_region"}}``
+    (fractions; ``com`` the mean over the coordinates, ``com_region`` the joint 3-D
+    ellipsoid). Sets without a finite covariance count as failed and are left out.
+    ``inflate`` scales every standard error."""
+    z, maha = (np.asarray(a) for a in z_scores(x, cov, np.broadcast_to(x_true, np.shape(x))))
+    z = z.reshape(-1, 4) / inflate
+    maha = maha.reshape(-1) / inflate**2
+    ok = np.all(np.isfinite(z), axis=-1) & np.isfinite(maha)
+    z, maha = z[ok], maha[ok]
+    out: dict = {"n_sets": int(ok.sum()), "n_failed": int((~ok).sum())}
+    for level in levels:
+        inside = z <= z_of(level)
+        out[level] = {"mass": float(inside[:, 0].mean()),
+                      "com_xyz": inside[:, 1:].mean(axis=0).tolist(),
+                      "com": float(inside[:, 1:].mean()),
+                      "com_region": float((maha <= scipy.stats.chi2.ppf(level, 3)).mean())}
+    return out
+
+
+def fit_inflation(x, cov, x_true, *, level: float = 0.95) -> float:
+    """The factor on every standard error that makes ``level`` intervals of the mass and
+    each COM coordinate cover the truth in ``level`` of the sets given (pooled): fitted on
+    one object, to be checked on another."""
+    z, _ = z_scores(x, cov, np.broadcast_to(x_true, np.shape(x)))
+    z = np.asarray(z).reshape(-1)
+    z = z[np.isfinite(z)]
+    if z.size == 0:
+        raise UsageError("no set with a finite covariance to fit an inflation factor on")
+    return float(np.quantile(z, level) / z_of(level))
+
+
+# ---- pose-only identifiability -----------------------------------------------------------
+
+
+class Identifiability(NamedTuple):
+    """What the poses of each set can determine, before any torque is measured.
+
+    condition: the 2-norm condition number of the column-scaled ``diag(1/sigma) A``.
+    rank_deficient: the poses cannot determine x (inf condition, NaN standard errors).
+    cov: (..., 4, 4) predicted covariance of x for independent per-joint errors sigma.
+    se: (..., 4) predicted standard errors of ``[m, p_x, p_y, p_z]`` at ``x_nominal``.
+    """
+
+    condition: jnp.ndarray
+    rank_deficient: jnp.ndarray
+    cov: jnp.ndarray
+    se: jnp.ndarray
+
+
+@jax.jit
+def identifiability(A: jnp.ndarray, sets: jnp.ndarray, noise: jnp.ndarray,
+                    x_nominal: jnp.ndarray,
+                    max_condition: float = DEFAULT_MAX_CONDITION) -> Identifiability:
+    """Pose-only diagnostics of sets (B, M) of samples with regressors A (S, N, 4).
+
+    ``noise`` (N,) the torque error level per joint [N m]; ``x_nominal`` (4,) or (B, 4) the
+    object at which the COM's standard error is predicted (its mass matters: the COM's
+    error scales as 1/m)."""
+    dtype = A.dtype
+    w = jnp.broadcast_to(1.0 / jnp.asarray(noise, dtype) ** 2, A.shape[:2])
+    G = jnp.einsum("snp,sn,snq->spq", A, w, A)
+    iu, ju = jnp.triu_indices(A.shape[-1])
+    (G_u,) = sum_over_sets(sets, G[:, iu, ju])
+    G = jnp.zeros(G_u.shape[:-1] + (4, 4), dtype).at[..., iu, ju].set(G_u).at[..., ju, iu].set(G_u)
+    res = solve_normal(G, jnp.zeros(G.shape[:-1], dtype), jnp.zeros(G.shape[:-2], dtype),
+                       max_condition=max_condition)
+    cov = jnp.where(res.rank_deficient[..., None, None], jnp.nan, _inv_spd(G))
+    xn = jnp.broadcast_to(jnp.asarray(x_nominal, dtype), cov.shape[:-1])
+    return Identifiability(res.condition, res.rank_deficient, cov, standard_errors(xn, cov))
+
+
+# ---- the torque model's error level -----------------------------------------------------
+
+
+def validation_torque_error(pair: ModelPair, fc: FeatureConfig, val: Samples) -> np.ndarray:
+    """(N,) RMS error per joint [N m] of the K torque models on held-out samples of known
+    torque (the training run's validation split), pooled over the pairs."""
+    if val.tau is None or val.n_samples == 0:
+        raise UsageError("the validation error needs held-out samples with known torques")
+    f64 = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+    feats = jnp.asarray(featurize(fc, jnp.asarray(val.q, f64), val.q_d, val.direction),
+                        jnp.float32)
+    tau_hat = jax.vmap(lambda tv: predict_torques(pair.torque_model, tv, feats, pair.tau_scale))(
+        pair.torque_vars)
+    err = np.asarray(tau_hat, np.float64) - np.asarray(val.tau, np.float64)[None]
+    return np.sqrt(np.mean(err**2, axis=(0, 1)))
+
+
+def training_validation_error(pair: ModelPair, fc: FeatureConfig, config: dict,
+                              ) -> tuple[np.ndarray | None, str]:
+    """The torque models' validation error per joint (N,) [N m] from a model folder's
+    config: the training files it names (when still there, with the same SHA-256) are read
+    and split as training split them (:func:`jaxinertia.training.split_validation`, the
+    run's ``val_fraction`` and ``seed``). Returns ``(None, why)`` when it cannot."""
+    data, training = config.get("data"), config.get("training") or {}
+    if not data or "val_fraction" not in training or "seed" not in training:
+        return None, "the model folder names no training data (released models?)"
+    parts = []
+    for entry in data:
+        path = Path(str(entry.get("file", "")))
+        if not path.is_file():
+            return None, f"training file {path} is not there"
+        if entry.get("sha256") and file_sha256(path) != entry["sha256"]:
+            return None, f"training file {path} changed since training (SHA-256)"
+        parts.append(load_samples(path)[0])
+    _, val = split_validation(Samples.concatenate(parts), training["val_fraction"],
+                              training["seed"])
+    if val.n_samples == 0:
+        return None, "the training run kept no validation samples"
+    return (validation_torque_error(pair, fc, val),
+            f"validation split of the training data ({val.n_samples} samples)")
+
+
+# ---- everything for objects and sets ----------------------------------------------------
+
+
+@jax.jit
+def _identity_solves(A, y, tau_g, sets):
+    return jax.vmap(lambda A_o, y_o, g_o, s_o: solve_sets(A_o, y_o - g_o, None, s_o))(
+        A, y.astype(A.dtype), tau_g, sets)
+
+
+def uncertainty_of(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
+                   pair: ModelPair | None = None, fc: FeatureConfig | None = None,
+                   baselines: Baselines | None = None, floor: np.ndarray | None = None,
+                   ) -> dict[str, SetUncertainty]:
+    """Every method's answer and covariance for each set of each object: ``{"T", "T-A"}``
+    from the K pairs (one batched call each, ``floor`` the torque models' validation error
+    per joint), ``{"Sensor", "PE"}`` from the baselines (one model, residuals only)."""
+    if pair is not None and fc is None:
+        raise UsageError("the models' uncertainty needs their feature configuration")
+    batch = stack(objects, sets, fc if pair is not None else None)
+    n_joints = batch.A.shape[2]
+    none = jnp.zeros(n_joints, batch.A.dtype)
+    out: dict[str, SetUncertainty] = {}
+    if baselines is not None:
+        per_obj = [baseline_torques(baselines, o) for o in objects]
+        for m in ("Sensor", "PE"):
+            tau = jnp.asarray(np.stack([  # padded like stack(): the last sample repeated
+                np.pad(p[m], ((0, batch.A.shape[1] - len(p[m])), (0, 0)), mode="edge")
+                for p in per_obj]))
+            x = _identity_solves(batch.A, tau, batch.tau_g, batch.sets).x
+            out[m] = set_uncertainty(batch.A, batch.tau_g, tau[:, None], None, batch.sets,
+                                     x[:, None], none)
+    if pair is not None:
+        est = estimate_sets(pair, batch.features, batch.A, batch.tau_g, batch.sets)
+        fl = none if floor is None else jnp.asarray(floor, batch.A.dtype)
+        out["T"] = set_uncertainty(batch.A, batch.tau_g, est.tau_hat, None, batch.sets,
+                                   est.T.x, fl)
+        out["T-A"] = set_uncertainty(batch.A, batch.tau_g, est.tau_hat, est.weights,
+                                     batch.sets, est.TA.x, fl)
+    return out
