@@ -59,6 +59,9 @@ IDS = (11, 12, 13, 14)
 RTOL = 1e-7
 #: How long a test waits for bytes that must come [s] (a deadline, not a pace).
 PATIENCE_S = 60.0
+#: The driver's retries against the in-process bus: its thread shares this process (and
+#: its garbage collector) with the tests, so the bus may stay silent for a few seconds.
+RETRIES = 40
 Q0 = np.radians([0.0, -30.0, 30.0, 0.0])
 
 
@@ -194,7 +197,7 @@ def test_overload_sets_the_alert_bit_and_reboot_clears_it(bus, sdk):
 
 def test_a_goal_outside_the_limits_is_refused_before_anything_moves(bus):
     robot = calibrated_robot()
-    arm = DynamixelArm(ArmConfig(port=bus.path), robot=robot,
+    arm = DynamixelArm(ArmConfig(port=bus.path, retries=RETRIES), robot=robot,
                        safety=SafetyLimits.around_workspace(robot))
     with arm:
         before = bus.goal_position_writes
@@ -316,7 +319,7 @@ def test_the_port_is_locked_while_open(wire):
 
 
 def test_a_hardware_error_reading_is_confirmed_before_it_is_reported(bus, monkeypatch):
-    arm = DynamixelArm(ArmConfig(port=bus.path, gripper_id=None))
+    arm = DynamixelArm(ArmConfig(port=bus.path, gripper_id=None, retries=RETRIES))
     with arm:
         real = arm._sync_read
 

@@ -14,6 +14,7 @@ collection is not an error: the command says where the journal is and returns 13
 from __future__ import annotations
 
 import argparse
+import gc
 import signal
 import sys
 from pathlib import Path
@@ -128,6 +129,10 @@ def cmd_virtual_robot(args) -> int:
                           q0=np.radians(args.q0), speed=args.speed, faults=faults,
                           seed=args.seed)
     bus.compile()  # every physics path, so that no reply waits on a compilation
+    # What is alive now lives as long as the process: out of the garbage collector's way,
+    # so that a full collection (100-200 ms over all the imported modules) never stalls a
+    # reply past the master's ~35 ms timeout.
+    gc.freeze()
     bus.start()
     # The device path is the first line of stdout: callers wait for it.
     print(bus.path, flush=True)

@@ -37,6 +37,7 @@ servo supply voltage); Return Delay Time is not modelled.
 
 from __future__ import annotations
 
+import gc
 import os
 import sys
 import time
@@ -301,6 +302,7 @@ def physics_main(spec: PhysicsSpec, tables, goal_writes, lock, events, ready, st
         loop = PhysicsLoop(arm, servos, lock, events, goal_writes)
         with lock:
             publish(servos, _initial(arm), np.zeros(len(servos), bool))
+        gc.freeze()  # no full collection over the imported modules while holding the lock
         ready.set()
         loop.run(spec.speed, stop, parent_pid)
     except KeyboardInterrupt:  # Ctrl-C reaches the whole process group: the bus stops us

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import re
 import subprocess
 import time
 from collections.abc import Iterator
@@ -24,9 +25,24 @@ def journal_indices(out: Path) -> list[int]:
     return [json.loads(line)["index"] for line in lines[1:]]
 
 
+#: A Python warning as ``warnings`` prints it: "path:line: SomeWarning: text", then the
+#: source line, indented.
+_WARNING = re.compile(r"^\S+:\d+: \w*Warning: ")
+
+
 def one_line(stderr: str) -> str:
-    """The one line of ``stderr`` (fails if there are more)."""
-    lines = stderr.strip().splitlines()
+    """The one line of ``stderr`` (fails if there are more, or a traceback). Python
+    warnings of the libraries underneath (JAX's compilation cache, shared by the test
+    session's processes, warns when another process evicts an entry it reads) are not
+    the command's output and are left out."""
+    assert "Traceback" not in stderr, stderr
+    lines, skip = [], False
+    for line in stderr.strip().splitlines():
+        if _WARNING.match(line):
+            skip = True
+        elif not (skip and line.startswith(" ")):
+            lines.append(line)
+            skip = False
     assert len(lines) == 1, f"one line expected: {lines}"
     return lines[0]
 
