@@ -68,9 +68,11 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
         d, meta = load_samples(f)
         parts.append(d)
         metas.append(meta)
-    robots = {m.get("robot") for m in metas}
-    if len(robots) != 1:
+    # The authors' layout records no robot: it is taken to be the native files' one.
+    robots = {m.get("robot") for m in metas} - {None}
+    if len(robots) > 1:
         raise FileFormatError(sample_files[0], "metadata", f"files of different robots {robots}")
+    robots = robots or {None}
     data = Samples.concatenate(parts)
     t0 = time.perf_counter()
     train_set, val_set = split_validation(data, cfg.val_fraction, cfg.seed)
