@@ -63,6 +63,7 @@ __all__ = [
     "LEVELS",
     "Identifiability",
     "SetUncertainty",
+    "calibration",
     "coverage",
     "fit_inflation",
     "identifiability",
@@ -225,20 +226,26 @@ def z_scores(x, cov, x_true):
     return jnp.abs(err) / se, maha
 
 
-def coverage(x, cov, x_true, *, levels: Sequence[float] = LEVELS, inflate: float = 1.0) -> dict:
+def coverage(x, cov, x_true, *, levels: Sequence[float] = LEVELS, inflate=1.0) -> dict:
     """How often the truth lies inside the intervals, over the sets (leading axes) of one
     object: ``{"n_sets", "n_failed", level: {"mass", "com_xyz" [3], "com", "com_region"}}``
     (fractions; ``com`` the mean over the coordinates, ``com_region`` the joint 3-D
     ellipsoid). Sets without a finite covariance count as failed and are left out.
-    ``inflate`` scales every standard error."""
+    ``inflate``: a factor on the standard errors, one or per ``[m, p_x, p_y, p_z]`` (the
+    COM region takes the COM coordinates' largest)."""
     z, maha = (np.asarray(a) for a in z_scores(x, cov, np.broadcast_to(x_true, np.shape(x))))
-    z = z.reshape(-1, 4) / inflate
-    maha = maha.reshape(-1) / inflate**2
+    k = np.broadcast_to(np.asarray(inflate, np.float64), (4,))
+    z = z.reshape(-1, 4) / k
+    maha = maha.reshape(-1) / np.max(k[1:]) ** 2
     ok = np.all(np.isfinite(z), axis=-1) & np.isfinite(maha)
     z, maha = z[ok], maha[ok]
     out: dict = {"n_sets": int(ok.sum()), "n_failed": int((~ok).sum())}
     for level in levels:
         inside = z <= z_of(level)
+        if not ok.any():
+            out[level] = {"mass": np.nan, "com_xyz": [np.nan] * 3, "com": np.nan,
+                          "com_region": np.nan}
+            continue
         out[level] = {"mass": float(inside[:, 0].mean()),
                       "com_xyz": inside[:, 1:].mean(axis=0).tolist(),
                       "com": float(inside[:, 1:].mean()),
@@ -246,16 +253,18 @@ def coverage(x, cov, x_true, *, levels: Sequence[float] = LEVELS, inflate: float
     return out
 
 
-def fit_inflation(x, cov, x_true, *, level: float = 0.95) -> float:
-    """The factor on every standard error that makes ``level`` intervals of the mass and
-    each COM coordinate cover the truth in ``level`` of the sets given (pooled): fitted on
-    one object, to be checked on another."""
+def fit_inflation(x, cov, x_true, *, level: float = 0.95) -> np.ndarray:
+    """(4,) factors on the standard errors of ``[m, p_x, p_y, p_z]`` that make ``level``
+    intervals cover the truth in ``level`` of the sets given: one for the mass, one for the
+    COM coordinates (pooled). Fitted on one object, to be checked on another."""
     z, _ = z_scores(x, cov, np.broadcast_to(x_true, np.shape(x)))
-    z = np.asarray(z).reshape(-1)
-    z = z[np.isfinite(z)]
-    if z.size == 0:
+    z = np.asarray(z).reshape(-1, 4)
+    z = z[np.all(np.isfinite(z), axis=-1)]
+    if len(z) == 0:
         raise UsageError("no set with a finite covariance to fit an inflation factor on")
-    return float(np.quantile(z, level) / z_of(level))
+    k_mass = np.quantile(z[:, 0], level) / z_of(level)
+    k_com = np.quantile(z[:, 1:], level) / z_of(level)
+    return np.array([k_mass, k_com, k_com, k_com])
 
 
 # ---- pose-only identifiability -----------------------------------------------------------
@@ -378,4 +387,25 @@ def uncertainty_of(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
                                    est.T.x, fl)
         out["T-A"] = set_uncertainty(batch.A, batch.tau_g, est.tau_hat, est.weights,
                                      batch.sets, est.TA.x, fl)
+    return out
+
+
+def calibration(objects: Sequence[Samples], answers: dict[str, SetUncertainty], *,
+                levels: Sequence[float] = LEVELS, inflate=1.0) -> dict:
+    """Coverage of every method's intervals on known objects, over each object's sets
+    (``answers`` from :func:`uncertainty_of` on the same objects):
+    ``{"objects": {name: {method: coverage + "median_se" [4], "rms_error" [4]}},
+    "per_set": {method: {"se": (O, B, 4), "error": (O, B, 4)}}}`` (``[m, p]``, kg and m)."""
+    out: dict = {"objects": {}, "per_set": {}}
+    for m, u in answers.items():
+        se = np.asarray(standard_errors(u.x, u.cov)) * np.asarray(inflate)
+        v, _ = mass_com_covariance(u.x, u.cov)
+        err = np.stack([np.asarray(v[o]) - np.r_[obj.x[0, 0], obj.x[0, 1:] / obj.x[0, 0]]
+                        for o, obj in enumerate(objects)])
+        out["per_set"][m] = {"se": se, "error": err}
+        for o, obj in enumerate(objects):
+            c = coverage(u.x[o], u.cov[o], obj.x[0], levels=levels, inflate=inflate)
+            c["median_se"] = np.nanmedian(se[o], axis=0).tolist()
+            c["rms_error"] = np.sqrt(np.nanmean(err[o] ** 2, axis=0)).tolist()
+            out["objects"].setdefault(obj.name, {})[m] = c
     return out

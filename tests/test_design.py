@@ -13,6 +13,7 @@ from support.compiles import compile_counter
 
 from jaxinertia.app.cli import main
 from jaxinertia.design import (
+    DEFAULT_MARGIN_DEG,
     balance_directions,
     information,
     load_plan,
@@ -24,7 +25,7 @@ from jaxinertia.design import (
     select,
     select_pools,
 )
-from jaxinertia.errors import FileFormatError
+from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.open_manipulator_x import WORKSPACE_DEG
 from jaxinertia.plans import planning_plan, random_plan
 
@@ -97,23 +98,36 @@ def test_plan_is_independent_of_the_tag_pose():
     assert sorted(np.asarray(a).tolist()) == sorted(np.asarray(b).tolist())
 
 
-def test_plan_poses_beats_random_plans_on_log_det():
-    plan = plan_poses(16, n_random=1000)
+@pytest.mark.parametrize("margin", [0.0, DEFAULT_MARGIN_DEG])
+def test_plan_poses_beats_random_plans_on_log_det(margin):
+    plan = plan_poses(16, n_random=1000, margin_deg=margin)
     assert plan.q_d.shape == (16, 4) and plan.direction.shape == (16, 4)
-    assert plan.logdet > np.max(plan.random_logdet)  # 1000 random 16-pose grid subsets
-    # ... and random plans over the continuous workspace, scored with the grid's scaling.
+    assert plan.logdet > np.max(plan.random_logdet)  # 1000 random 16-pose subsets of its grid
+    # ... and 20 random plans over the whole workspace, all scored with one scaling.
     q_grid, _ = planning_plan()
     q_grid = np.unique(q_grid, axis=0)
     C_grid = np.asarray(information(regressors(q_grid)))
     d = np.sqrt(np.mean(np.diagonal(C_grid, axis1=-2, axis2=-1), axis=0))
+
+    def logdet(q):
+        return np.linalg.slogdet(np.asarray(information(regressors(q))).sum(0)
+                                 / np.outer(d, d))[1]
+
+    planned = logdet(plan.q_d)
     for seed in range(20):
-        q, _ = random_plan(16, seed)
-        G = np.asarray(information(regressors(q))).sum(0) / np.outer(d, d)
-        assert np.linalg.slogdet(G)[1] < plan.logdet, seed
-    # Every planned pose is a collision-free grid configuration, none twice.
+        assert logdet(random_plan(16, seed)[0]) < planned, seed
+    # Every planned pose is a collision-free grid configuration inside the margin, none twice.
     grid = {tuple(np.round(v, 9)) for v in q_grid}
     assert all(tuple(np.round(v, 9)) in grid for v in plan.q_d)
     assert len({tuple(v) for v in plan.q_d}) == 16
+    lo, hi = (np.radians(a) for a in zip(*WORKSPACE_DEG))
+    assert np.all(plan.q_d >= lo + np.radians(margin) - 1e-9)
+    assert np.all(plan.q_d <= hi - np.radians(margin) + 1e-9)
+
+
+def test_a_margin_that_leaves_no_workspace_is_refused():
+    with pytest.raises(UsageError, match="leaves no room"):
+        plan_poses(4, margin_deg=25.0)
 
 
 def test_balanced_directions_cancel_a_friction_like_error():

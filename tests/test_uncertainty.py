@@ -13,12 +13,16 @@ from support.synthetic import feature_config, synthetic_samples, tiny_pair
 
 from jaxinertia.app.cli import main
 from jaxinertia.app.pipeline import estimate
+from jaxinertia.app.report import coverage_table
+from jaxinertia.app.reproduce import plot_interval_width
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import save_models
 from jaxinertia.design import regressors
 from jaxinertia.errors import UsageError
 from jaxinertia.samples import Samples, save_native
 from jaxinertia.uncertainty import (
+    SetUncertainty,
+    calibration,
     coverage,
     fit_inflation,
     identifiability,
@@ -161,9 +165,14 @@ def test_coverage_and_inflation_on_gaussian_errors():
     wide = truth + 2 * rng.normal(size=(B, 4)) @ L.T
     assert coverage(wide, cov, truth)[0.95]["mass"] < 0.7
     kappa = fit_inflation(wide, cov, truth)
-    assert kappa == pytest.approx(2.0, rel=0.05)
-    assert coverage(wide, cov, truth, inflate=kappa)[0.95]["mass"] == pytest.approx(
-        0.95, abs=COVERAGE_ATOL)
+    np.testing.assert_allclose(kappa, 2.0, rtol=0.05)
+    inflated = coverage(wide, cov, truth, inflate=kappa)[0.95]
+    assert inflated["mass"] == pytest.approx(0.95, abs=COVERAGE_ATOL)
+    assert inflated["com"] == pytest.approx(0.95, abs=COVERAGE_ATOL)
+    # Only the mass too wide: the COM's factor stays 1.
+    mixed = np.column_stack([wide[:, :1], x[:, 1:]])
+    k = fit_inflation(mixed, cov, truth)
+    assert k[0] == pytest.approx(2.0, rel=0.05) and k[1] == pytest.approx(1.0, rel=0.05)
     assert z_of(0.95) == pytest.approx(1.959964, rel=1e-6)
 
 
@@ -279,3 +288,32 @@ def test_estimate_reports_standard_errors_intervals_and_covariance(model_folder,
     assert len(err) == 1 and "--max-com-se" in err[0], err
     assert main(["estimate", "--models", str(model_folder), "--samples", path,
                  "--max-com-se", "1.0"]) == 0
+
+
+def test_coverage_table_and_plot_from_a_calibration(tmp_path):
+    """The report's table shows calibration()'s numbers; the plot is written."""
+    rng = np.random.default_rng(8)
+    B = 400
+    truths = np.array([[0.05, 0.05 * 0.01, 0.0, 0.05 * 0.02], [0.09, 0.0, 0.09 * 0.01, 0.0]])
+    L = np.diag([2e-3, 1e-4, 2e-4, 1.5e-4])
+    x = truths[:, None] + rng.normal(size=(2, B, 4)) @ L.T
+    cov = np.broadcast_to(L @ L.T, (2, B, 4, 4))
+    z4 = np.zeros((2, B, 4))
+    u = SetUncertainty(jnp.asarray(x), jnp.asarray(cov), jnp.asarray(cov), jnp.zeros_like(cov),
+                       jnp.asarray(z4), jnp.asarray(z4))
+    objects = [Samples(q_d=np.zeros((1, 4)), q=np.zeros((1, 4)), direction=np.ones((1, 4)),
+                       current_tau=np.zeros((1, 4)), tau_g=np.zeros((1, 4)),
+                       A=np.zeros((1, 4, 4)), object_id=np.zeros(1, np.int64), x=t[None],
+                       tau=np.zeros((1, 4)), names=(name,))
+               for t, name in zip(truths, ("a", "b"))]
+    cal = calibration(objects, {"T-A": u})
+    for o, name in enumerate(("a", "b")):
+        c = cal["objects"][name]["T-A"]
+        assert c == coverage(x[o], cov[o], truths[o]) | {"median_se": c["median_se"],
+                                                          "rms_error": c["rms_error"]}
+    table = coverage_table(cal["objects"], "t", methods=("T-A",))
+    c = cal["objects"]["a"]["T-A"]
+    assert f"| a | T-A | {100 * c[0.68]['mass']:.1f} | {100 * c[0.95]['mass']:.1f} |" in table
+    assert "| average | T-A |" in table
+    png = plot_interval_width(cal, tmp_path / "c.png", "t")
+    assert png.stat().st_size > 10_000

@@ -3,9 +3,9 @@
 
 One module: the commands share their option checks and writers (``_outputs``,
 ``_write_json``, ``_enable_x64``) and one ``register``; each is a short function over
-:mod:`jaxinertia.app.pipeline`. Each ``cmd_*`` checks its options and outputs before any work and raises
-:class:`jaxinertia.errors.JaxinertiaError` subclasses for what the user can fix;
-:func:`jaxinertia.app.cli.main` prints them.
+:mod:`jaxinertia.app.pipeline`. Each ``cmd_*`` checks its options and outputs before any
+work and raises :class:`jaxinertia.errors.JaxinertiaError` subclasses for what the user can
+fix; :func:`jaxinertia.app.cli.main` prints them.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from jaxinertia.app.pipeline import (
 from jaxinertia.app.plots import plot_calibration, plot_lbipe_estimates
 from jaxinertia.app.report import calibration_report, table1, table2, table3
 from jaxinertia.app.reproduce import reproduce
-from jaxinertia.design import plan_poses, save_plan
+from jaxinertia.design import DEFAULT_MARGIN_DEG, plan_poses, save_plan
 from jaxinertia.errors import UsageError
 from jaxinertia.fileio import check_output, write_text
 from jaxinertia.lbipe import default_lbipe_dir
@@ -306,8 +306,8 @@ def cmd_plan_poses(args) -> int:
                          f"{robot.n_joints} joints")
     tag = TAG_IN_EE if args.robot is None else (np.eye(3), np.zeros(3))
     plan = plan_poses(args.n, robot=robot, step_deg=args.step_deg, workspace=workspace,
-                      clearance=args.clearance, joint_weights=args.joint_weights, tag=tag,
-                      seed=args.seed)
+                      margin_deg=args.margin_deg, clearance=args.clearance,
+                      joint_weights=args.joint_weights, tag=tag, seed=args.seed)
     gain = plan.logdet - np.median(plan.random_logdet)
     print(f"{args.n} poses chosen from {plan.n_candidates} collision-free grid configurations "
           f"({args.step_deg:g} deg; greedy + {plan.exchanges} exchange(s))")
@@ -321,7 +321,8 @@ def cmd_plan_poses(args) -> int:
         print(f"{i:>4} " + " ".join(f"{v:>9.1f}" for v in np.degrees(q)) + "  "
               + " ".join("+" if v > 0 else "-" for v in d))
     save_plan(args.out, plan, robot=robot.name,
-              extra={"grid_step_deg": args.step_deg, "workspace_deg": [list(w) for w in workspace],
+              extra={"grid_step_deg": args.step_deg, "margin_deg": args.margin_deg,
+                     "workspace_deg": [list(w) for w in workspace],
                      "joint_weights": args.joint_weights})
     print(f"wrote {args.out}")
     return 0
@@ -486,6 +487,9 @@ def register(sub) -> None:
     pp.add_argument("--out", required=True, type=Path, help="plan file to write (JSON)")
     pp.add_argument("--step-deg", type=positive_float, default=10.0,
                     help="grid step over the workspace (default 10)")
+    pp.add_argument("--margin-deg", type=nonnegative_float, default=DEFAULT_MARGIN_DEG,
+                    help="keep the poses this far inside every joint range: the torque models "
+                    "are least accurate at the limits (default %(default)s)")
     pp.add_argument("--clearance", type=positive_float, default=MOUNT_CLEARANCE_M,
                     help="minimum end-effector height over the mounting surface [m] "
                     "(default %(default)s)")

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from jaxinertia.evaluation import METHODS, average
 from jaxinertia.sim.calibration import baseline_statistics
 
-__all__ = ["calibration_report", "render", "table1", "table2", "table3"]
+__all__ = ["calibration_report", "coverage_table", "render", "table1", "table2", "table3"]
 
 _T1_COLS = (("mass_MAE_g", "mass MAE [g]"), ("mass_NMAE_pct", "mass NMAE [%]"),
             ("mass_NRMSE_pct", "mass NRMSE [%]"), ("com_MAE_mm", "COM MAE [mm]"),
@@ -70,6 +70,32 @@ def table3(objects: dict, title: str, *, style: str = "markdown") -> str:
             for name, e in have.items()]
     return render(title, ["object", *(f"joint {j + 1}" for j in range(n))], body,
                   style=style)
+
+
+def coverage_table(objects: dict, title: str, *, style: str = "markdown",
+                   methods: Sequence[str] = ("T", "T-A")) -> str:
+    """How often the 68 % and 95 % intervals hold the truth, per object and method (and
+    their average), beside the median standard error and the RMS error: ``objects`` as
+    :func:`jaxinertia.uncertainty.calibration` gives them (``{name: {method: ...}}``)."""
+    def row(c):
+        se, err = c["median_se"], c["rms_error"]
+        return [f"{100 * c[0.68]['mass']:.1f}", f"{100 * c[0.95]['mass']:.1f}",
+                f"{100 * c[0.68]['com']:.1f}", f"{100 * c[0.95]['com']:.1f}",
+                f"{100 * c[0.95]['com_region']:.1f}", f"{se[0] * 1e3:.1f}",
+                f"{err[0] * 1e3:.1f}", f"{sum(se[1:]) / 3 * 1e3:.1f}",
+                f"{sum(err[1:]) / 3 * 1e3:.1f}"]
+
+    body = [[name, m, *row(e[m])] for name, e in objects.items() for m in methods if m in e]
+    for m in methods:
+        rows = [e[m] for e in objects.values() if m in e]
+        if len(rows) > 1:
+            cells = [[float(v) for v in row(c)] for c in rows]
+            body.append(["average", m, *(f"{v:.1f}" for v in
+                                         [sum(col) / len(col) for col in zip(*cells)])])
+    header = ["object", "method", "mass 68 %", "mass 95 %", "COM 68 %", "COM 95 %",
+              "COM region 95 %", "mass SE [g]", "mass RMSE [g]", "COM SE [mm]",
+              "COM RMSE [mm]"]
+    return render(title, header, body, style=style, n_left=2)
 
 
 _CAL_ROWS = (("k [N m/rad]", "k", 1, 1), ("c [N mm]", "c", 1e3, 0), ("f0 [N mm]", "f0", 1e3, 0),

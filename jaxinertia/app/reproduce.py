@@ -23,17 +23,30 @@ import jax
 
 from jaxinertia.app import plots
 from jaxinertia.app.folds import FoldScale, format_folds, run_folds
-from jaxinertia.app.pipeline import evaluate_samples, sim_to_real, train, write_json
-from jaxinertia.app.report import table1, table2, table3
+from jaxinertia.app.pipeline import (
+    evaluate_samples,
+    load_real,
+    sim_to_real,
+    train,
+    write_json,
+)
+from jaxinertia.app.plots import plt  # pyplot, headless (Agg) as plots sets it up
+from jaxinertia.app.report import coverage_table, table1, table2, table3
 from jaxinertia.app.simdata import cached, params_digest, simulate_files
 from jaxinertia.checkpoints import load_models
-from jaxinertia.evaluation import continuous_force
-from jaxinertia.fileio import write_text
+from jaxinertia.evaluation import choose_sets, continuous_force
+from jaxinertia.fileio import replacing, write_text
 from jaxinertia.lbipe import default_lbipe_dir
 from jaxinertia.samples import load_samples
 from jaxinertia.sim.continuous import simulate_continuous_run
 from jaxinertia.sim.params import default_sim_params
 from jaxinertia.training import TrainConfig
+from jaxinertia.uncertainty import (
+    calibration,
+    training_validation_error,
+    uncertainty_of,
+    z_of,
+)
 
 __all__ = ["FULL", "QUICK", "Scale", "reproduce"]
 
@@ -86,6 +99,53 @@ def _continuous(params, path: Path, scale: Scale, seed: int) -> Path:
                   make)
 
 
+def _coverage(models: Path, test_file: Path, lbipe_dir: Path, *, n_sets: int, set_size: int,
+              seed: int) -> dict:
+    """Coverage of the trained models' intervals on the simulated test objects (the sets of
+    the evaluate stage) and, when the folder is there, on the real files."""
+    pair, _, fc, config = load_models(models)
+    floor, why = training_validation_error(pair, fc, config)
+    data, _ = load_samples(test_file)
+    objects = data.by_object()
+    sets, _ = choose_sets(objects, n_sets=n_sets, set_size=set_size, seed=seed)
+    out = {"floor": {"Nm": None if floor is None else floor.tolist(), "source": why},
+           "simulated": calibration(objects, uncertainty_of(objects, sets, pair=pair, fc=fc,
+                                                            floor=floor))}
+    if (Path(lbipe_dir) / "data").is_dir():
+        real = load_real(lbipe_dir, seed=seed, n_sets=n_sets)
+        out["real"] = calibration(real.objects, uncertainty_of(
+            real.objects, real.sets, pair=pair, fc=fc, floor=floor))
+    return out
+
+
+def plot_interval_width(cal: dict, path: Path, title: str, method: str = "T-A") -> Path:
+    """|error| against the 95 % interval's half-width, per set: mass and COM coordinates;
+    points under the diagonal are sets whose interval holds the truth."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
+    se, err = cal["per_set"][method]["se"], cal["per_set"][method]["error"]
+    z = z_of(0.95)
+    for o, name in enumerate(cal["objects"]):
+        c = cal["objects"][name][method][0.95]
+        for ax, cols, scale, unit in ((axes[0], [0], 1e3, "g"), (axes[1], [1, 2, 3], 1e3, "mm")):
+            w = (z * se[o][:, cols] * scale).ravel()
+            e = (abs(err[o][:, cols]) * scale).ravel()
+            share = c["mass"] if cols == [0] else c["com"]
+            ax.scatter(w, e, s=4, alpha=0.35, label=f"{name}: {100 * share:.0f} % inside")
+            ax.set(xlabel=f"95 % half-width [{unit}]", ylabel=f"|error| [{unit}]")
+    for ax, what in zip(axes, ("mass", "COM coordinates")):
+        hi = max(ax.get_xlim()[1], ax.get_ylim()[1])
+        ax.plot([0, hi], [0, hi], "k--", lw=1)
+        ax.set(title=f"{method}: {what}")
+        ax.legend(fontsize=8, markerscale=3)
+        ax.grid(alpha=0.3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    with replacing(path, suffix=path.suffix) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
               lbipe_dir: str | os.PathLike | None = None, scale: Scale | None = None,
               progress: bool = True) -> dict:
@@ -121,6 +181,9 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
                      progress=progress)
     with stage("evaluate"):
         sim = evaluate_samples(out / "models", test_file, n_sets=scale.n_sets, seed=seed)
+    with stage("uncertainty"):
+        coverage = _coverage(out / "models", test_file, lbipe_dir or default_lbipe_dir(),
+                             n_sets=scale.n_sets, set_size=scale.train.set_size, seed=seed)
     with stage("continuous"):
         pair, baselines, fc, _ = load_models(out / "models")
         run, _ = load_samples(cont_file, only_at_rest=False)
@@ -145,6 +208,8 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
             "table1": plots.plot_table1(sim["objects"], out / "table1_sim.png",
                                         "simulated test objects"),
             "continuous": plots.plot_continuous(cres, out / "continuous.png")}
+    figs["coverage"] = plot_interval_width(coverage["simulated"], out / "coverage_sim.png",
+                                           "simulated test objects: interval width against error")
     if real and "ours" in real:
         figs["real"] = plots.plot_table1(real["ours"]["objects"], out / "table1_real.png",
                                          "real lbipe files, models trained on the simulator")
@@ -156,6 +221,8 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
         "continuous": {m: v["MAE_N"] for m, v in cres["methods"].items()},
         "real": None if real is None else {k: v for k, v in real.items() if k != "note"},
         "held_out": folds,
+        "coverage": {"floor": coverage["floor"],
+                     **{k: coverage[k]["objects"] for k in ("simulated", "real") if k in coverage}},
     }
     write_json(out / "tables.json", results)
     lines = [
@@ -172,6 +239,16 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
         table2(sim["torque"], "Table II: joint torque (all test samples)"), "",
         table3(sim["objects"], "Table III: mean attention weights"), "",
         f"![Table I]({figs['table1'].name})", "",
+        "## How sure: coverage of the intervals", "",
+        "Per set, the covariance of x = [m, m p] from the residual scatter (floored at the "
+        "torque models' validation error: " + coverage["floor"]["source"] + ") and the spread "
+        "over the model pairs; delta-method intervals for mass and COM. Coverage: the share "
+        "of sets whose interval holds the truth (COM: mean over x, y, z; region: the joint "
+        "3-D ellipsoid).", "",
+        coverage_table(coverage["simulated"]["objects"], "Simulated test objects"), "",
+        *([coverage_table(coverage["real"]["objects"], "Real files, models trained on the "
+                          "simulator"), ""] if "real" in coverage else []),
+        f"![coverage]({figs['coverage'].name})", "",
         "## Switching loads (continuous run)", "",
         f"{len(cont_mass)} consecutive samples, held object switching every "
         f"{scale.switch_every} samples ({' -> '.join(dict.fromkeys(cont_names))}); windows "
