@@ -29,6 +29,10 @@ measurable: the residuals are ~1-10 % of the torques, i.e. ~1e-13 relative.
 :func:`identifiability` is the pose-only part: the condition number, rank and predicted
 standard errors ``(sum_s A_s^T diag(1/sigma^2) A_s)^-1`` of a set before any torque is
 measured (``jaxinertia estimate`` refuses sets that cannot determine the COM).
+
+One module: the set covariance, the intervals and coverage read from it, and the pose-only
+prediction share the per-set statistics and the delta method; apart, each would import
+the others.
 """
 
 from __future__ import annotations

@@ -48,10 +48,11 @@ from jaxinertia.uncertainty import (
     DEFAULT_TORQUE_NOISE_NM,
     LEVELS,
     identifiability,
+    intervals,
     mass_com_covariance,
+    standard_errors,
     training_validation_error,
     uncertainty_of,
-    z_of,
 )
 
 __all__ = ["RealData", "estimate", "evaluate_models", "evaluate_samples", "load_real",
@@ -228,17 +229,17 @@ def _identifiable(obj: Samples, noise: np.ndarray, where: str) -> None:
 
 
 def _uncertainty_fields(u, o: int) -> dict:
-    """One object's answer of one method: value, standard errors, intervals, covariance."""
+    """One object's answer of one method: standard errors, intervals, covariance."""
     x, cov = np.asarray(u.x[o, 0]), np.asarray(u.cov[o, 0])
-    mc, cov_mc = (np.asarray(a) for a in mass_com_covariance(x, cov))
-    se = np.sqrt(np.maximum(np.diag(cov_mc), 0.0))
+    se = np.asarray(standard_errors(x, cov))
     out = {"mass_se_kg": float(se[0]), "com_se_m": se[1:].tolist()}
     for level in LEVELS:
-        half = z_of(level) * se
+        _, lo, hi = (np.asarray(a) for a in intervals(x, cov, level))
         out[f"interval_{round(level * 100)}"] = {
-            "mass_kg": [float(mc[0] - half[0]), float(mc[0] + half[0])],
-            "com_tag_m": np.stack([mc[1:] - half[1:], mc[1:] + half[1:]], axis=-1).tolist()}
-    out.update(covariance_x=cov.tolist(), covariance_mass_com=cov_mc.tolist(),
+            "mass_kg": [float(lo[0]), float(hi[0])],
+            "com_tag_m": np.stack([lo[1:], hi[1:]], axis=-1).tolist()}
+    out.update(covariance_x=cov.tolist(),
+               covariance_mass_com=np.asarray(mass_com_covariance(x, cov)[1]).tolist(),
                covariance_terms={"noise": np.asarray(u.cov_noise[o, 0]).tolist(),
                                  "ensemble": np.asarray(u.cov_ensemble[o, 0]).tolist()},
                torque_error_level_Nm=np.asarray(u.noise_std[o, 0]).tolist())
