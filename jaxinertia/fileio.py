@@ -11,15 +11,18 @@ minutes of computing.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
+
 from jaxinertia.errors import UsageError
 
-__all__ = ["check_output", "replacing", "replacing_dir", "write_text"]
+__all__ = ["check_output", "replacing", "replacing_dir", "write_json", "write_text"]
 
 
 def check_output(path: str | os.PathLike, *, overwrite: bool = False, option: str = "--out",
@@ -61,6 +64,17 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     with replacing(path) as tmp:
         tmp.write_text(text)
     return Path(path)
+
+
+def write_json(path: str | os.PathLike, obj) -> Path:
+    """``obj`` as indented JSON (numpy arrays as lists), written atomically."""
+    return write_text(path, json.dumps(obj, indent=2, default=_json_default) + "\n")
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray | np.generic):
+        return o.tolist()
+    raise TypeError(type(o).__name__)
 
 
 @contextlib.contextmanager

@@ -3,8 +3,8 @@
 Every command raises :class:`jaxinertia.errors.JaxinertiaError` for what the user can fix;
 :func:`main` catches it once, prints one line (``jaxinertia <command>: error: ...``) and
 exits with the error's code (2 for bad input, 3 for the bus and the hardware). The commands
-live in :mod:`jaxinertia.app.commands` (the paper's), :mod:`jaxinertia.app.hardware_commands`
-and :mod:`jaxinertia.app.vision_commands`.
+live in :mod:`jaxinertia.app.commands` (the paper's), :mod:`jaxinertia.app.estimate_commands`,
+:mod:`jaxinertia.app.hardware_commands` and :mod:`jaxinertia.app.vision_commands`.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import jax
 
-from jaxinertia.app import commands, hardware_commands, vision_commands
+from jaxinertia.app import commands, estimate_commands, hardware_commands, vision_commands
 from jaxinertia.app.options import Parser
 from jaxinertia.errors import JaxinertiaError
 
@@ -30,6 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = p.add_subparsers(dest="command", required=True)
     commands.register(sub)
+    estimate_commands.register(sub)  # an unknown object: estimate, plan-poses
     hardware_commands.register(sub)  # DYNAMIXEL bus, virtual robot, collection
     vision_commands.register(sub)  # camera: tag pose, camera-in-base calibration
     return p

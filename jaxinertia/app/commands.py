@@ -1,11 +1,10 @@
 """The paper's commands: ``lbipe-benchmark``, ``simulate``, ``calibrate``, ``train``,
-``evaluate``, ``estimate``, ``plan-poses`` and ``reproduce``.
+``evaluate`` and ``reproduce`` (``estimate`` and ``plan-poses`` are in
+:mod:`jaxinertia.app.estimate_commands`).
 
-One module: the commands share their option checks and writers (``_outputs``,
-``_write_json``, ``_enable_x64``) and one ``register``; each is a short function over
-:mod:`jaxinertia.app.pipeline`. Each ``cmd_*`` checks its options and outputs before any
-work and raises :class:`jaxinertia.errors.JaxinertiaError` subclasses for what the user can
-fix; :func:`jaxinertia.app.cli.main` prints them.
+Each is a short function over :mod:`jaxinertia.app.pipeline` that checks its options and
+outputs before any work and raises :class:`jaxinertia.errors.JaxinertiaError` subclasses
+for what the user can fix; :func:`jaxinertia.app.cli.main` prints them.
 """
 
 from __future__ import annotations
@@ -18,35 +17,33 @@ import numpy as np
 
 from jaxinertia import __version__
 from jaxinertia.app.options import (
+    check_outputs,
+    distinct,
+    enable_x64,
     fraction,
     nonnegative_float,
     positive_float,
     positive_int,
     unit_fraction,
+    write_json_option,
 )
 from jaxinertia.app.pipeline import (
-    estimate,
     evaluate_samples,
     released_benchmark,
     sim_to_real,
     train,
-    write_json,
 )
 from jaxinertia.app.plots import plot_calibration, plot_lbipe_estimates
 from jaxinertia.app.report import calibration_report, table1, table2, table3
 from jaxinertia.app.reproduce import reproduce
-from jaxinertia.design import DEFAULT_MARGIN_DEG, plan_poses, save_plan
 from jaxinertia.errors import UsageError
-from jaxinertia.fileio import check_output, write_text
+from jaxinertia.fileio import check_output, write_json, write_text
 from jaxinertia.lbipe import default_lbipe_dir
 from jaxinertia.objects import TEST_OBJECTS, TRAINING_LOADS_KG, load_name
 from jaxinertia.open_manipulator_x import (
     CALIBRATION_FILE,
-    MOUNT_CLEARANCE_M,
-    TAG_IN_EE,
-    WORKSPACE_DEG,
 )
-from jaxinertia.robot import data_path, load_robot, open_manipulator_x
+from jaxinertia.robot import data_path
 from jaxinertia.samples import Samples, save_lbipe, save_native
 from jaxinertia.sim import params as sim_params
 from jaxinertia.sim import run as sim_run
@@ -55,17 +52,6 @@ from jaxinertia.sim.continuous import simulate_continuous_run
 from jaxinertia.training import TrainConfig
 
 __all__ = ["register"]
-
-
-def _enable_x64():
-    # Identification is float64 (see jaxinertia.identification); networks stay float32.
-    jax.config.update("jax_enable_x64", True)
-
-
-def _distinct(names: list[str] | None, option: str) -> None:
-    if names and len(set(names)) != len(names):
-        dup = sorted({n for n in names if names.count(n) > 1})
-        raise UsageError(f"{option}: {', '.join(dup)} given more than once")
 
 
 def _parse_l_max(items: list[str]) -> dict[str, float]:
@@ -82,25 +68,9 @@ def _parse_l_max(items: list[str]) -> dict[str, float]:
     return out
 
 
-def _outputs(args, *options: str) -> None:
-    """Checks every output option given (before any work): see fileio.check_output."""
-    for option in options:
-        path = getattr(args, option.lstrip("-").replace("-", "_"))
-        if path is not None:
-            check_output(path, overwrite=args.overwrite, option=option)
-
-
-def _write_json(args, obj) -> int:
-    """``obj`` into ``--json`` when given; the command's exit code."""
-    if args.json:
-        write_json(args.json, obj)
-        print(f"wrote {args.json}")
-    return 0
-
-
 def cmd_lbipe_benchmark(args) -> int:
-    _enable_x64()
-    _outputs(args, "--json", "--plot")
+    enable_x64()
+    check_outputs(args, "--json", "--plot")
     res = released_benchmark(args.lbipe_dir, seed=args.seed, l_max=_parse_l_max(args.l_max))
     objects = res["objects"]
     print(table1(objects, "Table I: mass and COM error of the released models (10 pairs x "
@@ -117,7 +87,7 @@ def cmd_lbipe_benchmark(args) -> int:
     t = res["timing_s"]
     print(f"load {t['load']:.2f} s, batched evaluation incl. compilation "
           f"{t['evaluate_incl_compile']:.2f} s")
-    _write_json(args, objects)
+    write_json_option(args, objects)
     if args.plot:
         plot_lbipe_estimates(res["real"].objects, res["estimates"], args.plot)
         print(f"wrote {args.plot}")
@@ -128,8 +98,8 @@ def cmd_simulate(args) -> int:
     if args.precision == "float32":
         jax.config.update("jax_enable_x64", False)
     else:
-        _enable_x64()
-    _distinct(args.objects, "--objects")
+        enable_x64()
+    distinct(args.objects, "--objects")
     if args.format == "lbipe":
         split = "test" if args.scenario == "test" else "train"
         names = (args.objects or list(TEST_OBJECTS) if args.scenario == "test" else
@@ -137,7 +107,7 @@ def cmd_simulate(args) -> int:
         for name in names:
             check_output(args.out / f"data_{split}_{name}.npz", overwrite=args.overwrite)
     else:
-        _outputs(args, "--out")
+        check_outputs(args, "--out")
     params = sim_params.default_sim_params(args.calibration)
     if args.scenario == "continuous":
         if args.format != "native":
@@ -173,13 +143,13 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_calibrate(args) -> int:
-    _enable_x64()
+    enable_x64()
     out = args.out or data_path(CALIBRATION_FILE)
     if args.out is not None:
-        _outputs(args, "--out")
+        check_outputs(args, "--out")
     for name in ("report.md", "calibration.png"):
         check_output(args.report / name, overwrite=args.overwrite, option="--report")
-    _distinct(args.real_objects, "--real-objects")
+    distinct(args.real_objects, "--real-objects")
     if args.real_objects and args.start is None:
         # Held out: start from the datasheet, not from the shipped fit (it saw every file).
         params = sim_params.datasheet_sim_params()
@@ -215,8 +185,8 @@ def cmd_calibrate(args) -> int:
 
 
 def cmd_train(args) -> int:
-    _enable_x64()
-    _outputs(args, "--out")
+    enable_x64()
+    check_outputs(args, "--out")
     overrides = {k: v for k, v in vars(args).items()
                  if k in TrainConfig.__dataclass_fields__ and v is not None}
     cfg = TrainConfig(**overrides)
@@ -228,8 +198,8 @@ def cmd_train(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    _enable_x64()
-    _outputs(args, "--json")
+    enable_x64()
+    check_outputs(args, "--json")
     released = None
     if args.samples:
         res = evaluate_samples(args.models, args.samples, n_sets=args.sets, seed=args.seed)
@@ -248,99 +218,11 @@ def cmd_evaluate(args) -> int:
     print(table2(torque, "Table II: joint torque"))
     print()
     print(table3(objects, "Table III: mean attention weights"))
-    return _write_json(args, objects)
-
-
-def _pm(value: float, se: float) -> str:
-    return f"{value:.1f} +- {se:.1f}"
-
-
-def cmd_estimate(args) -> int:
-    _enable_x64()
-    _outputs(args, "--json")
-    res = estimate(args.models, args.samples, set_size=args.set_size, max_mass=args.max_mass,
-                   max_com=args.max_com, max_com_se=args.max_com_se)
-    floor = res["torque_error_floor"]
-    for name, o in res["objects"].items():
-        ident = o["identifiability"]
-        pc = np.asarray(ident["predicted_com_se_m"]) * 1e3
-        print(f"{name}: {o['n_samples']} samples; poses: condition {ident['condition']:.1f}, "
-              f"predicted standard error mass {ident['predicted_mass_se_kg'] * 1e3:.1f} g, "
-              f"COM {pc[0]:.1f} / {pc[1]:.1f} / {pc[2]:.1f} mm "
-              f"(torque error: {ident['torque_error_source']})")
-        if args.max_com_se is None and np.max(pc) > 50.0:
-            print(f"  the poses determine the COM poorly (+-{np.max(pc):.0f} mm predicted); "
-                  "--max-com-se refuses such sets")
-        print(f"{'method':<7} {'mass [g]':>16} {'COM x [mm]':>16} {'COM y [mm]':>16} "
-              f"{'COM z [mm]':>16}   (COM in the tag frame; value +- standard error, then "
-              "the 95 % interval)")
-        for m, r in o["methods"].items():
-            if not r["ok"]:
-                print(f"{m:<7} failed: {r['reason']}")
-                continue
-            c, cs = np.asarray(r["com_tag_m"]) * 1e3, np.asarray(r["com_se_m"]) * 1e3
-            print(f"{m:<7} {_pm(r['mass_kg'] * 1e3, r['mass_se_kg'] * 1e3):>16} "
-                  + " ".join(f"{_pm(c[i], cs[i]):>16}" for i in range(3)))
-            iv = r["interval_95"]
-            lo_hi = [np.asarray(iv["mass_kg"]) * 1e3] + list(np.asarray(iv["com_tag_m"]) * 1e3)
-            print(f"{'  95 %':<7} " + " ".join(f"{f'[{lo:.1f}, {hi:.1f}]':>16}"
-                                            for lo, hi in lo_hi))
-    print(f"torque error floor: {floor['source']}" + (
-        "" if floor["Nm"] is None else
-        " (" + ", ".join(f"{v * 1e3:.0f}" for v in floor["Nm"]) + " N mm per joint)"))
-    return _write_json(args, res)
-
-
-def cmd_plan_poses(args) -> int:
-    _enable_x64()
-    _outputs(args, "--out")
-    if args.robot is not None:
-        robot = load_robot(args.robot)
-        if args.workspace is None:
-            raise UsageError("--robot needs --workspace LO:HI (degrees, one per joint)")
-    else:
-        robot = open_manipulator_x()
-    workspace = WORKSPACE_DEG if args.workspace is None else tuple(args.workspace)
-    if args.joint_weights is not None and len(args.joint_weights) != robot.n_joints:
-        raise UsageError(f"--joint-weights: {len(args.joint_weights)} values for "
-                         f"{robot.n_joints} joints")
-    tag = TAG_IN_EE if args.robot is None else (np.eye(3), np.zeros(3))
-    plan = plan_poses(args.n, robot=robot, step_deg=args.step_deg, workspace=workspace,
-                      margin_deg=args.margin_deg, clearance=args.clearance,
-                      joint_weights=args.joint_weights, tag=tag, seed=args.seed)
-    gain = plan.logdet - np.median(plan.random_logdet)
-    print(f"{args.n} poses chosen from {plan.n_candidates} collision-free grid configurations "
-          f"({args.step_deg:g} deg; greedy + {plan.exchanges} exchange(s))")
-    print(f"log det information {plan.logdet:.2f}; random {args.n}-pose subsets of the grid: "
-          f"median {np.median(plan.random_logdet):.2f}, best of {len(plan.random_logdet)} "
-          f"{np.max(plan.random_logdet):.2f} (the plan's confidence ellipsoid of x is "
-          f"{np.exp(gain / 2):.1f}x smaller in volume than the median random one's)")
-    print("pose " + " ".join(f"{f'q{j + 1} [deg]':>9}" for j in range(robot.n_joints))
-          + "  direction")
-    for i, (q, d) in enumerate(zip(plan.q_d, plan.direction)):
-        print(f"{i:>4} " + " ".join(f"{v:>9.1f}" for v in np.degrees(q)) + "  "
-              + " ".join("+" if v > 0 else "-" for v in d))
-    save_plan(args.out, plan, robot=robot.name,
-              extra={"grid_step_deg": args.step_deg, "margin_deg": args.margin_deg,
-                     "workspace_deg": [list(w) for w in workspace],
-                     "joint_weights": args.joint_weights})
-    print(f"wrote {args.out}")
-    return 0
-
-
-def _range_deg(text: str) -> tuple[float, float]:
-    lo, sep, hi = text.partition(":")
-    try:
-        lo_f, hi_f = float(lo), float(hi)
-    except ValueError:
-        lo_f = hi_f = float("nan")
-    if not sep or not np.isfinite(lo_f) or not np.isfinite(hi_f) or not lo_f < hi_f:
-        raise argparse.ArgumentTypeError(f"must be LO:HI degrees with LO < HI, got {text!r}")
-    return lo_f, hi_f
+    return write_json_option(args, objects)
 
 
 def cmd_reproduce(args) -> int:
-    _enable_x64()
+    enable_x64()
     reproduce(args.out, full=args.full, seed=args.seed, lbipe_dir=args.lbipe_dir)
     return 0
 
@@ -456,53 +338,6 @@ def register(sub) -> None:
     e.add_argument("--seed", type=int, default=0)
     e.set_defaults(func=cmd_evaluate)
 
-    m = sub.add_parser("estimate", help="mass and COM of an unknown object from a sample file")
-    m.add_argument("--models", required=True, type=Path)
-    m.add_argument("--samples", required=True, type=Path)
-    m.add_argument("--set-size", type=positive_int, default=64,
-                   help="samples per set for the spread over sample sets (default 64); a "
-                   "file needs at least this many samples per object")
-    m.add_argument("--max-mass", type=positive_float, default=5.0,
-                   help="an estimate above this mass [kg] is reported as failed (default 5)")
-    m.add_argument("--max-com", type=positive_float, default=0.5,
-                   help="an estimate whose COM is farther than this from the tag [m] is "
-                   "reported as failed (default 0.5)")
-    m.add_argument("--max-com-se", type=positive_float, default=None, metavar="METRES",
-                   help="refuse an object whose COM the poses alone determine worse than this "
-                   "(predicted standard error [m] at the estimated mass; default: no limit, "
-                   "a singular set of poses is always refused)")
-    m.add_argument("--json", type=Path,
-                   help="write every answer here, with standard errors, 68/95 %% intervals and "
-                   "the covariance of x = [m, m p]")
-    m.add_argument("--overwrite", action="store_true", help="replace an existing --json")
-    m.set_defaults(func=cmd_estimate)
-
-    pp = sub.add_parser(
-        "plan-poses", help="choose the N most informative poses (D-optimal) for an estimate",
-        description="Chooses N configurations of the collision-free planning grid that "
-        "maximise log det of the load regressor's information sum_s A_s^T W A_s (greedy, "
-        "then exchanges), and approach directions that cancel a friction-like error; "
-        "writes a JSON plan (q_d [rad], direction +1/-1 per pose).")
-    pp.add_argument("--n", type=positive_int, default=16, help="poses (default 16)")
-    pp.add_argument("--out", required=True, type=Path, help="plan file to write (JSON)")
-    pp.add_argument("--step-deg", type=positive_float, default=10.0,
-                    help="grid step over the workspace (default 10)")
-    pp.add_argument("--margin-deg", type=nonnegative_float, default=DEFAULT_MARGIN_DEG,
-                    help="keep the poses this far inside every joint range: the torque models "
-                    "are least accurate at the limits (default %(default)s)")
-    pp.add_argument("--clearance", type=positive_float, default=MOUNT_CLEARANCE_M,
-                    help="minimum end-effector height over the mounting surface [m] "
-                    "(default %(default)s)")
-    pp.add_argument("--joint-weights", type=positive_float, nargs="+",
-                    help="W's weight per joint (e.g. 1/sigma_j^2 of the torque error; default "
-                    "equal)")
-    pp.add_argument("--robot", type=Path, help="an MJCF (.xml) or URDF of another serial arm "
-                    "(default: the embedded OpenMANIPULATOR-X)")
-    pp.add_argument("--workspace", type=_range_deg, nargs="+", metavar="LO:HI",
-                    help="joint ranges in degrees, one per joint (default: the paper's)")
-    pp.add_argument("--seed", type=int, default=0, help="seed of the random reference plans")
-    pp.add_argument("--overwrite", action="store_true", help="replace an existing --out")
-    pp.set_defaults(func=cmd_plan_poses)
 
     r = sub.add_parser(
         "reproduce", help="simulate, train, evaluate, switching loads, sim-to-real, report",

@@ -1,17 +1,22 @@
-"""Command-line option types: every number checked when it is parsed, one line on error.
-
-Each type names what it wants (``must be a positive integer, got '0'``); :class:`Parser`
-prints argparse's errors as one line and exits with code 2.
+"""What the command modules share: option types that check every number when it is
+parsed (``must be a positive integer, got '0'``), a :class:`Parser` that prints argparse's
+errors as one line with exit code 2, and the checks every command runs before its work
+(outputs, repeated names) and its ``--json`` writer.
 """
 
 from __future__ import annotations
 
 import argparse
 
+import jax
 import numpy as np
 
-__all__ = ["Parser", "finite_float", "fraction", "nonnegative_float", "positive_float",
-           "positive_int", "unit_fraction"]
+from jaxinertia.errors import UsageError
+from jaxinertia.fileio import check_output, write_json
+
+__all__ = ["Parser", "check_outputs", "distinct", "enable_x64", "finite_float", "fraction",
+           "nonnegative_float", "positive_float", "positive_int", "unit_fraction",
+           "write_json_option"]
 
 
 class Parser(argparse.ArgumentParser):
@@ -40,3 +45,32 @@ nonnegative_float = _number(float, lambda v: v >= 0, "a number >= 0")
 fraction = _number(float, lambda v: 0 < v < 1, "a number in (0, 1)")
 unit_fraction = _number(float, lambda v: 0 < v <= 1, "a number in (0, 1]")
 finite_float = _number(float, lambda v: True, "a finite number")
+
+
+def enable_x64() -> None:
+    """Identification is float64 (see jaxinertia.identification); networks stay float32."""
+    jax.config.update("jax_enable_x64", True)
+
+
+def distinct(names: list[str] | None, option: str) -> None:
+    """Refuses a name given twice to ``option``."""
+    if names and len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise UsageError(f"{option}: {', '.join(dup)} given more than once")
+
+
+def check_outputs(args, *options: str) -> None:
+    """Checks every output option given, before any work (``fileio.check_output``; the
+    command has ``--overwrite``)."""
+    for option in options:
+        path = getattr(args, option.lstrip("-").replace("-", "_"))
+        if path is not None:
+            check_output(path, overwrite=args.overwrite, option=option)
+
+
+def write_json_option(args, obj) -> int:
+    """``obj`` into ``--json`` when given; the command's exit code."""
+    if args.json:
+        write_json(args.json, obj)
+        print(f"wrote {args.json}")
+    return 0

@@ -10,7 +10,6 @@ object from a sample file.
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from collections.abc import Sequence
@@ -27,7 +26,7 @@ from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.estimation import ModelPair
 from jaxinertia.evaluation import choose_sets, evaluate, l_max_of
 from jaxinertia.features import LBIPE_FEATURES
-from jaxinertia.fileio import check_output, write_text
+from jaxinertia.fileio import check_output
 from jaxinertia.lbipe import (
     LbipeLayout,
     find_layout,
@@ -56,7 +55,7 @@ from jaxinertia.uncertainty import (
 )
 
 __all__ = ["RealData", "estimate", "evaluate_models", "evaluate_samples", "load_real",
-           "released_benchmark", "sim_to_real", "train", "write_json"]
+           "released_benchmark", "sim_to_real", "train"]
 
 
 def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg: TrainConfig,
@@ -337,14 +336,3 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
                 f"{x_best[0] * 1e3:.0f} g, torque error {noise_source}), above --max-com-se "
                 f"{max_com_se * 1e3:.1f} mm: sample more varied poses (jaxinertia plan-poses)")
     return out
-
-
-def write_json(path: str | os.PathLike, obj) -> Path:
-    """``obj`` as indented JSON (numpy arrays as lists), written atomically."""
-    return write_text(path, json.dumps(obj, indent=2, default=_json_default) + "\n")
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray | np.generic):
-        return o.tolist()
-    raise TypeError(type(o).__name__)

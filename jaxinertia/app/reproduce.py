@@ -28,14 +28,13 @@ from jaxinertia.app.pipeline import (
     load_real,
     sim_to_real,
     train,
-    write_json,
 )
 from jaxinertia.app.plots import plt  # pyplot, headless (Agg) as plots sets it up
 from jaxinertia.app.report import coverage_table, table1, table2, table3
 from jaxinertia.app.simdata import cached, params_digest, simulate_files
 from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import choose_sets, continuous_force
-from jaxinertia.fileio import replacing, write_text
+from jaxinertia.fileio import replacing, write_json, write_text
 from jaxinertia.lbipe import default_lbipe_dir
 from jaxinertia.samples import load_samples
 from jaxinertia.sim.continuous import simulate_continuous_run

@@ -1,0 +1,165 @@
+"""Commands for an unknown object: ``estimate`` (mass and COM with standard errors and
+intervals, refusing what the poses cannot determine) and ``plan-poses`` (the most
+informative poses to visit)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from jaxinertia.app.options import (
+    check_outputs,
+    enable_x64,
+    nonnegative_float,
+    positive_float,
+    positive_int,
+    write_json_option,
+)
+from jaxinertia.app.pipeline import estimate
+from jaxinertia.design import DEFAULT_MARGIN_DEG, plan_poses, save_plan
+from jaxinertia.errors import UsageError
+from jaxinertia.open_manipulator_x import MOUNT_CLEARANCE_M, TAG_IN_EE, WORKSPACE_DEG
+from jaxinertia.robot import load_robot, open_manipulator_x
+
+__all__ = ["register"]
+
+
+def _pm(value: float, se: float) -> str:
+    return f"{value:.1f} +- {se:.1f}"
+
+
+def cmd_estimate(args) -> int:
+    enable_x64()
+    check_outputs(args, "--json")
+    res = estimate(args.models, args.samples, set_size=args.set_size, max_mass=args.max_mass,
+                   max_com=args.max_com, max_com_se=args.max_com_se)
+    floor = res["torque_error_floor"]
+    for name, o in res["objects"].items():
+        ident = o["identifiability"]
+        pc = np.asarray(ident["predicted_com_se_m"]) * 1e3
+        print(f"{name}: {o['n_samples']} samples; poses: condition {ident['condition']:.1f}, "
+              f"predicted standard error mass {ident['predicted_mass_se_kg'] * 1e3:.1f} g, "
+              f"COM {pc[0]:.1f} / {pc[1]:.1f} / {pc[2]:.1f} mm "
+              f"(torque error: {ident['torque_error_source']})")
+        if args.max_com_se is None and np.max(pc) > 50.0:
+            print(f"  the poses determine the COM poorly (+-{np.max(pc):.0f} mm predicted); "
+                  "--max-com-se refuses such sets")
+        print(f"{'method':<7} {'mass [g]':>16} {'COM x [mm]':>16} {'COM y [mm]':>16} "
+              f"{'COM z [mm]':>16}   (COM in the tag frame; value +- standard error, then "
+              "the 95 % interval)")
+        for m, r in o["methods"].items():
+            if not r["ok"]:
+                print(f"{m:<7} failed: {r['reason']}")
+                continue
+            c, cs = np.asarray(r["com_tag_m"]) * 1e3, np.asarray(r["com_se_m"]) * 1e3
+            print(f"{m:<7} {_pm(r['mass_kg'] * 1e3, r['mass_se_kg'] * 1e3):>16} "
+                  + " ".join(f"{_pm(c[i], cs[i]):>16}" for i in range(3)))
+            iv = r["interval_95"]
+            lo_hi = [np.asarray(iv["mass_kg"]) * 1e3] + list(np.asarray(iv["com_tag_m"]) * 1e3)
+            print(f"{'  95 %':<7} " + " ".join(f"{f'[{lo:.1f}, {hi:.1f}]':>16}"
+                                            for lo, hi in lo_hi))
+    print(f"torque error floor: {floor['source']}" + (
+        "" if floor["Nm"] is None else
+        " (" + ", ".join(f"{v * 1e3:.0f}" for v in floor["Nm"]) + " N mm per joint)"))
+    return write_json_option(args, res)
+
+
+def cmd_plan_poses(args) -> int:
+    enable_x64()
+    check_outputs(args, "--out")
+    if args.robot is not None:
+        robot = load_robot(args.robot)
+        if args.workspace is None:
+            raise UsageError("--robot needs --workspace LO:HI (degrees, one per joint)")
+    else:
+        robot = open_manipulator_x()
+    workspace = WORKSPACE_DEG if args.workspace is None else tuple(args.workspace)
+    if args.joint_weights is not None and len(args.joint_weights) != robot.n_joints:
+        raise UsageError(f"--joint-weights: {len(args.joint_weights)} values for "
+                         f"{robot.n_joints} joints")
+    tag = TAG_IN_EE if args.robot is None else (np.eye(3), np.zeros(3))
+    plan = plan_poses(args.n, robot=robot, step_deg=args.step_deg, workspace=workspace,
+                      margin_deg=args.margin_deg, clearance=args.clearance,
+                      joint_weights=args.joint_weights, tag=tag, seed=args.seed)
+    gain = plan.logdet - np.median(plan.random_logdet)
+    print(f"{args.n} poses chosen from {plan.n_candidates} collision-free grid configurations "
+          f"({args.step_deg:g} deg; greedy + {plan.exchanges} exchange(s))")
+    print(f"log det information {plan.logdet:.2f}; random {args.n}-pose subsets of the grid: "
+          f"median {np.median(plan.random_logdet):.2f}, best of {len(plan.random_logdet)} "
+          f"{np.max(plan.random_logdet):.2f} (the plan's confidence ellipsoid of x is "
+          f"{np.exp(gain / 2):.1f}x smaller in volume than the median random one's)")
+    print("pose " + " ".join(f"{f'q{j + 1} [deg]':>9}" for j in range(robot.n_joints))
+          + "  direction")
+    for i, (q, d) in enumerate(zip(plan.q_d, plan.direction)):
+        print(f"{i:>4} " + " ".join(f"{v:>9.1f}" for v in np.degrees(q)) + "  "
+              + " ".join("+" if v > 0 else "-" for v in d))
+    save_plan(args.out, plan, robot=robot.name,
+              extra={"grid_step_deg": args.step_deg, "margin_deg": args.margin_deg,
+                     "workspace_deg": [list(w) for w in workspace],
+                     "joint_weights": args.joint_weights})
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _range_deg(text: str) -> tuple[float, float]:
+    lo, sep, hi = text.partition(":")
+    try:
+        lo_f, hi_f = float(lo), float(hi)
+    except ValueError:
+        lo_f = hi_f = float("nan")
+    if not sep or not np.isfinite(lo_f) or not np.isfinite(hi_f) or not lo_f < hi_f:
+        raise argparse.ArgumentTypeError(f"must be LO:HI degrees with LO < HI, got {text!r}")
+    return lo_f, hi_f
+
+
+def register(sub) -> None:
+    """Adds this module's subcommands to the ``jaxinertia`` argparse subparsers."""
+    m = sub.add_parser("estimate", help="mass and COM of an unknown object from a sample file")
+    m.add_argument("--models", required=True, type=Path)
+    m.add_argument("--samples", required=True, type=Path)
+    m.add_argument("--set-size", type=positive_int, default=64,
+                   help="samples per set for the spread over sample sets (default 64); a "
+                   "file needs at least this many samples per object")
+    m.add_argument("--max-mass", type=positive_float, default=5.0,
+                   help="an estimate above this mass [kg] is reported as failed (default 5)")
+    m.add_argument("--max-com", type=positive_float, default=0.5,
+                   help="an estimate whose COM is farther than this from the tag [m] is "
+                   "reported as failed (default 0.5)")
+    m.add_argument("--max-com-se", type=positive_float, default=None, metavar="METRES",
+                   help="refuse an object whose COM the poses alone determine worse than this "
+                   "(predicted standard error [m] at the estimated mass; default: no limit, "
+                   "a singular set of poses is always refused)")
+    m.add_argument("--json", type=Path,
+                   help="write every answer here, with standard errors, 68/95 %% intervals and "
+                   "the covariance of x = [m, m p]")
+    m.add_argument("--overwrite", action="store_true", help="replace an existing --json")
+    m.set_defaults(func=cmd_estimate)
+
+    pp = sub.add_parser(
+        "plan-poses", help="choose the N most informative poses (D-optimal) for an estimate",
+        description="Chooses N configurations of the collision-free planning grid that "
+        "maximise log det of the load regressor's information sum_s A_s^T W A_s (greedy, "
+        "then exchanges), and approach directions that cancel a friction-like error; "
+        "writes a JSON plan (q_d [rad], direction +1/-1 per pose).")
+    pp.add_argument("--n", type=positive_int, default=16, help="poses (default 16)")
+    pp.add_argument("--out", required=True, type=Path, help="plan file to write (JSON)")
+    pp.add_argument("--step-deg", type=positive_float, default=10.0,
+                    help="grid step over the workspace (default 10)")
+    pp.add_argument("--margin-deg", type=nonnegative_float, default=DEFAULT_MARGIN_DEG,
+                    help="keep the poses this far inside every joint range: the torque models "
+                    "are least accurate at the limits (default %(default)s)")
+    pp.add_argument("--clearance", type=positive_float, default=MOUNT_CLEARANCE_M,
+                    help="minimum end-effector height over the mounting surface [m] "
+                    "(default %(default)s)")
+    pp.add_argument("--joint-weights", type=positive_float, nargs="+",
+                    help="W's weight per joint (e.g. 1/sigma_j^2 of the torque error; default "
+                    "equal)")
+    pp.add_argument("--robot", type=Path, help="an MJCF (.xml) or URDF of another serial arm "
+                    "(default: the embedded OpenMANIPULATOR-X)")
+    pp.add_argument("--workspace", type=_range_deg, nargs="+", metavar="LO:HI",
+                    help="joint ranges in degrees, one per joint (default: the paper's)")
+    pp.add_argument("--seed", type=int, default=0, help="seed of the random reference plans")
+    pp.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    pp.set_defaults(func=cmd_plan_poses)
