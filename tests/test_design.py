@@ -28,6 +28,7 @@ from jaxinertia.design import (
 from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.open_manipulator_x import WORKSPACE_DEG
 from jaxinertia.plans import planning_plan, random_plan
+from jaxinertia.robot import OPEN_MANIPULATOR_X_XML, data_path
 
 # numpy's slogdet of the same (well-conditioned) matrices.
 LOGDET_RTOL = 1e-10
@@ -192,3 +193,18 @@ def test_select_compiles_once_per_shape():
         b = select(jnp.asarray(C2), 5)
     assert seen.compiles["select"] == 1, seen
     assert not np.array_equal(np.asarray(a[0]), np.asarray(b[0]))
+
+
+def test_plan_poses_for_a_description_file_matches_the_embedded_arm(tmp_path, capsys):
+    """--robot FILE (the embedded arm's own MJCF, no tag mount) plans the same poses: the
+    criterion depends on the kinematics only."""
+    default, from_file = tmp_path / "a.json", tmp_path / "b.json"
+    assert main(["plan-poses", "--n", "8", "--out", str(default)]) == 0
+    ranges = ",".join(f"{lo:g}:{hi:g}" for lo, hi in WORKSPACE_DEG)
+    assert main(["plan-poses", "--n", "8", "--out", str(from_file), "--robot",
+                 str(data_path(OPEN_MANIPULATOR_X_XML)), f"--workspace={ranges}"]) == 0
+    np.testing.assert_allclose(load_plan(from_file)[0], load_plan(default)[0], atol=1e-12)
+    capsys.readouterr()
+    assert main(["plan-poses", "--n", "8", "--out", str(tmp_path / "c.json"), "--robot",
+                 str(data_path(OPEN_MANIPULATOR_X_XML))]) == 2
+    assert "--workspace" in capsys.readouterr().err

@@ -72,7 +72,7 @@ def cmd_plan_poses(args) -> int:
     if args.robot is not None:
         robot = load_robot(args.robot)
         if args.workspace is None:
-            raise UsageError("--robot needs --workspace LO:HI (degrees, one per joint)")
+            raise UsageError("--robot needs --workspace LO:HI,... (degrees, one per joint)")
     else:
         robot = open_manipulator_x()
     workspace = WORKSPACE_DEG if args.workspace is None else tuple(args.workspace)
@@ -103,15 +103,21 @@ def cmd_plan_poses(args) -> int:
     return 0
 
 
-def _range_deg(text: str) -> tuple[float, float]:
-    lo, sep, hi = text.partition(":")
-    try:
-        lo_f, hi_f = float(lo), float(hi)
-    except ValueError:
-        lo_f = hi_f = float("nan")
-    if not sep or not np.isfinite(lo_f) or not np.isfinite(hi_f) or not lo_f < hi_f:
-        raise argparse.ArgumentTypeError(f"must be LO:HI degrees with LO < HI, got {text!r}")
-    return lo_f, hi_f
+def _ranges_deg(text: str) -> tuple[tuple[float, float], ...]:
+    """``LO:HI,LO:HI,...`` [deg], one range per joint (one argument: a leading minus sign
+    would read as an option)."""
+    out = []
+    for part in text.split(","):
+        lo, sep, hi = part.partition(":")
+        try:
+            lo_f, hi_f = float(lo), float(hi)
+        except ValueError:
+            lo_f = hi_f = float("nan")
+        if not sep or not np.isfinite(lo_f) or not np.isfinite(hi_f) or not lo_f < hi_f:
+            raise argparse.ArgumentTypeError(
+                f"must be LO:HI,LO:HI,... degrees with LO < HI per joint, got {text!r}")
+        out.append((lo_f, hi_f))
+    return tuple(out)
 
 
 def register(sub) -> None:
@@ -158,8 +164,9 @@ def register(sub) -> None:
                     "equal)")
     pp.add_argument("--robot", type=Path, help="an MJCF (.xml) or URDF of another serial arm "
                     "(default: the embedded OpenMANIPULATOR-X)")
-    pp.add_argument("--workspace", type=_range_deg, nargs="+", metavar="LO:HI",
-                    help="joint ranges in degrees, one per joint (default: the paper's)")
+    pp.add_argument("--workspace", type=_ranges_deg, metavar="LO:HI,...",
+                    help="joint ranges in degrees, one per joint, e.g. "
+                    "--workspace=-30:30,-50:-10,10:50,-20:20 (default: the paper's)")
     pp.add_argument("--seed", type=int, default=0, help="seed of the random reference plans")
     pp.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     pp.set_defaults(func=cmd_plan_poses)
