@@ -24,6 +24,16 @@ if "JAXINERTIA_CACHE_DIR" not in os.environ:
     def pytest_sessionfinish(session, exitstatus):  # noqa: ARG001
         shutil.rmtree(_CACHE, ignore_errors=True)
 
+# The test process uses the same cache from its start (the command line's main() would
+# switch it on at its first in-process call), and keeps programs that took 0.1 s or more to
+# compile (JAX's default: 1 s): an identical program then compiles once per session even
+# when it is built anew (a jit created per call, a stream program keyed by its lane count,
+# the same program in a subprocess), and the CI machine compiles most programs in
+# 0.1-10 s. Compile counts (support.compiles) still count a cache hit as a compilation.
+if os.environ["JAXINERTIA_CACHE_DIR"].lower() != "off":
+    jax.config.update("jax_compilation_cache_dir", os.environ["JAXINERTIA_CACHE_DIR"])
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
+
 from jaxinertia.lbipe import default_lbipe_dir  # noqa: E402
 
 ASSETS = Path(__file__).parent / "assets"

@@ -49,6 +49,13 @@ COM_RTOL = 1e-14
 FLOAT32_MASS_RTOL = 1e-4
 FLOAT32_COM_MM = 1e-2
 
+# Compiled once per module and shape (run eagerly, the Jacobi sweeps of the condition number
+# dispatch op by op: 50 single-set solves took ~20 s on the 2-core CI machine). Jitted and
+# eager runs are the same float64 arithmetic; the tolerances above cover either.
+_wls = jax.jit(wls)
+_wls_batched = jax.jit(wls_batched)
+_solve_sets = jax.jit(solve_sets)
+
 
 def _problem(rng, rows=256, scales=(1.0, 0.02, 0.03, 0.05), collinear=None):
     A = rng.standard_normal((rows, 4)) * np.asarray(scales)
@@ -68,7 +75,7 @@ def test_wls_equals_numpy_lstsq_on_random_weighted_problems():
     rng = np.random.default_rng(0)
     for _ in range(50):
         A, y, w = _problem(rng)
-        res = wls(jnp.asarray(A), jnp.asarray(y), jnp.asarray(w))
+        res = _wls(jnp.asarray(A), jnp.asarray(y), jnp.asarray(w))
         ref = _lstsq(A, y, w)
         np.testing.assert_allclose(res.x, ref, rtol=LSTSQ_RTOL, atol=LSTSQ_ATOL)
         sw = np.sqrt(w)
@@ -83,7 +90,7 @@ def test_wls_equals_numpy_lstsq_on_random_weighted_problems():
 def test_identity_weights_equal_unweighted_lstsq():
     rng = np.random.default_rng(1)
     A, y, _ = _problem(rng)
-    res = wls(jnp.asarray(A), jnp.asarray(y))
+    res = _wls(jnp.asarray(A), jnp.asarray(y))
     np.testing.assert_allclose(res.x, np.linalg.lstsq(A, y, rcond=None)[0], rtol=LSTSQ_RTOL)
 
 
@@ -99,7 +106,7 @@ def test_rank_deficient_sets_are_flagged_and_nan():
         wc = w.copy()
         if name == "weights select too few rows":
             wc[3:] = 0.0  # three non-zero rows for four unknowns
-        res = wls(jnp.asarray(Ac), jnp.asarray(y), jnp.asarray(wc))
+        res = _wls(jnp.asarray(Ac), jnp.asarray(y), jnp.asarray(wc))
         assert bool(res.rank_deficient), name
         assert np.all(np.isnan(np.asarray(res.x))), name
         assert np.isinf(float(res.condition)), name
@@ -108,7 +115,7 @@ def test_rank_deficient_sets_are_flagged_and_nan():
 def test_ill_conditioned_sets_are_flagged_but_solved():
     rng = np.random.default_rng(3)
     A, y, w = _problem(rng, collinear=1e-6)
-    res = wls(jnp.asarray(A), jnp.asarray(y), jnp.asarray(w))
+    res = _wls(jnp.asarray(A), jnp.asarray(y), jnp.asarray(w))
     assert bool(res.ill_conditioned) and not bool(res.rank_deficient)
     assert float(res.condition) > 1e4
     assert np.all(np.isfinite(np.asarray(res.x)))
@@ -119,10 +126,10 @@ def test_non_finite_inputs_are_flagged():
     rng = np.random.default_rng(4)
     A, y, w = _problem(rng)
     y[7] = np.nan
-    assert bool(wls(jnp.asarray(A), jnp.asarray(y), jnp.asarray(w)).rank_deficient)
+    assert bool(_wls(jnp.asarray(A), jnp.asarray(y), jnp.asarray(w)).rank_deficient)
     A2 = A.copy()
     A2[3, 1] = np.inf
-    assert bool(wls(jnp.asarray(A2), jnp.asarray(np.ones(256)), jnp.asarray(w)).rank_deficient)
+    assert bool(_wls(jnp.asarray(A2), jnp.asarray(np.ones(256)), jnp.asarray(w)).rank_deficient)
 
 
 def test_batched_sets_equal_one_by_one_and_gather_path():
@@ -132,12 +139,12 @@ def test_batched_sets_equal_one_by_one_and_gather_path():
     y = rng.standard_normal((S, N))
     w = rng.uniform(size=(S, N))
     sets = np.stack([rng.choice(S, M, replace=False) for _ in range(B)])
-    res = jax.jit(solve_sets)(jnp.asarray(A), jnp.asarray(y), jnp.asarray(w), jnp.asarray(sets))
+    res = _solve_sets(jnp.asarray(A), jnp.asarray(y), jnp.asarray(w), jnp.asarray(sets))
     for b in range(B):
         idx = sets[b]
         ref = _lstsq(A[idx].reshape(-1, 4), y[idx].reshape(-1), w[idx].reshape(-1))
         np.testing.assert_allclose(res.x[b], ref, rtol=LSTSQ_RTOL, atol=LSTSQ_ATOL)
-    batched = wls_batched(
+    batched = _wls_batched(
         jnp.asarray(A[sets].reshape(B, -1, 4)),
         jnp.asarray(y[sets].reshape(B, -1)),
         jnp.asarray(w[sets].reshape(B, -1)),
@@ -169,8 +176,8 @@ def test_gradient_through_batched_wls_equals_finite_differences():
         w = jax.nn.softmax(logits, axis=-1)
         return jnp.sum(solve_sets(A, y, w, sets).x ** 2)
 
-    check_grads(loss, (jnp.asarray(rng.standard_normal((S, N))),), order=1, modes=["rev"],
-                atol=FD_TOL, rtol=FD_TOL)
+    check_grads(jax.jit(loss), (jnp.asarray(rng.standard_normal((S, N))),), order=1,
+                modes=["rev"], atol=FD_TOL, rtol=FD_TOL)
 
 
 def test_symmetric_eigvals_and_cholesky_solve_match_numpy():
@@ -200,8 +207,8 @@ def test_float32_against_float64_on_real_regressors(lbipe_dir, name):
     rng = np.random.default_rng(8)
     sets = np.stack([rng.choice(ds.n_samples, 64, replace=False) for _ in range(200)])
     y = ds.tau - ds.tau_g
-    r64 = solve_sets(jnp.asarray(ds.A), jnp.asarray(y), None, jnp.asarray(sets))
-    r32 = solve_sets(jnp.asarray(ds.A, jnp.float32), jnp.asarray(y, jnp.float32), None,
+    r64 = _solve_sets(jnp.asarray(ds.A), jnp.asarray(y), None, jnp.asarray(sets))
+    r32 = _solve_sets(jnp.asarray(ds.A, jnp.float32), jnp.asarray(y, jnp.float32), None,
                      jnp.asarray(sets))
     assert r32.x.dtype == jnp.float32 and r64.x.dtype == jnp.float64
     for b in range(0, 200, 20):

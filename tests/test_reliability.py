@@ -167,6 +167,11 @@ def test_load_models_refuses_non_finite_weights(model_folder, tmp_path, monkeypa
 
 # ---- estimate: per object, gated, refusing what it cannot answer -------------------------
 
+#: Samples per object in the estimate tests: one size for all of them (and
+#: test_uncertainty's), so that the programs compiled for one object's size (the estimate,
+#: its sets, its uncertainty) serve every test; the refusals and gates do not depend on it.
+S_EST = 120
+
 
 def _write(path, samples: Samples) -> str:
     save_native(path, samples, {"robot": "open_manipulator_x"})
@@ -184,7 +189,7 @@ def test_estimate_refuses_too_few_samples_and_zero_discrepancy(model_folder, tmp
 
 
 def test_estimate_reports_absurd_answers_as_failed_never_as_numbers(model_folder, tmp_path):
-    d = synthetic_samples(np.random.default_rng(3), n=200, n_obj=1)
+    d = synthetic_samples(np.random.default_rng(3), n=S_EST, n_obj=1)
     mass = float(d.x[0, 0])
     huge = d.current_tau.copy()
     huge[5, 1] = 1e30  # one broken current reading: the Sensor method's answer is absurd
@@ -200,7 +205,7 @@ def test_estimate_reports_absurd_answers_as_failed_never_as_numbers(model_folder
 
 
 def test_estimate_answers_each_object_of_a_multi_object_file(model_folder, tmp_path, capsys):
-    d = synthetic_samples(np.random.default_rng(4), n=300, n_obj=3)
+    d = synthetic_samples(np.random.default_rng(4), n=3 * S_EST, n_obj=3)
     res = estimate(model_folder, _write(tmp_path / "multi.npz", d))
     assert list(res["objects"]) == ["o0", "o1", "o2"]
     for o, name in enumerate(d.names):
@@ -209,12 +214,12 @@ def test_estimate_answers_each_object_of_a_multi_object_file(model_folder, tmp_p
     assert main(["estimate", "--models", str(model_folder), "--samples",
                  str(tmp_path / "multi.npz")]) == 0
     out = capsys.readouterr().out
-    assert all(f"{n}: 100 samples" in out for n in d.names)
+    assert all(f"{n}: {S_EST} samples" in out for n in d.names)
 
 
 def test_estimate_with_no_possible_answer_is_an_error(model_folder, tmp_path, capsys):
-    d = synthetic_samples(np.random.default_rng(5), n=100, n_obj=1)
-    d = d.replace(A=np.repeat(d.A[:1], 100, axis=0) * [1, 1, 0, 1])  # no y information
+    d = synthetic_samples(np.random.default_rng(5), n=S_EST, n_obj=1)
+    d = d.replace(A=np.repeat(d.A[:1], S_EST, axis=0) * [1, 1, 0, 1])  # no y information
     assert main(["estimate", "--models", str(model_folder), "--samples",
                  _write(tmp_path / "s.npz", d.without_truth())]) == 2
     _one_line_error(capsys, "no method gives a physically possible estimate", "singular")

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import os
 import subprocess
 import sys
 
@@ -15,6 +14,7 @@ import numpy as np
 import pytest
 
 from jaxinertia import objects
+from jaxinertia.app.cli import main as cli_main
 from jaxinertia.errors import SimulationError, UsageError
 from jaxinertia.features import LBIPE_FEATURES
 from jaxinertia.kinematics import ee_pose, gravity_torques
@@ -139,33 +139,36 @@ def test_a_sample_satisfies_tau_minus_tau_g_equals_A_x(params, rests):
 
 def test_simulated_samples_follow_the_lbipe_conventions():
     robot = open_manipulator_x().replace(armature=jnp.full(4, 0.01))
-    params = SimParams(robot, ServoParams.xm430_w350(4), FrictionParams.create(4))
+    # No constant torque offset: zeros rather than None, so that the parameters have the
+    # shipped ones' structure and the stream's programs (default lanes) compiled for the
+    # other tests serve here too. The stream gives the samples of ``simulate_samples``
+    # (test_streamed_lanes_give_the_samples_of_the_plain_vmap).
+    params = SimParams(robot, ServoParams.xm430_w350(4), FrictionParams.create(4),
+                       torque_offset=jnp.zeros(4))
     obj = HeldObject(jnp.asarray(0.0881), COM_TAG, R_EE_TAG, P_EE_TAG, jnp.eye(3) * 2e-5)
     rng = np.random.default_rng(0)
     S = 48
-    q_d = jnp.asarray(rng.uniform(np.asarray(LBIPE_FEATURES.q_min),
-                                  np.asarray(LBIPE_FEATURES.q_max), (S, 4)))
-    direction = jnp.asarray(rng.choice([-1.0, 1.0], (S, 4)))
-    s = jax.jit(lambda a, b, k: simulate_samples(params, obj, a, b, k))(q_d, direction,
-                                                                     jax.random.key(0))
-    assert bool(jnp.all(s.at_rest))
+    q_d = rng.uniform(np.asarray(LBIPE_FEATURES.q_min), np.asarray(LBIPE_FEATURES.q_max), (S, 4))
+    direction = rng.choice([-1.0, 1.0], (S, 4))
+    s = run_plan(params, obj, q_d, direction, jax.random.key(0), progress=False)
+    assert s["at_rest"].all()
     # Present position in whole ticks, current in 2.69 mA steps (times k_t).
-    ticks = np.asarray(s.q) / RAD_PER_TICK
+    ticks = s["q"] / RAD_PER_TICK
     np.testing.assert_allclose(ticks, np.round(ticks), atol=1e-9)
     lsb = 2.69e-3 * 4.1 / 2.3  # datasheet k_t: what a current-based torque assumes
-    steps = np.asarray(s.current_tau) / lsb
+    steps = s["current_tau"] / lsb
     np.testing.assert_allclose(steps, np.round(steps), atol=1e-6)
     # tau - tau_g = A x exactly, with the foundation's A at the recorded q.
-    np.testing.assert_allclose(s.tau - s.tau_g, jnp.einsum("snk,k->sn", s.A, obj.x), atol=TOL,
-                               err_msg="tau - tau_g")
+    np.testing.assert_allclose(s["tau"] - s["tau_g"], np.einsum("snk,k->sn", s["A"], obj.x),
+                               atol=TOL, err_msg="tau - tau_g")
     # The servo holds +tau (lbipe convention) up to friction and tick rounding of q.
-    hold_err = np.asarray(s.servo_tau + s.friction_tau - s.tau)
+    hold_err = s["servo_tau"] + s["friction_tau"] - s["tau"]
     assert np.max(np.abs(hold_err)) < 0.01, np.max(np.abs(hold_err))
     # tau rises with q_d - q as on the real arm (k > 0 per joint, ~16 N m/rad at P = 800).
-    qe = np.asarray(s.q_d - s.q)
+    qe = s["q_d"] - s["q"]
     for j in range(4):
-        X = np.column_stack([qe[:, j], -np.asarray(direction[:, j]), np.ones(S)])
-        k, f, _ = np.linalg.lstsq(X, np.asarray(s.tau[:, j]), rcond=None)[0]
+        X = np.column_stack([qe[:, j], -direction[:, j], np.ones(S)])
+        k, f, _ = np.linalg.lstsq(X, s["tau"][:, j], rcond=None)[0]
         assert 10 < k < 25 and f > 0, (j, k, f)
 
 
@@ -186,8 +189,30 @@ def test_shipped_link_gravity_reproduces_the_real_tau_g(lbipe_dir):
     np.testing.assert_allclose(fitted.com, robot.com, atol=TOL, err_msg="mismatch: com")
 
 
+#: :func:`simulate_samples` compiled once for the module: the parameters and the object are
+#: arguments, so every call with the same shapes reuses the program (run eagerly, each call
+#: compiled its two settling loops again, ~10 s each on the 2-core CI machine).
+_simulate_samples = jax.jit(simulate_samples)
+
+
+@pytest.fixture(scope="module")
+def stream_case():
+    """Two objects' plans and their samples from the plain vmap (:func:`simulate_samples`,
+    one vmapped protocol per sample, the same per-sample keys as the stream), shared by
+    both ways of stepping the lanes. The plans have equal sizes so that the reference is one
+    compiled program; what is tested does not depend on the sizes: 10 samples refill 3
+    lanes three times over, and on 8 lanes the last two wait for a lane to free."""
+    p = default_sim_params()
+    plans = [(objects.test_object("cube"), *random_plan(5, 0), jax.random.key(3)),
+             (objects.test_object("white"), *random_plan(5, 1), jax.random.key(4))]
+    refs = [jax.tree.map(np.asarray, _simulate_samples(
+        p, obj, jnp.asarray(q_d), jnp.asarray(d), jax.random.split(key, len(q_d)))._asdict())
+        for obj, q_d, d, key in plans]
+    return p, plans, refs
+
+
 @pytest.mark.parametrize("batch_last", [False, True], ids=["vmap", "batch-last"])
-def test_streamed_lanes_give_the_samples_of_the_plain_vmap(batch_last):
+def test_streamed_lanes_give_the_samples_of_the_plain_vmap(batch_last, stream_case):
     """The lane scheduler (lanes refill as samples finish, objects mixed) runs the same
     arithmetic as ``simulate_samples`` (one vmapped protocol per sample) with the same
     per-sample keys, so the samples agree; and they do not depend on the lane count.
@@ -198,16 +223,11 @@ def test_streamed_lanes_give_the_samples_of_the_plain_vmap(batch_last):
     the ticks, rest flags and settle times still agree to the bit and the true state to
     1e-12; across lane counts only the state may differ, in its last bits (the compiled
     loops differ with the batch size)."""
-    p = default_sim_params()
-    plans = [(objects.test_object("cube"), *random_plan(5, 0), jax.random.key(3)),
-             (objects.test_object("white"), *random_plan(4, 1), jax.random.key(4))]
+    p, plans, refs = stream_case
     a = run_plans(p, plans, lanes=3, batch_last=batch_last, progress=False)
     b = run_plans(p, plans, lanes=8, batch_last=batch_last, progress=False)
     state = ("q_true", "servo_tau", "friction_tau")
-    for obj, q_d, d, key in plans[::-1]:
-        ref = simulate_samples(p, obj, jnp.asarray(q_d), jnp.asarray(d),
-                               jax.random.split(key, len(q_d)))._asdict()
-        got_a, got_b = a.pop(), b.pop()
+    for ref, got_a, got_b in zip(refs, a, b):
         for k in ref:
             if batch_last and k in state:
                 _assert_field(got_a, got_b, k, atol=TOL / 1000)
@@ -235,7 +255,9 @@ def test_the_stream_runs_the_stepping_program_precompiled_before_its_plans():
     stream.precompile(p, objects.test_object("red"), lanes=5, batch_last=True)
     precompiled = steps_programs() - before
     assert len(precompiled) == 1
-    out, = run_plans(p, [(objects.test_object("cube"), *random_plan(3, 2), jax.random.key(1))],
+    # 9 samples: the sample table (padded to 16) is the other stream tests' one, so that
+    # the record program compiled for them serves (the session's compilation cache).
+    out, = run_plans(p, [(objects.test_object("cube"), *random_plan(9, 2), jax.random.key(1))],
                      lanes=5, tail_lanes=0, batch_last=True, progress=False)
     assert steps_programs() == before | precompiled
     assert out["at_rest"].all()
@@ -336,21 +358,23 @@ def test_simulate_in_float32_rests_where_float64_does(tmp_path):
     physics: with the random friction jitter off (float32 draws different random numbers,
     so with it on the samples are another draw of the same distribution), the arm rests at
     the same ticks as in float64 on nearly every joint and never more than one tick away.
-    Both files store float64 and name the precision simulated. (The command runs in its own
-    process: it sets JAX's precision for the whole process.)"""
+    Both files store float64 and name the precision simulated. (The float32 command runs in
+    its own process: it sets JAX's precision for the whole process.)"""
     calib = json.loads(data_path("open_manipulator_x_sim.json").read_text())
     calib["servo_friction"]["friction"]["jitter"] = [0.0] * 4
     (tmp_path / "calib.json").write_text(json.dumps(calib))
-    env = {**os.environ, "JAXINERTIA_CACHE_DIR": "off"}
     out = {}
     for precision in ("float64", "float32"):
         path = tmp_path / f"{precision}.npz"
-        run = subprocess.run(
-            [sys.executable, "-m", "jaxinertia", "simulate", "--scenario", "test", "--n", "32",
-             "--objects", "black", "--calibration", str(tmp_path / "calib.json"),
-             "--precision", precision, "--out", str(path)],
-            env=env, capture_output=True, text=True)
-        assert run.returncode == 0, run.stderr[-2000:]
+        argv = ["simulate", "--scenario", "test", "--n", "32", "--objects", "black",
+                "--calibration", str(tmp_path / "calib.json"), "--precision", precision,
+                "--out", str(path)]
+        if precision == "float64":  # the test process's own precision: run in it, with
+            assert cli_main(argv) == 0  # the stream programs the tests before compiled
+        else:
+            run = subprocess.run([sys.executable, "-m", "jaxinertia", *argv],
+                                 capture_output=True, text=True)
+            assert run.returncode == 0, run.stderr[-2000:]
         out[precision] = _read_npz(path)
     (a, meta_a), (b, meta_b) = out["float64"], out["float32"]
     assert meta_a["simulator"]["precision"] == "float64"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -39,27 +41,35 @@ def _random_states(key, n=4):
     return SimState(q, qd, servo, friction), goal
 
 
+@partial(jax.jit, static_argnames=("in_axes",))
+def _reference_rollout(params, state, goal, in_axes):
+    """``STEPS`` steps of ``jax.vmap(step)`` (params mapped per ``in_axes``, a hashable
+    None or SimParams of axes), (T, B, N). Jitted once for the module with the parameters
+    as arguments: parameter sets of one structure (the default and the PID gains) share the
+    compiled program (~10 s to compile on the 2-core CI machine)."""
+    def body(s, _):
+        s = jax.vmap(step, (in_axes, 0, 0))(params, s, goal)
+        return s, s
+
+    return jax.lax.scan(body, state, None, length=STEPS)[1]
+
+
+@jax.jit
+def _batch_last_rollout(params_bl, state, goal):
+    """The same steps batch-last, returned batch-first (T, B, N)."""
+    g = goal.T
+
+    def body(s, _):
+        s = step_batched(params_bl, s, g)
+        return s, s
+
+    traj = jax.lax.scan(body, state_batch_last(state), None, length=STEPS)[1]
+    return jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, -1, 1), traj)
+
+
 def _rollouts(params_ref, in_axes, params_bl, state, goal):
-    @jax.jit
-    def ref(s):
-        def body(s, _):
-            s = jax.vmap(step, (in_axes, 0, 0))(params_ref, s, goal)
-            return s, s
-
-        return jax.lax.scan(body, s, None, length=STEPS)[1]
-
-    @jax.jit
-    def bl(s):
-        g = goal.T
-
-        def body(s, _):
-            s = step_batched(params_bl, s, g)
-            return s, s
-
-        traj = jax.lax.scan(body, state_batch_last(s), None, length=STEPS)[1]
-        return jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, -1, 1), traj)  # (T, B, N)
-
-    return ref(state), bl(state)
+    return (_reference_rollout(params_ref, state, goal, in_axes=in_axes),
+            _batch_last_rollout(params_bl, state, goal))
 
 
 def _assert_same(traj_ref, traj_bl):
@@ -81,10 +91,13 @@ def _assert_same(traj_ref, traj_bl):
 def test_batched_step_matches_vmapped_step_with_a_shared_robot(gains):
     params = default_sim_params()
     if gains == "pid":  # every term of the servo law, and a constant torque offset
+        def full(v):  # float64, not weak-typed: the default's types (one compiled program)
+            return jnp.full(4, v, jnp.float64)
+
         params = params.replace(
-            servo=params.servo.replace(i_gain=jnp.full(4, 30.0), d_gain=jnp.full(4, 200.0)),
-            friction=params.friction.replace(ripple_amplitude=jnp.full(4, 0.01),
-                                             ripple_frequency=jnp.full(4, 3.0)),
+            servo=params.servo.replace(i_gain=full(30.0), d_gain=full(200.0)),
+            friction=params.friction.replace(ripple_amplitude=full(0.01),
+                                             ripple_frequency=full(3.0)),
             torque_offset=jnp.array([0.02, -0.05, 0.03, 0.0]))
     state, goal = _random_states(jax.random.PRNGKey(0))
     traj_ref, traj_bl = _rollouts(params, None, params, state, goal)
