@@ -34,6 +34,8 @@ if os.environ["JAXINERTIA_CACHE_DIR"].lower() != "off":
     jax.config.update("jax_compilation_cache_dir", os.environ["JAXINERTIA_CACHE_DIR"])
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
 
+from support.layouts import small_layout  # noqa: E402
+
 from jaxinertia.lbipe import default_lbipe_dir  # noqa: E402
 
 ASSETS = Path(__file__).parent / "assets"
@@ -56,3 +58,11 @@ def lbipe_dir() -> Path:
             pytest.fail("CI is set and " + msg)
         pytest.skip(msg)
     return path
+
+
+@pytest.fixture(scope="session")
+def small_lbipe_dir(lbipe_dir, tmp_path_factory) -> Path:
+    """The real files cut to their first ``support.layouts.N_REAL`` samples beside the
+    released weights, for the pipeline tests (test_folds, the tiny end to end): one layout
+    for all of them, so that their programs on the real data compile once."""
+    return small_layout(lbipe_dir, tmp_path_factory.mktemp("lbipe"))

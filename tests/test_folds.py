@@ -8,6 +8,7 @@ import json
 import jax
 import numpy as np
 import pytest
+from support.layouts import N_REAL
 from support.synthetic import synthetic_samples
 
 from jaxinertia.app.cli import main
@@ -15,28 +16,12 @@ from jaxinertia.app.folds import FoldScale, format_folds, run_folds
 from jaxinertia.app.pipeline import train
 from jaxinertia.checkpoints import load_models
 from jaxinertia.errors import UsageError
-from jaxinertia.samples import lbipe_arrays, load_lbipe, save_lbipe, save_native
+from jaxinertia.samples import save_lbipe, save_native
 from jaxinertia.sim import calibration
 from jaxinertia.training import TrainConfig
 
-N_REAL = 120  # real samples kept per object: the protocol does not depend on how many
 
-
-@pytest.fixture(scope="module")
-def small_layout(lbipe_dir, tmp_path_factory):
-    """The real cube and white files cut to their first samples, and the released weights
-    (no golden sets: they index the full files)."""
-    root = tmp_path_factory.mktemp("lbipe")
-    (root / "data").mkdir()
-    for name in ("cube", "white"):
-        full = load_lbipe(lbipe_dir / "data" / f"data_test_{name}.npz")
-        np.savez(root / "data" / f"data_test_{name}.npz",
-                 **lbipe_arrays(full.take(np.arange(N_REAL))))
-    (root / "weights").symlink_to(lbipe_dir / "weights")
-    return root
-
-
-def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_layout, tmp_path,
+def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir, tmp_path,
                                                                    monkeypatch):
     seen = []
     real_files = calibration.real_files
@@ -50,7 +35,7 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_layout, t
                       train=TrainConfig(n_models=2, torque_epochs=3, attention_epochs=2,
                                         attention_sets=8, attention_val_sets=4,
                                         val_fraction=0.2))
-    res = run_folds(tmp_path / "folds", small_layout, scale, progress=False, log=lambda m: None)
+    res = run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False, log=lambda m: None)
     assert set(res["folds"]) == {"cube", "white"}
     # Every look at real samples is restricted: to the fold's object while fitting, to the
     # held-out one for the replay; never all files at once.
@@ -73,11 +58,11 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_layout, t
     assert "white's real plan replayed in the simulator calibrated on cube" in text
 
 
-def test_fits_refuse_objects_the_folder_does_not_have(small_layout, capsys):
+def test_fits_refuse_objects_the_folder_does_not_have(small_lbipe_dir, capsys):
     with pytest.raises(UsageError, match="mystery"):
-        calibration.real_files(small_layout, ["mystery"])
-    assert [d.name for d in calibration.real_files(small_layout, ["white"])] == ["white"]
-    assert main(["calibrate", "--lbipe-dir", str(small_layout), "--real-objects", "cube",
+        calibration.real_files(small_lbipe_dir, ["mystery"])
+    assert [d.name for d in calibration.real_files(small_lbipe_dir, ["white"])] == ["white"]
+    assert main(["calibrate", "--lbipe-dir", str(small_lbipe_dir), "--real-objects", "cube",
                  "cube"]) == 2
     assert "--real-objects" in capsys.readouterr().err
 

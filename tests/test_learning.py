@@ -283,15 +283,20 @@ def test_estimate_refuses_a_singular_sample_set(tmp_path):
         estimate(tmp_path / "m", p)
 
 
-def test_tiny_end_to_end_report_numbers_come_from_the_run(tmp_path, lbipe_dir):
-    """simulate -> train -> evaluate -> continuous -> sim-to-real -> report, tiny."""
-    scale = Scale(planning=False, random_per_load=80, test_per_object=70,
-                  continuous_samples=160, switch_every=40, n_sets=20,
+def test_tiny_end_to_end_report_numbers_come_from_the_run(tmp_path, small_lbipe_dir):
+    """simulate -> train -> evaluate -> continuous -> sim-to-real -> report, tiny.
+
+    The sizes are test_folds' (training samples and configuration, the real files cut to
+    their first samples), so that the programs compiled there serve here: what is checked,
+    that the report's numbers are the run's, does not depend on them."""
+    scale = Scale(planning=False, random_per_load=40, test_per_object=70,
+                  # one chunk of the continuous run (it steps 128 samples at a time)
+                  continuous_samples=128, switch_every=32, n_sets=20,
                   fold_calibration_iterations=0,  # the folds: tests/test_folds.py
                   train=TrainConfig(n_models=2, torque_epochs=5, attention_epochs=2,
                                     attention_sets=8, attention_val_sets=4, set_size=64,
                                     val_fraction=0.2))
-    res = reproduce(tmp_path / "run", scale=scale, lbipe_dir=lbipe_dir, progress=False)
+    res = reproduce(tmp_path / "run", scale=scale, lbipe_dir=small_lbipe_dir, progress=False)
     run = Path(tmp_path / "run")
     tables = json.loads((run / "tables.json").read_text())
     report = (run / "report.md").read_text()
