@@ -41,12 +41,18 @@ def _random_states(key, n=4):
     return SimState(q, qd, servo, friction), goal
 
 
+#: Traces of the rollouts below (the counts rise only while JAX traces them).
+_TRACES = {"vmap": 0, "batch-last": 0}
+
+
 @partial(jax.jit, static_argnames=("in_axes",))
 def _reference_rollout(params, state, goal, in_axes):
     """``STEPS`` steps of ``jax.vmap(step)`` (params mapped per ``in_axes``, a hashable
     None or SimParams of axes), (T, B, N). Jitted once for the module with the parameters
     as arguments: parameter sets of one structure (the default and the PID gains) share the
     compiled program (~10 s to compile on the 2-core CI machine)."""
+    _TRACES["vmap"] += 1
+
     def body(s, _):
         s = jax.vmap(step, (in_axes, 0, 0))(params, s, goal)
         return s, s
@@ -57,6 +63,7 @@ def _reference_rollout(params, state, goal, in_axes):
 @jax.jit
 def _batch_last_rollout(params_bl, state, goal):
     """The same steps batch-last, returned batch-first (T, B, N)."""
+    _TRACES["batch-last"] += 1
     g = goal.T
 
     def body(s, _):
@@ -133,27 +140,20 @@ def test_layout_helpers_round_trip_and_reject_batch_first_states():
 
 
 def test_the_steps_trace_and_compile_once_for_new_data_of_the_same_shapes():
-    """New states, goals and parameter values of the same shapes reuse the compiled step
-    (one arm vmapped, and batch-last): the parameters' static fields (dt, tolerances) and
-    the leaves' dtypes do not change between calls, so nothing is traced again."""
-    traces = {"vmap": 0, "batch-last": 0}
-
-    @jax.jit
-    def vmapped(params, state, goal):
-        traces["vmap"] += 1  # runs only while tracing
-        return jax.vmap(step, (None, 0, 0))(params, state, goal)
-
-    @jax.jit
-    def batch_last(params, state, goal):
-        traces["batch-last"] += 1
-        return step_batched(params, state, goal)
-
+    """New states, goals and parameter values of the same shapes reuse the compiled steps
+    (one arm vmapped, and batch-last; inside the rollouts above, whose programs the other
+    tests of this module may have compiled already): the parameters' static fields (dt,
+    tolerances) and the leaves' dtypes do not change between calls, so after the first call
+    nothing is traced again."""
     params = default_sim_params()
+    programs = (_reference_rollout, _batch_last_rollout)
     for i in range(3):
         p = params.replace(friction=params.friction.replace(
             coulomb=params.friction.coulomb * (1.0 + 0.1 * i)))
         state, goal = _random_states(jax.random.PRNGKey(10 + i))
-        jax.block_until_ready(vmapped(p, state, goal))
-        jax.block_until_ready(batch_last(p, state_batch_last(state), goal.T))
-    assert traces == {"vmap": 1, "batch-last": 1}, traces
-    assert vmapped._cache_size() == 1 and batch_last._cache_size() == 1
+        jax.block_until_ready(_rollouts(p, None, p, state, goal))
+        if i == 0:
+            traced, sizes = dict(_TRACES), [f._cache_size() for f in programs]
+    assert traced["vmap"] >= 1 and traced["batch-last"] >= 1, traced  # the counter counts
+    assert _TRACES == traced, (traced, _TRACES)
+    assert [f._cache_size() for f in programs] == sizes
