@@ -37,6 +37,8 @@ pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
                                 reason="the virtual servo bus needs a Linux pseudo-terminal")
 
 N = 6
+#: The interrupted collection's plan (see its test).
+N_INTERRUPTED = 60
 SPEED = 15
 #: Each collection: 10 minutes to start beside 20 x its simulated time (2 moves of at most
 #: 6 s per sample).
@@ -54,20 +56,20 @@ def robot(tmp_path_factory):
         yield r
 
 
-def collect_cmd(port: str, out, *extra: str) -> list[str]:
+def collect_cmd(port: str, out, *extra: str, n: int = N) -> list[str]:
     return [sys.executable, "-m", "jaxinertia", "collect", "--port", port,
-            "--plan", "random", "--n", str(N), "--seed", "4", "--object", "50g",
+            "--plan", "random", "--n", str(n), "--seed", "4", "--object", "50g",
             "--out", str(out), "--no-progress", "--retries", "40", *extra]
 
 
-def check_complete(out) -> None:
+def check_complete(out, n: int = N) -> None:
     samples, _ = load_native(out, only_at_rest=False)
     fields = samples.fields()
-    q_d, d = random_plan(N, 4)
-    np.testing.assert_array_equal(fields["plan_index"], np.arange(N), err_msg="plan_index")
+    q_d, d = random_plan(n, 4)
+    np.testing.assert_array_equal(fields["plan_index"], np.arange(n), err_msg="plan_index")
     np.testing.assert_array_equal(fields["q_d"], q_d, err_msg="q_d")
     np.testing.assert_array_equal(fields["direction"], d, err_msg="direction")
-    assert sorted(journal_indices(out)) == list(range(N)), "each sample exactly once"
+    assert sorted(journal_indices(out)) == list(range(n)), "each sample exactly once"
 
 
 def test_overload_stops_cleanly_and_resume_completes_the_plan(robot, tmp_path):
@@ -105,20 +107,31 @@ def test_refuses_to_overwrite_a_journal_without_resume(robot, tmp_path):
 
 
 def test_ctrl_c_leaves_the_journal_consistent_and_resume_completes(robot, tmp_path):
+    # A plan long enough that the interrupt, sent as soon as the first sample is on disk,
+    # lands mid-plan however busy the host is (6 samples took ~1 s at 15x real time and
+    # could all finish between two polls of a descheduled test process).
+    n = N_INTERRUPTED
     out = tmp_path / "int.npz"
-    with running(collect_cmd(robot.path, out)) as proc:
+    with running(collect_cmd(robot.path, out, n=n)) as proc:
         wait_for_samples(out, 1, WALL_LIMIT_S, proc)  # the first sample on disk
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=WALL_LIMIT_S)
     assert proc.returncode == 130, err
     assert "interrupted (hold)" in err
     got = journal_indices(out)
-    assert 1 <= len(got) < N and got == list(range(len(got)))
-    done = subprocess.run(collect_cmd(robot.path, out, "--resume"), capture_output=True,
-                          text=True, timeout=WALL_LIMIT_S)
-    assert done.returncode == 0, done.stderr
-    assert f"{len(got)} of {N} samples already" in done.stderr
-    check_complete(out)
+    assert 1 <= len(got) < n and got == list(range(len(got)))
+    # The shared robot injects an overload on servo 13 (FAULTS), which a plan this long can
+    # meet: that stop is the overload test's subject; here resume until the plan is done.
+    resumes = []
+    for _ in range(3):
+        resumes.append(subprocess.run(
+            collect_cmd(robot.path, out, "--resume", "--clear-errors", n=n),
+            capture_output=True, text=True, timeout=WALL_LIMIT_S * n / N))
+        if resumes[-1].returncode != 3 or "overload" not in resumes[-1].stderr:
+            break
+    assert resumes[-1].returncode == 0, resumes[-1].stderr
+    assert f"{len(got)} of {n} samples already" in resumes[0].stderr
+    check_complete(out, n)
 
 
 # ---- refused before anything moves (in this process; the port does not exist) ------------
