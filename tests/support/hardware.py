@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import json
 import re
+import signal
 import subprocess
 import time
 from collections.abc import Iterator
@@ -59,10 +60,20 @@ def wait_for_samples(out: Path, n: int, deadline_s: float,
         time.sleep(0.05)
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @contextlib.contextmanager
 def running(cmd: list[str]) -> Iterator[subprocess.Popen]:
-    """``cmd`` in a subprocess (text pipes); killed on the way out if still running."""
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    """``cmd`` in a subprocess (text pipes); killed on the way out if still running.
+
+    SIGINT is reset to its default in the child: a test runner started in the background
+    by a non-interactive shell inherits SIGINT ignored, and Python then never turns Ctrl-C
+    into KeyboardInterrupt (the interrupt tests would see a collect that cannot be
+    interrupted)."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_default_sigint)
     try:
         yield proc
     finally:
