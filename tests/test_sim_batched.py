@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from functools import partial
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -45,13 +43,20 @@ def _random_states(key, n=4):
 _TRACES = {"vmap": 0, "batch-last": 0}
 
 
-@partial(jax.jit, static_argnames=("in_axes",))
-def _reference_rollout(params, state, goal, in_axes):
-    """``STEPS`` steps of ``jax.vmap(step)`` (params mapped per ``in_axes``, a hashable
-    None or SimParams of axes), (T, B, N). Jitted once for the module with the parameters
-    as arguments: parameter sets of one structure (the default and the PID gains) share the
-    compiled program (~10 s to compile on the 2-core CI machine)."""
+def _copies(tree):
+    """``tree`` with every leaf repeated for the B arms (leading axis)."""
+    return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (B,) + jnp.shape(a)), tree)
+
+
+@jax.jit
+def _reference_rollout(params, state, goal):
+    """``STEPS`` steps of ``jax.vmap(step)``, every arm with its own robot and friction
+    (``params.robot`` and ``params.friction`` have a leading axis B; the servo and the
+    torque offset are shared), (T, B, N). One compiled program, the parameters as arguments,
+    for every test here (~10 s to compile on the 2-core CI machine): a robot shared by all
+    arms is given to it as B copies (:func:`_copies`), the same arithmetic per arm."""
     _TRACES["vmap"] += 1
+    in_axes = params.replace(robot=0, servo=None, friction=0, torque_offset=None)
 
     def body(s, _):
         s = jax.vmap(step, (in_axes, 0, 0))(params, s, goal)
@@ -74,9 +79,14 @@ def _batch_last_rollout(params_bl, state, goal):
     return jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, -1, 1), traj)
 
 
-def _rollouts(params_ref, in_axes, params_bl, state, goal):
-    return (_reference_rollout(params_ref, state, goal, in_axes=in_axes),
+def _rollouts(params_ref, params_bl, state, goal):
+    return (_reference_rollout(params_ref, state, goal),
             _batch_last_rollout(params_bl, state, goal))
+
+
+def _shared(params):
+    """The reference's parameters for a robot and friction shared by all arms."""
+    return params.replace(robot=_copies(params.robot), friction=_copies(params.friction))
 
 
 def _assert_same(traj_ref, traj_bl):
@@ -107,7 +117,7 @@ def test_batched_step_matches_vmapped_step_with_a_shared_robot(gains):
                                              ripple_frequency=full(3.0)),
             torque_offset=jnp.array([0.02, -0.05, 0.03, 0.0]))
     state, goal = _random_states(jax.random.PRNGKey(0))
-    traj_ref, traj_bl = _rollouts(params, None, params, state, goal)
+    traj_ref, traj_bl = _rollouts(_shared(params), params, state, goal)
     _assert_same(traj_ref, traj_bl)
 
 
@@ -120,11 +130,10 @@ def test_batched_step_matches_vmapped_step_with_per_arm_robots_and_friction():
     scale = jax.random.uniform(key_f, (B, 1), minval=0.5, maxval=1.5)
     friction = jax.tree_util.tree_map(lambda a: scale * a[None], params.friction)
     per_arm = params.replace(robot=robots, friction=friction)  # servo shared
-    in_axes = params.replace(robot=0, servo=None, friction=0, torque_offset=None)
     params_bl = per_arm.replace(robot=params_batch_last(robots),
                                 friction=params_batch_last(friction))
     state, goal = _random_states(key_s)
-    traj_ref, traj_bl = _rollouts(per_arm, in_axes, params_bl, state, goal)
+    traj_ref, traj_bl = _rollouts(per_arm, params_bl, state, goal)
     _assert_same(traj_ref, traj_bl)
 
 
@@ -151,7 +160,7 @@ def test_the_steps_trace_and_compile_once_for_new_data_of_the_same_shapes():
         p = params.replace(friction=params.friction.replace(
             coulomb=params.friction.coulomb * (1.0 + 0.1 * i)))
         state, goal = _random_states(jax.random.PRNGKey(10 + i))
-        jax.block_until_ready(_rollouts(p, None, p, state, goal))
+        jax.block_until_ready(_rollouts(_shared(p), p, state, goal))
         if i == 0:
             traced, sizes = dict(_TRACES), [f._cache_size() for f in programs]
     assert traced["vmap"] >= 1 and traced["batch-last"] >= 1, traced  # the counter counts
