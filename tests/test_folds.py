@@ -20,6 +20,13 @@ from jaxinertia.samples import save_lbipe, save_native
 from jaxinertia.sim import calibration
 from jaxinertia.training import TrainConfig
 
+#: Training samples (four loads or objects) and configuration of every training here and in
+#: test_learning's tiny end to end: one set of shapes, so that the training programs
+#: compile once per session (what these tests check does not depend on the sizes).
+N_TRAIN = 160
+TRAIN = TrainConfig(n_models=2, torque_epochs=3, attention_epochs=2, attention_sets=8,
+                    attention_val_sets=4, val_fraction=0.2)
+
 
 def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir, tmp_path,
                                                                    monkeypatch):
@@ -31,10 +38,8 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
         return real_files(lbipe_dir, objects)
 
     monkeypatch.setattr(calibration, "real_files", spy)
-    scale = FoldScale(calibration_iterations=1, random_per_load=40, planning=False,
-                      train=TrainConfig(n_models=2, torque_epochs=3, attention_epochs=2,
-                                        attention_sets=8, attention_val_sets=4,
-                                        val_fraction=0.2))
+    scale = FoldScale(calibration_iterations=1, random_per_load=N_TRAIN // 4,
+                      planning=False, train=TRAIN)
     res = run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False, log=lambda m: None)
     assert set(res["folds"]) == {"cube", "white"}
     # Every look at real samples is restricted: to the fold's object while fitting, to the
@@ -70,15 +75,13 @@ def test_fits_refuse_objects_the_folder_does_not_have(small_lbipe_dir, capsys):
 def test_training_on_the_authors_layout_gives_the_models_of_the_native_files(tmp_path):
     """The same samples written natively and in the authors' layout (one file per object)
     train the same models, bit for bit (issue 16 item 3)."""
-    d = synthetic_samples(np.random.default_rng(8), n=300, n_obj=3)
+    d = synthetic_samples(np.random.default_rng(8), n=N_TRAIN, n_obj=4)
     d = d.take(np.argsort(d.object_id, kind="stable"))  # grouped by object, as simulate writes
     native = save_native(tmp_path / "native.npz", d, {"robot": "open_manipulator_x"})
     lbipe = save_lbipe(tmp_path / "lbipe", "train", d)
-    assert [p.name for p in lbipe] == [f"data_train_o{i}.npz" for i in range(3)]
-    cfg = TrainConfig(n_models=2, torque_epochs=3, attention_epochs=2, attention_sets=8,
-                      attention_val_sets=4, set_size=32, val_fraction=0.2)
-    a = train([native], tmp_path / "a", cfg, progress=False)
-    b = train(lbipe, tmp_path / "b", cfg, progress=False)
+    assert [p.name for p in lbipe] == [f"data_train_o{i}.npz" for i in range(4)]
+    a = train([native], tmp_path / "a", TRAIN, progress=False)
+    b = train(lbipe, tmp_path / "b", TRAIN, progress=False)
     assert a["samples"] == b["samples"] and a["best_epoch"] == b["best_epoch"]
     np.testing.assert_array_equal(a["history"]["torque"], b["history"]["torque"])
     np.testing.assert_array_equal(a["history"]["attention"], b["history"]["attention"])
