@@ -22,7 +22,7 @@ from jaxinertia.errors import ModelFolderError, RobotMismatchError
 from jaxinertia.estimation import ModelPair
 from jaxinertia.features import FeatureConfig
 from jaxinertia.fileio import replacing_dir
-from jaxinertia.networks import AttentionModel, TorqueModel
+from jaxinertia.networks import TORQUE_MODELS, AttentionModel, torque_model_kind
 
 __all__ = ["file_sha256", "load_models", "save_models"]
 
@@ -56,7 +56,8 @@ def save_models(directory: str | os.PathLike, pair: ModelPair, baselines: Baseli
     config = {
         "format": FORMAT, "format_version": FORMAT_VERSION, "robot": robot,
         "n_models": pair.n_models,
-        "torque_model": _arch(pair.torque_model),
+        "torque_model": {"kind": torque_model_kind(pair.torque_model),
+                         **_arch(pair.torque_model)},
         "attention_model": _arch(pair.attention_model),
         "features": features.to_dict(),
         "baselines": baselines.to_dict(),
@@ -95,10 +96,18 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None):
     if robot is not None and config.get("robot") != robot:
         raise RobotMismatchError(f"{directory}: models trained for robot {config.get('robot')!r}, "
                               f"the samples come from {robot!r}")
-    tm = TorqueModel(**{k: tuple(v) if isinstance(v, list) else v
-                        for k, v in config["torque_model"].items()})
-    am = AttentionModel(**{k: tuple(v) if isinstance(v, list) else v
-                           for k, v in config["attention_model"].items()})
+    try:
+        arch = dict(config["torque_model"])
+        kind = arch.pop("kind", "paper")  # folders before the option: the paper's network
+        if kind not in TORQUE_MODELS:
+            raise ValueError(f"unknown torque model kind {kind!r}")
+        tm = TORQUE_MODELS[kind](**{k: tuple(v) if isinstance(v, list) else v
+                                    for k, v in arch.items()})
+        am = AttentionModel(**{k: tuple(v) if isinstance(v, list) else v
+                               for k, v in config["attention_model"].items()})
+    except (KeyError, TypeError, ValueError) as e:
+        raise ModelFolderError(f"{cfg_path}: malformed model architecture "
+                               f"({type(e).__name__}: {e})") from None
     try:
         features = FeatureConfig.from_dict(config["features"])
         baselines = Baselines.from_dict(config["baselines"])

@@ -1,7 +1,9 @@
 """The paper's two networks (Flax linen) and loading of the authors' released weights.
 
 TorqueModel: per joint an MLP 4 -> hidden -> embed (ReLU between), the N embeddings
-concatenated, then a head MLP (ReLU) to N normalised torques.
+concatenated, then a head MLP (ReLU) to N normalised torques. PhysicalTorqueModel (an
+option, not the paper's): a per-joint servo part (stiffness, offset, friction by approach
+direction and load) plus a TorqueModel residual.
 
 AttentionModel: per joint an MLP of the same shape (its own parameters), the embedding
 concatenated with the joint's one-hot index, a scorer MLP to one score per joint, and a
@@ -30,12 +32,15 @@ from jaxinertia.torch_state_dict import load_state_dict as load_pt
 __all__ = [
     "AttentionModel",
     "JointEmbedding",
+    "PhysicalTorqueModel",
+    "TORQUE_MODELS",
     "TorqueModel",
     "WeightsError",
     "attention_params_from_torch",
     "load_released_pair",
     "load_state_dict",
     "stack_params",
+    "torque_model_kind",
     "torque_params_from_torch",
 ]
 
@@ -70,6 +75,49 @@ class TorqueModel(nn.Module):
         for i, width in enumerate(self.head):
             x = nn.relu(nn.Dense(width, name=f"head{i}")(x))
         return nn.Dense(self.n_joints, name="out")(x)
+
+
+class PhysicalTorqueModel(nn.Module):
+    """A physics-structured torque model: per joint a servo part plus the paper's network
+    as a residual, so that the torque extrapolates in load like the servo does.
+
+    In the features' normalised units (``e`` the scaled discrepancy ``q_d - q``, ``s`` the
+    approach direction +1 / -1, output times ``tau_scale`` = N m), per joint j::
+
+        tau_j = k_j e_j + c_j + s_j (f_j + g_j |k_j e_j|) + r_j(features)
+
+    with a stiffness ``k`` (starts at 1: the scales map the largest discrepancy to the
+    largest torque), a constant torque ``c`` (cables, offsets), a direction-dependent
+    friction ``f`` and its load-proportional part ``g`` (the friction of a loaded gear
+    train grows with the torque it carries), and ``r`` the paper's network
+    (:class:`TorqueModel`, same shape) for what the servo part does not describe.
+    """
+
+    n_joints: int = 4
+    hidden: int = 12
+    embed: int = 12
+    head: Sequence[int] = (64, 64)
+
+    @nn.compact
+    def __call__(self, features):
+        N = self.n_joints
+        e = features[..., 1]
+        s = features[..., 2] - features[..., 3]
+        k = self.param("stiffness", nn.initializers.ones, (N,), features.dtype)
+        c = self.param("offset", nn.initializers.zeros, (N,), features.dtype)
+        f = self.param("friction", nn.initializers.zeros, (N,), features.dtype)
+        g = self.param("load_friction", nn.initializers.zeros, (N,), features.dtype)
+        servo = k * e
+        residual = TorqueModel(N, self.hidden, self.embed, self.head, name="residual")(features)
+        return servo + c + s * (f + g * jnp.abs(servo)) + residual
+
+
+#: Torque model architectures by the name ``train --torque-model`` and model folders use.
+TORQUE_MODELS = {"paper": TorqueModel, "physical": PhysicalTorqueModel}
+
+
+def torque_model_kind(model: nn.Module) -> str:
+    return next(k for k, cls in TORQUE_MODELS.items() if type(model) is cls)
 
 
 class AttentionModel(nn.Module):

@@ -17,7 +17,10 @@ weights, the WLS ``x = [m, m p]``; the loss is ``w_m (m_hat - m)^2 + w_com |p_ha
 trick); sets of the empty gripper carry no COM loss. Adam, batch 32, 30 epochs, lr 1e-4.
 
 Both keep the epoch with the lowest validation loss, per model (held-out samples; the
-attention model's validation sets are drawn from them).
+attention model's validation sets are drawn from them). Fine-tuning (``init``: a trained
+folder's parameters, e.g. simulator-trained models adapted on real samples of known
+objects) starts from given parameters, which compete as epoch -1, so it never returns
+models worse on validation than the ones it started from.
 """
 
 from __future__ import annotations
@@ -37,10 +40,11 @@ from tqdm.auto import tqdm
 from jaxinertia.errors import TrainingError, UsageError
 from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.identification import solve_normal
-from jaxinertia.networks import AttentionModel, TorqueModel
+from jaxinertia.networks import TORQUE_MODELS, AttentionModel, PhysicalTorqueModel, TorqueModel
 from jaxinertia.samples import Samples
 
 __all__ = [
+    "FINETUNE_DEFAULTS",
     "Epoch",
     "TrainConfig",
     "TrainState",
@@ -48,6 +52,8 @@ __all__ = [
     "draw_sets",
     "feature_config_from",
     "make_epoch",
+    "optimizer",
+    "per_object_subset",
     "train_attention_models",
     "train_torque_models",
 ]
@@ -73,6 +79,10 @@ class TrainConfig:
     w_mass: float = 1.0
     w_com: float = 0.3
     val_fraction: float = 0.1
+    #: What training may change (fine-tuning): "all"; "head" (the per-joint encoders
+    #: fixed); "servo" (only the physical model's servo parameters; the attention fixed).
+    trainable: str = "all"
+    torque_model: str = "paper"  # or "physical" (networks.TORQUE_MODELS)
 
     def __post_init__(self):
         positive = ("n_models", "torque_epochs", "torque_batch", "attention_epochs",
@@ -93,12 +103,25 @@ class TrainConfig:
             raise UsageError("w_mass and w_com are both zero: the attention loss would be zero")
         if not 0.0 < self.val_fraction < 1.0:
             raise UsageError(f"val_fraction must be in (0, 1), got {self.val_fraction!r}")
+        if self.torque_model not in TORQUE_MODELS:
+            raise UsageError(f"torque_model must be one of {sorted(TORQUE_MODELS)}, got "
+                             f"{self.torque_model!r}")
+        if self.trainable not in TRAINABLE:
+            raise UsageError(f"trainable must be one of {list(TRAINABLE)}, got "
+                             f"{self.trainable!r}")
 
     def replace(self, **kw) -> TrainConfig:
         return dataclasses.replace(self, **kw)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+
+# Fine-tuning's defaults (``train --init``): a few real samples of known objects adapt
+# simulator-trained models; small steps, few epochs, early stopping on the validation split.
+FINETUNE_DEFAULTS = {"torque_epochs": 200, "torque_batch": 64, "torque_lr": 1e-4,
+                     "attention_epochs": 20, "attention_lr": 1e-4, "attention_sets": 250,
+                     "attention_val_sets": 100}
 
 
 def feature_config_from(data: Samples) -> FeatureConfig:
@@ -122,6 +145,16 @@ def split_validation(data: Samples, fraction: float, seed: int) -> tuple[Samples
     return data.take(train), data.take(val)
 
 
+def per_object_subset(data: Samples, n: int, seed: int) -> Samples:
+    """At most ``n`` samples of each object (a seeded random choice, in file order)."""
+    rng = np.random.default_rng(seed)
+    keep = []
+    for o in np.unique(data.object_id):
+        idx = np.flatnonzero(data.object_id == o)
+        keep.append(np.sort(rng.choice(idx, n, replace=False)) if len(idx) > n else idx)
+    return data.take(np.concatenate(keep))
+
+
 def draw_sets(object_id: np.ndarray, per_object: int, set_size: int, seed: int) -> np.ndarray:
     """(per_object * O, set_size) index sets, each of one object's samples (without
     replacement within a set; with replacement only if the object has too few samples)."""
@@ -141,6 +174,48 @@ def _features(fc: FeatureConfig, d: Samples) -> jnp.ndarray:
 
 def _init_stacked(model, keys, example):
     return jax.vmap(lambda k: model.init(k, example))(keys)
+
+
+def _start(model, key, K: int, example, init):
+    """K stacked parameter sets: ``init`` (fine-tuning: checked against the model's shapes)
+    or fresh ones from ``key``."""
+    fresh = jax.eval_shape(lambda: _init_stacked(model, jax.random.split(key, K), example))
+    if init is None:
+        return _init_stacked(model, jax.random.split(key, K), example)
+    if (jax.tree_util.tree_structure(init) != jax.tree_util.tree_structure(fresh) or any(
+            np.shape(a) != b.shape for a, b in zip(jax.tree_util.tree_leaves(init),
+                                                   jax.tree_util.tree_leaves(fresh)))):
+        raise UsageError(f"the initial parameters do not fit {type(model).__name__} with "
+                         f"{K} models (another architecture or model count)")
+    return jax.tree_util.tree_map(lambda a, b: jnp.asarray(a, b.dtype), init, fresh)
+
+
+#: The parameter names of the physical torque model's servo part.
+SERVO_PARAMS = ("stiffness", "offset", "friction", "load_friction")
+TRAINABLE = ("all", "head", "servo")
+
+
+def _is_trainable(path, trainable: str) -> bool:
+    keys = [str(getattr(k, "key", "")) for k in path]
+    if trainable == "head":
+        return not any(k.startswith("joint") for k in keys)
+    if trainable == "servo":
+        return keys[-1] in SERVO_PARAMS and "residual" not in keys
+    return True
+
+
+def optimizer(lr: float, *, trainable: str = "all") -> optax.GradientTransformation:
+    """Adam on the parameters ``trainable`` names (:class:`TrainConfig`); the others get
+    no updates."""
+    adam = optax.adam(lr)
+    if trainable == "all":
+        return adam
+
+    def labels(params):
+        return jax.tree_util.tree_map_with_path(
+            lambda path, _: "train" if _is_trainable(path, trainable) else "frozen", params)
+
+    return optax.multi_transform({"train": adam, "frozen": optax.set_to_zero()}, labels)
 
 
 @struct.dataclass
@@ -174,10 +249,17 @@ def make_epoch(tx: optax.GradientTransformation, loss_fn, batches_fn, val_fn) ->
     ``val_fn(params, shared, own)`` its validation loss.
     """
 
-    def init(params, loss_dtype) -> TrainState:
+    def init(params, loss_dtype, val_data=None) -> TrainState:
+        """With ``val_data`` the starting parameters compete for the best validation loss
+        (as epoch -1: fine-tuning never returns worse models than it started from)."""
         K = jax.tree_util.tree_leaves(params)[0].shape[0]
-        return TrainState(params, jax.vmap(tx.init)(params), params,
-                          jnp.full(K, jnp.inf, loss_dtype), jnp.zeros(K, jnp.int32),
+        best = jnp.full(K, jnp.inf, loss_dtype)
+        if val_data is not None:
+            v_shared, v_own = val_data
+            best = jax.jit(jax.vmap(lambda p, o: val_fn(p, v_shared, o)))(params, v_own)
+            best = best.astype(loss_dtype)
+        return TrainState(params, jax.vmap(tx.init)(params), params, best,
+                          jnp.full(K, -1 if val_data is not None else 0, jnp.int32),
                           jnp.int32(0))
 
     @jax.jit
@@ -252,12 +334,17 @@ def train_torque_models(
     key: jax.Array,
     *,
     model: TorqueModel | None = None,
+    init: dict | None = None,
     progress: bool = True,
     on_epoch: Callable[[int, tuple], None] | None = None,
 ) -> TrainedTorque:
     """K torque models (``cfg.n_models``) trained in parallel, best epoch by validation;
+    ``init``: stacked (K, ...) parameters to start from (fine-tuning) instead of fresh ones;
     ``on_epoch(e, (train_loss, val_loss))`` after each epoch if given."""
-    model = model or TorqueModel(n_joints=train.q.shape[1])
+    model = model or TORQUE_MODELS[cfg.torque_model](n_joints=train.q.shape[1])
+    if cfg.trainable == "servo" and not isinstance(model, PhysicalTorqueModel):
+        raise UsageError("trainable 'servo' needs the physical torque model (the paper's "
+                         "network has no servo parameters)")
     X, Xv = _features(fc, train), _features(fc, val)
     scale = jnp.asarray(fc.tau_scale, jnp.float32)
     Y = jnp.asarray(train.tau, jnp.float32) / scale
@@ -271,12 +358,12 @@ def train_torque_models(
         return jnp.mean((model.apply(p, x) - y) ** 2)
 
     epoch = make_epoch(
-        optax.adam(cfg.torque_lr),
+        optimizer(cfg.torque_lr, trainable=cfg.trainable),
         loss_fn=lambda p, XY, _, idx: mse(p, XY[0][idx], XY[1][idx]),
         batches_fn=lambda k: jax.random.permutation(k, S)[: steps * batch].reshape(steps, batch),
         val_fn=lambda p, XYv, _: mse(p, *XYv))
-    state = epoch.init(_init_stacked(model, jax.random.split(k_init, cfg.n_models), X[:1]),
-                       jnp.float32)
+    state = epoch.init(_start(model, k_init, cfg.n_models, X[:1], init), jnp.float32,
+                       None if init is None else ((Xv, Yv), None))
     state, hist = _run_epochs(epoch, state, ((X, Y), None), ((Xv, Yv), None), cfg.torque_epochs,
                               k_epochs, "torque model", progress, on_epoch)
     return TrainedTorque(model, state.best_params, hist, np.asarray(state.best_epoch))
@@ -334,11 +421,12 @@ def train_attention_models(
     key: jax.Array,
     *,
     model: AttentionModel | None = None,
+    init: dict | None = None,
     progress: bool = True,
     on_epoch: Callable[[int, tuple], None] | None = None,
 ) -> TrainedAttention:
     """K attention models, model k trained through the WLS on torque model k's outputs;
-    ``on_epoch`` as in :func:`train_torque_models`."""
+    ``init`` and ``on_epoch`` as in :func:`train_torque_models`."""
     model = model or AttentionModel(n_joints=train.q.shape[1])
     K = cfg.n_models
     dtype = jnp.result_type(float)
@@ -368,9 +456,11 @@ def train_attention_models(
         perm = jax.random.permutation(k, sets.shape[0])[: steps * B]
         return sets[perm].reshape(steps, B, -1)
 
-    epoch = make_epoch(optax.adam(cfg.attention_lr), loss_fn, batches,
-                       val_fn=lambda p, shared, y_k: loss_fn(p, shared, y_k, vsets))
-    state = epoch.init(_init_stacked(model, jax.random.split(k_init, K), feats[:1]), dtype)
+    epoch = make_epoch(optimizer(cfg.attention_lr, trainable=cfg.trainable),
+                       loss_fn, batches, val_fn=lambda p, shared, y_k: loss_fn(p, shared, y_k,
+                                                                                 vsets))
+    state = epoch.init(_start(model, k_init, K, feats[:1], init), dtype,
+                       None if init is None else ((vf, vA, vx), vy))
     state, hist = _run_epochs(epoch, state, ((feats, A, x_obj), y), ((vf, vA, vx), vy),
                               cfg.attention_epochs, k_epochs, "attention model", progress,
                               on_epoch)

@@ -60,7 +60,7 @@ from jaxinertia.identification import (
     sum_over_sets,
 )
 from jaxinertia.samples import Samples, load_samples
-from jaxinertia.training import split_validation
+from jaxinertia.training import per_object_subset, split_validation
 
 __all__ = [
     "DEFAULT_TORQUE_NOISE_NM",
@@ -345,8 +345,11 @@ def training_validation_error(pair: ModelPair, fc: FeatureConfig, config: dict,
         if entry.get("sha256") and file_sha256(path) != entry["sha256"]:
             return None, f"training file {path} changed since training (SHA-256)"
         parts.append(load_samples(path)[0])
-    _, val = split_validation(Samples.concatenate(parts), training["val_fraction"],
-                              training["seed"])
+    everything = Samples.concatenate(parts)
+    if config.get("samples_per_object") is not None:
+        everything = per_object_subset(everything, config["samples_per_object"],
+                                       training["seed"])
+    _, val = split_validation(everything, training["val_fraction"], training["seed"])
     if val.n_samples == 0:
         return None, "the training run kept no validation samples"
     return (validation_torque_error(pair, fc, val),

@@ -4,6 +4,7 @@ samples until it is judged on them (issue 15 item 1)."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -39,7 +40,8 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
 
     monkeypatch.setattr(calibration, "real_files", spy)
     scale = FoldScale(calibration_iterations=1, random_per_load=N_TRAIN // 4,
-                      planning=False, train=TRAIN)
+                      planning=False, train=TRAIN, finetune_samples=(30,),
+                      finetune=TRAIN.replace(trainable="servo", val_fraction=0.2))
     res = run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False, log=lambda m: None)
     assert set(res["folds"]) == {"cube", "white"}
     # Every look at real samples is restricted: to the fold's object while fitting, to the
@@ -58,9 +60,19 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
         assert cal["link_gravity"]["n_samples"] == N_REAL
         replay = f["replay"]
         assert len(replay["real"]["k"]) == len(replay["sim"]["k"]) == 4
+        # Fine-tuned on 30 real samples of the fold's object only, from the physical model.
+        fold = tmp_path / "folds" / f"fit_{fit_on}"
+        config = load_models(fold / "models_finetuned_30")[3]
+        assert [Path(e["file"]).name for e in config["data"]] == [f"data_test_{fit_on}.npz"]
+        assert config["samples"]["train"] + config["samples"]["validation"] == 30
+        assert config["fine_tuned_from"]["folder"] == str((fold / "models_physical").resolve())
+        assert config["training"]["trainable"] == "servo"
+        assert config["torque_model"]["kind"] == "physical"
+        assert set(f["fine_tuned"]["30"]["objects"]) == set(f["physical"]["objects"]) == {other}
     text = format_folds(res)
     assert "Calibrated and trained with cube only, judged on white" in text
     assert "white's real plan replayed in the simulator calibrated on cube" in text
+    assert "fine-tuned (servo part) on 24 + 6 (validation) real samples of cube" in text
 
 
 def test_fits_refuse_objects_the_folder_does_not_have(small_lbipe_dir, capsys):

@@ -9,6 +9,7 @@ so the per-joint rest discrepancies q_d - q must agree as well as two simulator 
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import threading
@@ -18,6 +19,7 @@ import numpy as np
 import pytest
 
 from jaxinertia import objects
+from jaxinertia.design import PLAN_FORMAT, PLAN_FORMAT_VERSION
 from jaxinertia.plans import random_plan
 from jaxinertia.samples import load_native
 from jaxinertia.sim.params import default_sim_params
@@ -77,9 +79,14 @@ def collected(tmp_path_factory, reference):
     out = tmp / "cube.npz"
     with VirtualRobotProcess(["--object", OBJECT, "--speed", SPEED, "--seed", "3"],
                              stderr=tmp / "virtual.log") as robot:
+        # The plan as a plan file (``collect --plan PLAN.json``, as ``plan-poses`` writes).
+        q_d, d = random_plan(N, 0)
+        plan = tmp / "plan.json"
+        plan.write_text(json.dumps({"format": PLAN_FORMAT, "format_version": PLAN_FORMAT_VERSION,
+                                    "q_d": q_d.tolist(), "direction": d.tolist()}))
         run = subprocess.run(
             [sys.executable, "-m", "jaxinertia", "collect", "--port", robot.path,
-             "--plan", "random", "--n", str(N), "--seed", "0", "--object", OBJECT,
+             "--plan", str(plan), "--object", OBJECT,
              "--out", str(out), "--retries", RETRIES], capture_output=True, text=True,
             timeout=WALL_LIMIT_S)
         assert robot.proc.poll() is None, "the virtual robot died during the collection"
@@ -91,6 +98,7 @@ def collected(tmp_path_factory, reference):
 def test_collected_file_loads_like_a_simulated_one(collected):
     fields, meta, out = collected
     assert meta["source"] == "dynamixel" and meta["object"] == OBJECT
+    assert meta["scenario"] == "plan" and meta["plan"].endswith("plan.json")
     assert meta["format"] == "jaxinertia-samples" and meta["servo_ids"] == [11, 12, 13, 14]
     shapes = {"q_d": (N, 4), "q": (N, 4), "current_tau": (N, 4), "direction": (N, 4),
               "R_base_tag": (N, 3, 3), "p_base_tag": (N, 3), "A": (N, 4, 4), "tau_g": (N, 4),

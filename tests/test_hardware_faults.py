@@ -28,6 +28,7 @@ import pytest
 from support.hardware import journal_indices, one_line, running, wait_for_samples
 
 from jaxinertia.app.cli import main
+from jaxinertia.design import PLAN_FORMAT, PLAN_FORMAT_VERSION
 from jaxinertia.hardware.collect import DELTA, RECORD_FIELDS, plan_digest
 from jaxinertia.plans import random_plan
 from jaxinertia.samples import load_native
@@ -177,6 +178,23 @@ def test_bad_options_are_refused_before_the_port_is_opened(tmp_path, capsys, arg
             argv += args[k:k + 2]
     assert run(argv) == 2, "exit code"  # 3 would mean it went on to the port
     one_line_error(capsys, *words)
+    assert not out.exists() and not (tmp_path / "x.npz.journal.jsonl").exists()
+
+
+def test_a_plan_file_with_an_unsafe_pose_is_refused_before_the_port_is_opened(tmp_path, capsys):
+    q_d, d = random_plan(3, 4)
+    q_d[1, 1] = np.radians(170.0)  # joint 2 far outside the workspace
+    plan = tmp_path / "plan.json"
+    plan.write_text(json.dumps({"format": PLAN_FORMAT, "format_version": PLAN_FORMAT_VERSION,
+                                "q_d": q_d.tolist(), "direction": d.tolist()}))
+    out = tmp_path / "x.npz"
+    argv = collect_args(out)
+    argv[argv.index("--plan") + 1] = str(plan)
+    assert run(argv) == 2
+    one_line_error(capsys, "--plan", "pose 1")
+    argv[argv.index("--plan") + 1] = str(tmp_path / "missing.json")
+    assert run(argv) == 2
+    one_line_error(capsys, "missing.json")
     assert not out.exists() and not (tmp_path / "x.npz.journal.jsonl").exists()
 
 

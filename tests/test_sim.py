@@ -15,6 +15,7 @@ import pytest
 
 from jaxinertia import objects
 from jaxinertia.app.cli import main as cli_main
+from jaxinertia.design import PLAN_FORMAT, PLAN_FORMAT_VERSION
 from jaxinertia.errors import SimulationError, UsageError
 from jaxinertia.features import LBIPE_FEATURES
 from jaxinertia.kinematics import ee_pose, gravity_torques
@@ -388,6 +389,39 @@ def test_simulate_in_float32_rests_where_float64_does(tmp_path):
     ticks = np.rint((b["q"] - a["q"]) / (2 * np.pi / 4096))
     assert np.abs(ticks).max() <= 1
     assert np.mean(ticks == 0) >= 0.95
+
+
+def _write_plan(path, q_d, direction):
+    path.write_text(json.dumps({"format": PLAN_FORMAT, "format_version": PLAN_FORMAT_VERSION,
+                                "q_d": np.asarray(q_d).tolist(),
+                                "direction": np.asarray(direction).tolist()}))
+    return path
+
+
+def test_simulate_visits_the_poses_of_a_plan_file(tmp_path, capsys):
+    """``simulate --plan`` (a ``plan-poses`` file): every object visits the plan's goals
+    with its approach directions, in order, repeated cyclically to ``--n``; the file names
+    the plan. (32 samples of black: the shapes the stream compiled for the test above.)"""
+    q_d, d = random_plan(12, 5)
+    plan = _write_plan(tmp_path / "plan.json", q_d, d)
+    out = tmp_path / "planned.npz"
+    assert cli_main(["simulate", "--scenario", "test", "--n", "32", "--objects", "black",
+                     "--plan", str(plan), "--out", str(out)]) == 0
+    fields, meta = _read_npz(out)
+    reps = np.arange(32) % 12
+    np.testing.assert_allclose(fields["q_d"], q_d[reps], rtol=0, atol=0)
+    np.testing.assert_array_equal(fields["direction"], d[reps])
+    assert meta["plan"] == str(plan.resolve()) and fields["at_rest"].all()
+    capsys.readouterr()
+    bad = _write_plan(tmp_path / "three.json", q_d[:, :3], d[:, :3])
+    for argv, words in (
+            (["--scenario", "test", "--plan", str(bad)], ["3 joints", "has 4"]),
+            (["--scenario", "continuous", "--plan", str(plan)], ["--plan", "continuous"]),
+            (["--scenario", "test", "--plan", str(tmp_path / "none.json")], ["none.json"])):
+        assert cli_main(["simulate", *argv, "--out", str(tmp_path / "x.npz")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and all(w in err[0] for w in words), err
+    assert not (tmp_path / "x.npz").exists()
 
 
 def test_the_stream_traces_and_compiles_its_programs_once_for_new_data(monkeypatch):

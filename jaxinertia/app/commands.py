@@ -36,6 +36,7 @@ from jaxinertia.app.pipeline import (
 from jaxinertia.app.plots import plot_calibration, plot_lbipe_estimates
 from jaxinertia.app.report import calibration_report, table1, table2, table3
 from jaxinertia.app.reproduce import reproduce
+from jaxinertia.design import load_plan
 from jaxinertia.errors import UsageError
 from jaxinertia.fileio import check_output, write_json, write_text
 from jaxinertia.lbipe import default_lbipe_dir
@@ -49,7 +50,7 @@ from jaxinertia.sim import params as sim_params
 from jaxinertia.sim import run as sim_run
 from jaxinertia.sim.calibration import calibrate_servo_friction, fit_link_gravity
 from jaxinertia.sim.continuous import simulate_continuous_run
-from jaxinertia.training import TrainConfig
+from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
 
 __all__ = ["register"]
 
@@ -110,6 +111,9 @@ def cmd_simulate(args) -> int:
         check_outputs(args, "--out")
     params = sim_params.default_sim_params(args.calibration)
     if args.scenario == "continuous":
+        if args.plan is not None:
+            raise UsageError("--plan: the continuous run walks nearby random goals; use "
+                             "--scenario test (or random, planning) with a plan")
         if args.format != "native":
             raise UsageError("the continuous run is one trajectory with switching objects: "
                              "use --format native")
@@ -123,14 +127,22 @@ def cmd_simulate(args) -> int:
         print(f"wrote {path} ({samples.n_samples} samples, object switching every "
               f"{args.switch_every})")
         return 0
+    plan = None
+    if args.plan is not None:
+        plan = load_plan(args.plan)
+        if plan[0].shape[1] != params.robot.n_joints:
+            raise UsageError(f"--plan {args.plan}: {plan[0].shape[1]} joints per pose; the "
+                             f"simulated arm has {params.robot.n_joints}")
     results = sim_run.simulate_scenario(params, args.scenario, n=args.n, objects=args.objects,
-                                        seed=args.seed)
+                                        seed=args.seed, plan=plan)
     for name, (_, r) in results.items():
         bad = int(np.sum(~r["at_rest"]))
         if bad:
             print(f"{name}: {bad} of {len(r['q'])} samples timed out (flagged: at_rest = False)")
     fields, meta = sim_run.native_fields(results, params, scenario=args.scenario,
                                          seed=args.seed, version=__version__)
+    if args.plan is not None:
+        meta["plan"] = str(args.plan.resolve())
     samples = Samples.from_fields(fields, meta["objects"], need_truth=True)
     if args.format == "lbipe":
         kept = samples.at_rest_only()
@@ -189,10 +201,14 @@ def cmd_train(args) -> int:
     check_outputs(args, "--out")
     overrides = {k: v for k, v in vars(args).items()
                  if k in TrainConfig.__dataclass_fields__ and v is not None}
+    if args.init is not None:
+        overrides = {**FINETUNE_DEFAULTS, **overrides}
     cfg = TrainConfig(**overrides)
-    info = train(args.data, args.out, cfg, overwrite=args.overwrite)
-    print(f"trained {cfg.n_models} model pairs on {info['samples']['train']} samples "
-          f"({info['samples']['validation']} validation) in "
+    info = train(args.data, args.out, cfg, overwrite=args.overwrite, init=args.init,
+                 samples_per_object=args.samples_per_object)
+    what = "fine-tuned" if args.init is not None else "trained"
+    print(f"{what} {info['training']['n_models']} model pairs on {info['samples']['train']} "
+          f"samples ({info['samples']['validation']} validation) in "
           f"{sum(info['wall_time_s'].values()):.1f} s; wrote {args.out}")
     return 0
 
@@ -261,6 +277,10 @@ def register(sub) -> None:
     s.add_argument("--format", choices=["native", "lbipe"], default="native")
     s.add_argument("--n", type=positive_int,
                    help="samples per object (random/test; caps planning)")
+    s.add_argument("--plan", type=Path, metavar="PLAN.json",
+                   help="the goals and approach directions every object visits (from "
+                   "`jaxinertia plan-poses`) instead of the scenario's own; --n repeats the "
+                   "plan cyclically to N samples per object (default: once)")
     s.add_argument("--objects", nargs="+",
                    help="test objects (default: all four); continuous: the switching order, "
                    "'empty' or test objects or training loads like 100g")
@@ -312,6 +332,22 @@ def register(sub) -> None:
                    help="sample files of known objects (native or the authors' layout)")
     t.add_argument("--out", required=True, type=Path, help="model folder to write")
     t.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
+    t.add_argument("--init", type=Path, metavar="MODELS",
+                   help="fine-tune this model folder (e.g. simulator-trained models on real "
+                   "samples of known objects) instead of training from scratch; its feature "
+                   "scaling and model count are kept, the defaults become "
+                   + ", ".join(f"--{k.replace('_', '-')} {v}"
+                               for k, v in FINETUNE_DEFAULTS.items()))
+    t.add_argument("--samples-per-object", type=positive_int, metavar="N",
+                   help="use at most N samples of each object (seeded random choice)")
+    t.add_argument("--trainable", choices=["all", "head", "servo"], default=None,
+                   help="what fine-tuning may change: all (default), head (the per-joint "
+                   "encoders fixed) or servo (only the physical torque model's stiffness, "
+                   "offset and friction; the attention model fixed)")
+    t.add_argument("--torque-model", choices=["paper", "physical"], default=None,
+                   help="the paper's network (default) or a physics-structured one: per "
+                   "joint stiffness, offset, direction and load friction plus the paper's "
+                   "network as a residual")
     for name, typ in (("n_models", positive_int), ("seed", int), ("torque_epochs", positive_int),
                       ("torque_batch", positive_int), ("torque_lr", positive_float),
                       ("attention_epochs", positive_int), ("attention_batch", positive_int),

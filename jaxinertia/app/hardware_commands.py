@@ -29,6 +29,7 @@ from jaxinertia.app.options import (
     positive_float,
     positive_int,
 )
+from jaxinertia.design import load_plan
 from jaxinertia.errors import HardwareError, UsageError
 from jaxinertia.fileio import check_output
 from jaxinertia.hardware.collect import (
@@ -159,21 +160,40 @@ def _check_collect_options(args) -> None:
                          f"{args.settle_time:g} s")
 
 
+def _collect_plan(args) -> tuple[np.ndarray, np.ndarray]:
+    """The goals and approach directions of ``--plan`` (planning, random or a plan file of
+    ``jaxinertia plan-poses``; ``--n`` cuts the planning grid or a file's plan)."""
+    if args.plan == "planning":
+        q_d, direction = plans.planning_plan()
+    elif args.plan == "random":
+        return plans.random_plan(1000 if args.n is None else args.n, args.seed)
+    else:
+        q_d, direction = load_plan(args.plan)
+    if args.n is not None:
+        q_d, direction = q_d[: args.n], direction[: args.n]
+    return q_d, direction
+
+
 def cmd_collect(args) -> int:
     jax.config.update("jax_enable_x64", True)
     # Everything that can be refused is refused before the port is opened (exit code 2).
     _check_collect_options(args)
     obj = None if args.object == UNKNOWN else objects.resolve(args.object)
-    if args.plan == "planning":
-        q_d, direction = plans.planning_plan()
-        if args.n is not None:
-            q_d, direction = q_d[: args.n], direction[: args.n]
-    else:
-        q_d, direction = plans.random_plan(1000 if args.n is None else args.n, args.seed)
+    q_d, direction = _collect_plan(args)
     # The calibrated bare arm: A and tau_g (as the simulator records them) and the FK of
     # the kinematic tag pose.
     robot = calibrated_robot(args.calibration)
     _check_ids(args, robot.n_joints)
+    if q_d.shape[1] != robot.n_joints:
+        raise UsageError(f"--plan {args.plan}: {q_d.shape[1]} joints per pose; the arm has "
+                         f"{robot.n_joints}")
+    safety = SafetyLimits.around_workspace(robot)
+    for i, (goal, d) in enumerate(zip(q_d, direction)):  # every goal before the port opens
+        try:
+            for q in (goal, goal - d * DELTA):
+                safety.check(q, robot)
+        except UsageError as e:
+            raise UsageError(f"--plan {args.plan}: pose {i}: {e}") from None
     out = check_output(args.out, overwrite=args.overwrite)
     config = ArmConfig(
         port=args.port, baudrate=args.baudrate, joint_ids=args.ids, gripper_id=args.gripper_id,
@@ -191,7 +211,6 @@ def cmd_collect(args) -> int:
               file=sys.stderr)
     R_ee_tag, p_ee_tag = TAG_IN_EE
     tag_source = KinematicTagPose(robot, R_ee_tag, p_ee_tag)
-    safety = SafetyLimits.around_workspace(robot)
     arm = DynamixelArm(config, robot=robot, safety=safety)
 
     def where() -> str:
@@ -222,7 +241,8 @@ def cmd_collect(args) -> int:
     x = None if obj is None else np.asarray(obj.x)
     samples = samples_from_records(journal.records, robot, x, args.object)
     meta = {"version": __version__, "source": "dynamixel", "port": args.port,
-            "plan": args.plan, "scenario": args.plan, "object": args.object,
+            "plan": args.plan, "object": args.object,
+            "scenario": args.plan if args.plan in ("planning", "random") else "plan",
             "objects": [args.object], "seed": args.seed, "servo_ids": list(args.ids),
             "gripper_id": args.gripper_id, "robot": robot.name, "delta": DELTA,
             "journal": str(journal.path), "plan_digest": header["plan_digest"],
@@ -280,7 +300,10 @@ def register(sub) -> None:
         "an interrupted collection continues with --resume.",
     )
     c.add_argument("--port", required=True, help="serial device (e.g. /dev/ttyUSB0)")
-    c.add_argument("--plan", required=True, choices=["planning", "random"])
+    c.add_argument("--plan", required=True, metavar="{planning,random,PLAN.json}",
+                   help="the paper's planning grid, random goals, or a plan file of "
+                   "`jaxinertia plan-poses` (every goal is checked against the safety limits "
+                   "before the port opens)")
     c.add_argument("--object", required=True,
                    help=f"held object ({names}) or {UNKNOWN} (no ground truth: the file has "
                    "no tau and no x)")

@@ -35,10 +35,12 @@ from jaxinertia.lbipe import (
     load_released_models,
     test_files,
 )
+from jaxinertia.networks import torque_model_kind
 from jaxinertia.samples import Samples, load_samples
 from jaxinertia.training import (
     TrainConfig,
     feature_config_from,
+    per_object_subset,
     split_validation,
     train_attention_models,
     train_torque_models,
@@ -59,9 +61,19 @@ __all__ = ["RealData", "estimate", "evaluate_models", "evaluate_samples", "load_
 
 
 def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg: TrainConfig,
-          *, progress: bool = True, overwrite: bool = False) -> dict:
+          *, progress: bool = True, overwrite: bool = False,
+          init: str | os.PathLike | None = None,
+          samples_per_object: int | None = None) -> dict:
     """Trains K model pairs and fits the baselines; writes the model folder ``out``
-    (atomically; an existing one only with ``overwrite``)."""
+    (atomically; an existing one only with ``overwrite``).
+
+    ``init``: a model folder to fine-tune instead of training from scratch (e.g.
+    simulator-trained models adapted on real samples of known objects): its parameters are
+    the start (they compete as epoch -1 on the validation split), its feature
+    normalisation is kept and its model count wins over ``cfg.n_models``; the baselines are
+    fitted on the new data. ``samples_per_object``: use only that many samples of each
+    object (seeded random choice; all when it has fewer), to measure how many are needed.
+    """
     check_output(out, overwrite=overwrite)
     parts, metas = [], []
     for f in sample_files:
@@ -72,21 +84,34 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
     robots = {m.get("robot") for m in metas} - {None}
     if len(robots) > 1:
         raise FileFormatError(sample_files[0], "metadata", f"files of different robots {robots}")
-    robots = robots or {None}
+    robot = robots.pop() if robots else None
     data = Samples.concatenate(parts)
+    if samples_per_object is not None:
+        data = per_object_subset(data, samples_per_object, cfg.seed)
+    start = None
+    if init is not None:
+        pair0, _, fc0, config0 = load_models(init, robot=robot)
+        robot = robot or config0.get("robot")
+        cfg = cfg.replace(n_models=pair0.n_models,
+                          torque_model=torque_model_kind(pair0.torque_model))
+        start = (pair0, fc0, config0)
     t0 = time.perf_counter()
     train_set, val_set = split_validation(data, cfg.val_fraction, cfg.seed)
     if val_set.n_samples == 0 or train_set.n_samples == 0:
         raise UsageError(f"{data.n_samples} samples and --val-fraction {cfg.val_fraction} leave "
                          f"{train_set.n_samples} for training and {val_set.n_samples} for "
                          "validation: both need samples")
-    fc = feature_config_from(train_set)
+    fc = feature_config_from(train_set) if start is None else start[1]
     key = jax.random.key(cfg.seed)
     k_t, k_a = jax.random.split(key)
-    torque = train_torque_models(cfg, fc, train_set, val_set, k_t, progress=progress)
+    torque = train_torque_models(cfg, fc, train_set, val_set, k_t, progress=progress,
+                                 init=None if start is None else start[0].torque_vars,
+                                 model=None if start is None else start[0].torque_model)
     t1 = time.perf_counter()
-    attention = train_attention_models(cfg, fc, torque, train_set, val_set, k_a,
-                                       progress=progress)
+    attention = train_attention_models(
+        cfg, fc, torque, train_set, val_set, k_a, progress=progress,
+        init=None if start is None else start[0].attention_vars,
+        model=None if start is None else start[0].attention_model)
     t2 = time.perf_counter()
     baselines = fit_baselines(train_set.q_d, train_set.q, train_set.direction,
                               train_set.current_tau, train_set.tau)
@@ -99,14 +124,19 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
                   "objects": m.get("objects"), "scenario": m.get("scenario"),
                   "seed": m.get("seed"), "source": m.get("source")}
                  for f, m in zip(sample_files, metas)],
-        "simulator": metas[0].get("simulator"),
+        "samples_per_object": samples_per_object,
+        "simulator": metas[0].get("simulator") or (start[2].get("simulator") if start else None),
         "samples": {"train": train_set.n_samples, "validation": val_set.n_samples},
         "best_epoch": {"torque": torque.best_epoch.tolist(),
                        "attention": attention.best_epoch.tolist()},
         "history": {"torque": torque.history.tolist(), "attention": attention.history.tolist()},
         "wall_time_s": {"torque": t1 - t0, "attention": t2 - t1},
     }
-    save_models(out, pair, baselines, fc, robot=robots.pop(), extra=info)  # atomic
+    if start is not None:
+        info["fine_tuned_from"] = {"folder": str(Path(init).resolve()),
+                                   "data": start[2].get("data"),
+                                   "training": start[2].get("training")}
+    save_models(out, pair, baselines, fc, robot=robot, extra=info)  # atomic
     return info
 
 

@@ -62,6 +62,9 @@ class Scale:
     #: Held-out folds (fit on one real object, judge on the other): servo/friction
     #: calibration iterations per fold; 0 leaves the folds out.
     fold_calibration_iterations: int = 6
+    #: Per fold, fine-tunings of its simulator-trained models on that many real samples of
+    #: the object it was calibrated on (judged on the other object).
+    fold_finetune_samples: tuple[int, ...] = (1000,)
 
 
 QUICK = Scale(planning=False, random_per_load=800, test_per_object=300,
@@ -71,7 +74,8 @@ QUICK = Scale(planning=False, random_per_load=800, test_per_object=300,
               train=TrainConfig(n_models=5, attention_sets=250, attention_val_sets=50,
                                 torque_lr=1e-3))
 FULL = Scale(planning=True, random_per_load=9000, test_per_object=1000,
-             continuous_samples=4096, switch_every=1024, train=TrainConfig())
+             continuous_samples=4096, switch_every=1024, train=TrainConfig(),
+             fold_finetune_samples=(64, 250, 1000))
 
 
 def _machine() -> str:
@@ -199,7 +203,8 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
             folds = run_folds(out / "folds", lbipe_dir, FoldScale(
                 calibration_iterations=scale.fold_calibration_iterations,
                 random_per_load=scale.random_per_load, planning=scale.planning,
-                train=scale.train), seed=seed, progress=progress)
+                train=scale.train, finetune_samples=scale.fold_finetune_samples),
+                seed=seed, progress=progress)
     timings["total"] = time.perf_counter() - t_all
 
     # Report.

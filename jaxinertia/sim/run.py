@@ -109,15 +109,17 @@ def _check_plan(params: SimParams, q_d, direction, desc: str):
 
 def simulate_scenario(params: SimParams, scenario: str, *, n: int | None = None,
                       objects: list[str] | None = None, seed: int = 0,
-                      lanes: int | None = None,
+                      lanes: int | None = None, plan: tuple | None = None,
                       progress: bool = True) -> dict[str, tuple[HeldObject, dict]]:
     """Runs a scenario; returns ``{object name: (object, fields)}``.
 
     planning: the 10 deg grid x 16 direction patterns per training load (``n`` caps it);
     random: ``n`` (default 1000) random goals and directions per training load;
     test: ``n`` (default 1000) per test object (``objects``: default all four).
+    ``plan``: the goals and directions every object visits instead (``n`` samples: the
+    plan repeated cyclically; default once).
     """
-    return simulate_scenarios(params, [ScenarioRequest(scenario, n, objects, seed)],
+    return simulate_scenarios(params, [ScenarioRequest(scenario, n, objects, seed, plan)],
                               lanes=lanes, progress=progress)[0]
 
 
@@ -126,6 +128,9 @@ class ScenarioRequest(NamedTuple):
     n: int | None = None
     objects: list[str] | None = None
     seed: int = 0
+    #: ``(q_d (P, N), direction (P, N))`` every object visits instead of the scenario's
+    #: own goals (e.g. ``jaxinertia plan-poses``), repeated cyclically to ``n`` samples.
+    plan: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
@@ -140,7 +145,7 @@ def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
     precompile(params, training_object(0.0), lanes=lanes, batch_last=batch_last)
     jobs, descs, plans = [], [], []
     for r in requests:
-        named = _scenario_jobs(r.scenario, r.n, r.objects, r.seed)
+        named = _scenario_jobs(r.scenario, r.n, r.objects, r.seed, r.plan)
         with jax.default_device(jax.devices("cpu")[0]):  # tiny: no accelerator kernels
             key = jax.random.key(r.seed)
             keys = [jax.random.fold_in(key, i) for i in range(len(named))]
@@ -162,17 +167,25 @@ def _check_request(scenario: str, objects: list[str] | None) -> None:
         raise UsageError(f"unknown test object(s) {unknown}; known: {list(TEST_OBJECTS)}")
 
 
-def _scenario_jobs(scenario: str, n: int | None, objects: list[str] | None, seed: int):
-    """``[(object name, object, (q_d, direction))]`` of a scenario."""
+def _scenario_jobs(scenario: str, n: int | None, objects: list[str] | None, seed: int,
+                   given: tuple[np.ndarray, np.ndarray] | None = None):
+    """``[(object name, object, (q_d, direction))]`` of a scenario (``given``: one plan
+    for every object, repeated cyclically to ``n`` samples)."""
     _check_request(scenario, objects)
+    if given is not None:
+        q_d, d = (np.asarray(a, np.float64) for a in given)
+        reps = np.arange(n or len(q_d)) % len(q_d)
+        given = (q_d[reps], d[reps])
     if scenario == "test":
         names = objects or list(TEST_OBJECTS)
-        return [(o, test_object(o), random_plan(n or 1000, seed + i))
+        return [(o, test_object(o), given or random_plan(n or 1000, seed + i))
                 for i, o in enumerate(names)]
     jobs = []  # planning or random
     grid = planning_plan() if scenario == "planning" else None
     for i, m in enumerate(TRAINING_LOADS_KG):
-        if scenario == "planning":
+        if given is not None:
+            plan = given
+        elif scenario == "planning":
             plan = tuple(a[:n] for a in grid) if n else grid
         else:
             plan = random_plan(n or 1000, seed + i)

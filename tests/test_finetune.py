@@ -1,0 +1,194 @@
+"""Fine-tuning a model folder on new samples (``train --init``) and the physics-structured
+torque model (``train --torque-model physical``)."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from support.asserts import assert_tree_equal
+from support.synthetic import feature_config, synthetic_samples
+
+from jaxinertia.app.cli import main
+from jaxinertia.baselines import fit_baselines
+from jaxinertia.checkpoints import load_models, save_models
+from jaxinertia.errors import ModelFolderError, UsageError
+from jaxinertia.estimation import ModelPair
+from jaxinertia.networks import AttentionModel, PhysicalTorqueModel, TorqueModel
+from jaxinertia.samples import load_samples, save_native
+from jaxinertia.training import (
+    TrainConfig,
+    _start,
+    feature_config_from,
+    per_object_subset,
+    split_validation,
+    torque_predictions,
+    train_torque_models,
+)
+from jaxinertia.uncertainty import training_validation_error
+
+# float32 networks evaluated twice the same way: equal up to float32 rounding.
+F32 = {"rtol": 1e-5, "atol": 1e-6}
+TINY = ["--n-models", "2", "--torque-epochs", "8", "--attention-epochs", "2",
+        "--attention-sets", "6", "--attention-val-sets", "3", "--set-size", "16",
+        "--torque-batch", "64", "--attention-batch", "4"]
+
+
+def _file(path, rng, n, **law):
+    d = synthetic_samples(rng, n=n, **law)
+    save_native(path, d, {"robot": "open_manipulator_x", "objects": list(d.names),
+                          "source": "test"})
+    return path
+
+
+@pytest.fixture(scope="module")
+def folders(tmp_path_factory):
+    """A folder trained on one synthetic servo law and a file of another (stiffer, more
+    friction): what fine-tuning adapts to."""
+    tmp = tmp_path_factory.mktemp("finetune")
+    rng = np.random.default_rng(11)
+    sim = _file(tmp / "sim.npz", rng, 600)
+    real = _file(tmp / "real.npz", rng, 300, k=(19.0, 22.0, 18.0, 11.0),
+                 f=(0.04, 0.09, 0.05, 0.02))
+    assert main(["train", "--data", str(sim), "--out", str(tmp / "m0"), *TINY]) == 0
+    return tmp, sim, real
+
+
+def test_physical_torque_model_is_its_servo_law_plus_the_residual():
+    model = PhysicalTorqueModel()
+    feats = jax.random.uniform(jax.random.key(0), (7, 4, 4), jnp.float32, -1.0, 1.0)
+    feats = feats.at[..., 2].set(feats[..., 2] > 0).at[..., 3].set(feats[..., 2] <= 0)
+    v = model.init(jax.random.key(1), feats)
+    rng = np.random.default_rng(2)
+    p = {**v["params"], **{k: jnp.asarray(rng.normal(size=4), jnp.float32)
+                           for k in ("stiffness", "offset", "friction", "load_friction")}}
+    out = np.asarray(model.apply({"params": p}, feats))
+    e, s = np.asarray(feats[..., 1]), np.asarray(feats[..., 2] - feats[..., 3])
+    k, c, f, g = (np.asarray(p[n]) for n in ("stiffness", "offset", "friction",
+                                             "load_friction"))
+    residual = np.asarray(TorqueModel().apply({"params": p["residual"]}, feats))
+    np.testing.assert_allclose(out, k * e + c + s * (f + g * np.abs(k * e)) + residual, **F32)
+
+
+def test_physical_model_round_trips_and_older_folders_read_as_the_paper_network(tmp_path):
+    feats = jnp.zeros((1, 4, 4), jnp.float32)
+    tm, am = PhysicalTorqueModel(), AttentionModel()
+    keys = jax.random.split(jax.random.key(3), 2)
+    pair = ModelPair(jax.vmap(lambda k: tm.init(k, feats))(keys),
+                     jax.vmap(lambda k: am.init(k, feats))(keys),
+                     jnp.asarray([0.4, 1.2, 0.6, 0.3], jnp.float32), tm, am)
+    d = synthetic_samples(np.random.default_rng(4))
+    fc = feature_config()
+    b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.tau)
+    save_models(tmp_path / "m", pair, b, fc, robot="open_manipulator_x")
+    pair2, *_, config = load_models(tmp_path / "m")
+    assert type(pair2.torque_model) is PhysicalTorqueModel
+    assert config["torque_model"]["kind"] == "physical"
+    assert_tree_equal(pair2, pair, what="a physical ModelPair after a round trip")
+    cfg_path = tmp_path / "m" / "config.json"
+    doc = json.loads(cfg_path.read_text())
+    doc["torque_model"]["kind"] = "quantum"
+    cfg_path.write_text(json.dumps(doc))
+    with pytest.raises(ModelFolderError, match="unknown torque model kind 'quantum'"):
+        load_models(tmp_path / "m")
+    # A folder of the paper's network written before the option (no "kind") still loads.
+    save_models(tmp_path / "p", pair.replace(torque_vars=jax.vmap(
+        lambda k: TorqueModel().init(k, feats))(keys), torque_model=TorqueModel()), b, fc,
+        robot="open_manipulator_x")
+    doc = json.loads((tmp_path / "p" / "config.json").read_text())
+    assert doc["torque_model"].pop("kind") == "paper"
+    (tmp_path / "p" / "config.json").write_text(json.dumps(doc))
+    assert type(load_models(tmp_path / "p")[0].torque_model) is TorqueModel
+
+
+def test_the_physical_model_extrapolates_a_servo_law_in_load():
+    """Trained on the lighter half of the loads (small discrepancies), judged on the
+    heavier half: the servo part carries the law beyond the training range, the paper's
+    network (ReLU pieces fitted to the range it saw) does worse."""
+    d = synthetic_samples(np.random.default_rng(5), n=1600)
+    light = np.abs(d.q_d - d.q).max(axis=1) < np.median(np.abs(d.q_d - d.q).max(axis=1))
+    train, val = split_validation(d.take(np.flatnonzero(light)), 0.2, 0)
+    heavy = d.take(np.flatnonzero(~light))
+    fc = feature_config_from(d)
+    err = {}
+    for kind in ("paper", "physical"):
+        cfg = TrainConfig(n_models=2, torque_epochs=80, torque_lr=3e-3, torque_model=kind)
+        res = train_torque_models(cfg, fc, train, val, jax.random.key(0), progress=False)
+        pred = np.asarray(torque_predictions(res.model, res.variables, fc, heavy))
+        err[kind] = float(np.sqrt(np.mean((pred - heavy.tau) ** 2)))
+    assert err["physical"] < 0.5 * err["paper"], err
+
+
+def test_finetuning_starts_from_the_folder_keeps_its_scaling_and_improves(folders, capsys):
+    tmp, _, real = folders
+    pair0, _, fc0, _ = load_models(tmp / "m0")
+    out = tmp / "ft"
+    assert main(["train", "--init", str(tmp / "m0"), "--data", str(real), "--out", str(out),
+                 "--samples-per-object", "60", "--torque-epochs", "30", "--torque-lr", "3e-3",
+                 "--attention-epochs", "2", "--attention-sets", "6",
+                 "--attention-val-sets", "3", "--set-size", "16"]) == 0
+    assert "fine-tuned 2 model pairs" in capsys.readouterr().out
+    pair, _, fc, config = load_models(out)
+    assert_tree_equal(fc, fc0, what="the fine-tuned folder's feature scaling")
+    assert config["fine_tuned_from"]["folder"] == str((tmp / "m0").resolve())
+    assert config["samples_per_object"] == 60
+    assert config["samples"]["train"] + config["samples"]["validation"] == 3 * 60
+    assert config["training"]["torque_batch"] == 64  # a fine-tuning default
+    # On the new law's validation split: better than the folder it started from.
+    _, val = split_validation(_take(real, 60), 0.1, 0)
+    before = np.abs(np.asarray(torque_predictions(pair0.torque_model, pair0.torque_vars, fc0,
+                                                  val)) - val.tau).mean()
+    after = np.abs(np.asarray(torque_predictions(pair.torque_model, pair.torque_vars, fc,
+                                                 val)) - val.tau).mean()
+    assert after < 0.7 * before, (before, after)
+    # The uncertainty floor is recomputed on the same validation samples training kept.
+    floor, why = training_validation_error(pair, fc, config)
+    assert floor is not None and f"({config['samples']['validation']} samples)" in why
+
+
+def _take(path, n):
+    return per_object_subset(load_samples(path)[0], n, 0)
+
+
+def test_finetuning_never_returns_worse_than_it_started_and_can_freeze_encoders(folders):
+    """Fine-tuned on the data it was trained on with a step far too large, every epoch is
+    worse than the start: the start (epoch -1) is kept, bit for bit. With the encoders
+    frozen they stay bit for bit while the head moves."""
+    tmp, sim, real = folders
+    pair0, _, _, cfg0 = load_models(tmp / "m0")
+    out = tmp / "ft_big_step"
+    assert main(["train", "--init", str(tmp / "m0"), "--data", str(sim), "--out", str(out),
+                 "--torque-epochs", "3", "--torque-lr", "0.3", "--attention-epochs", "1",
+                 "--attention-lr", "0.3", "--attention-sets", "6", "--attention-val-sets", "3",
+                 "--set-size", "16", "--val-fraction", str(cfg0["training"]["val_fraction"])
+                 ]) == 0
+    pair, _, _, config = load_models(out)
+    assert config["best_epoch"] == {"torque": [-1, -1], "attention": [-1, -1]}
+    assert_tree_equal(pair.torque_vars, pair0.torque_vars, what="torque start kept")
+    out = tmp / "ft_frozen"
+    assert main(["train", "--init", str(tmp / "m0"), "--data", str(real), "--out", str(out),
+                 "--trainable", "head", "--torque-epochs", "5", "--torque-lr", "3e-3",
+                 "--attention-epochs", "1", "--attention-sets", "6",
+                 "--attention-val-sets", "3", "--set-size", "16"]) == 0
+    pair, _, _, config = load_models(out)
+    assert config["training"]["trainable"] == "head"
+    assert min(config["best_epoch"]["torque"]) >= 0
+    for j in range(4):
+        assert_tree_equal(pair.torque_vars["params"][f"joint{j}"],
+                          pair0.torque_vars["params"][f"joint{j}"], what=f"joint{j} frozen")
+    assert not np.allclose(pair.torque_vars["params"]["out"]["kernel"],
+                           pair0.torque_vars["params"]["out"]["kernel"])
+
+
+def test_finetuning_refuses_what_cannot_fit(folders, capsys):
+    tmp, _, real = folders
+    assert main(["train", "--init", str(tmp / "nothing"), "--data", str(real),
+                 "--out", str(tmp / "x")]) == 2
+    assert "not a jaxinertia model folder" in capsys.readouterr().err
+    with pytest.raises(UsageError, match="do not fit"):
+        _start(TorqueModel(hidden=5), jax.random.key(0), 2, jnp.zeros((1, 4, 4)),
+               load_models(tmp / "m0")[0].torque_vars)
+    assert not (tmp / "x").exists()
