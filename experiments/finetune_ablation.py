@@ -59,6 +59,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--scale", choices=["quick", "full"], default="quick",
                     help="the folds' scale (their training of the physical model)")
+    ap.add_argument("--randomize-draws", type=int, default=4,
+                    help="with --run-folds: simulated arms of the domain-randomized data")
     ap.add_argument("--run-folds", action="store_true",
                     help="run the held-out folds at --scale first (when absent)")
     args = ap.parse_args()
@@ -70,7 +72,8 @@ def main() -> None:
         res = run_folds(args.folds, lbipe_dir, FoldScale(
             calibration_iterations=scale.fold_calibration_iterations,
             random_per_load=scale.random_per_load, planning=scale.planning, train=scale.train,
-            finetune_samples=()), seed=args.seed, progress=False)
+            finetune_samples=(), randomize_draws=args.randomize_draws), seed=args.seed,
+            progress=False)
         write_json(args.folds / "folds.json", res)
         write_text(args.folds / "folds.md", format_folds(res))
         print(f"folds ({args.scale}) in {time.perf_counter() - t0:.0f} s: "
@@ -97,7 +100,8 @@ def main() -> None:
                 seed=args.seed, torque_model="physical"), progress=False)
             print(f"{fit_on}: physical model trained in {time.perf_counter() - t0:.0f} s")
         results[fit_on] = {}
-        for kind, init in inits.items():
+        inits_eval = dict(inits, **{"paper, domain-randomized": fold / "models_randomized"})
+        for kind, init in inits_eval.items():
             if init.is_dir():
                 base = evaluate_models(init, objs, sets, l_max=l_max)["objects"]
                 results[fit_on][f"{kind}, simulator only"] = base

@@ -1,5 +1,6 @@
-"""Fine-tuning a model folder on new samples (``train --init``) and the physics-structured
-torque model (``train --torque-model physical``)."""
+"""Fine-tuning a model folder on new samples (``train --init``), the physics-structured
+torque model (``train --torque-model physical``) and domain randomization of the
+simulator (issue "Sim-to-real II")."""
 
 from __future__ import annotations
 
@@ -19,6 +20,8 @@ from jaxinertia.errors import ModelFolderError, UsageError
 from jaxinertia.estimation import ModelPair
 from jaxinertia.networks import AttentionModel, PhysicalTorqueModel, TorqueModel
 from jaxinertia.samples import load_samples, save_native
+from jaxinertia.sim.params import default_sim_params
+from jaxinertia.sim.randomize import DomainSpread, perturbed, spread_from_samples
 from jaxinertia.training import (
     TrainConfig,
     _start,
@@ -192,3 +195,41 @@ def test_finetuning_refuses_what_cannot_fit(folders, capsys):
         _start(TorqueModel(hidden=5), jax.random.key(0), 2, jnp.zeros((1, 4, 4)),
                load_models(tmp / "m0")[0].torque_vars)
     assert not (tmp / "x").exists()
+
+
+def test_the_domain_spread_is_the_load_dependence_of_the_samples():
+    """Samples whose position-error gain is 20 % lower on the heavier half (and whose
+    intercept shifts by 30 mN m there) give that spread back; a load-independent law
+    gives none."""
+    rng = np.random.default_rng(9)
+    n = 4000
+    tau = rng.uniform(-1.0, 1.0, (n, 4))
+    s = rng.choice([-1.0, 1.0], (n, 4))
+    heavy = np.abs(tau) > np.median(np.abs(tau), axis=0)
+    k = np.where(heavy, 16.0, 20.0)
+    c = np.where(heavy, -0.05, -0.02)
+    q = rng.uniform(-0.5, 0.5, (n, 4))
+    q_d = q + (tau + s * 0.03 - c) / k
+    spread = spread_from_samples(q_d, q, s, tau)
+    np.testing.assert_allclose(spread.gain_rel, 4.0 / 18.0, rtol=1e-9)
+    np.testing.assert_allclose(spread.offset, 0.03, rtol=1e-9)
+    flat = spread_from_samples(q + (tau + s * 0.03 + 0.02) / 18.0, q, s, tau)
+    np.testing.assert_allclose(flat.gain_rel, 0.0, atol=1e-9)
+    np.testing.assert_allclose(flat.offset, 0.0, atol=1e-9)
+
+
+def test_perturbed_arms_scatter_around_the_identified_one_by_the_spread():
+    params = default_sim_params()
+    spread = DomainSpread(np.array([0.05, 0.1, 0.0, 0.02]), np.array([0.01, 0.0, 0.02, 0.005]))
+    arms = [perturbed(params, jax.random.key(i), spread) for i in range(400)]
+    k0 = np.asarray(params.servo.torque_constant)
+    c0 = np.zeros(4) if params.torque_offset is None else np.asarray(params.torque_offset)
+    gains = np.stack([np.asarray(a.servo.torque_constant) / k0 - 1 for a in arms])
+    offsets = np.stack([np.asarray(a.torque_offset) - c0 for a in arms])
+    # 400 normal draws: sample std within ~4 standard errors (7 %) of the spread
+    np.testing.assert_allclose(gains.std(axis=0), spread.gain_rel, rtol=0.15, atol=1e-12)
+    np.testing.assert_allclose(offsets.std(axis=0), spread.offset, rtol=0.15, atol=1e-12)
+    assert np.all(np.abs(gains.mean(axis=0)) < 4 * spread.gain_rel / 20 + 1e-12)
+    # everything else is the identified arm
+    assert_tree_equal(arms[0].friction, params.friction, what="friction")
+    assert_tree_equal(arms[0].robot, params.robot, what="robot")

@@ -17,7 +17,7 @@ from jaxinertia.app.folds import FoldScale, format_folds, run_folds
 from jaxinertia.app.pipeline import train
 from jaxinertia.checkpoints import load_models
 from jaxinertia.errors import UsageError
-from jaxinertia.samples import save_lbipe, save_native
+from jaxinertia.samples import load_native, save_lbipe, save_native
 from jaxinertia.sim import calibration
 from jaxinertia.training import TrainConfig
 
@@ -41,7 +41,8 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
     monkeypatch.setattr(calibration, "real_files", spy)
     scale = FoldScale(calibration_iterations=1, random_per_load=N_TRAIN // 4,
                       planning=False, train=TRAIN, finetune_samples=(30,),
-                      finetune=TRAIN.replace(trainable="servo", val_fraction=0.2))
+                      finetune=TRAIN.replace(trainable="servo", val_fraction=0.2),
+                      randomize_draws=2)
     res = run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False, log=lambda m: None)
     assert set(res["folds"]) == {"cube", "white"}
     # Every look at real samples is restricted: to the fold's object while fitting, to the
@@ -69,6 +70,12 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
         assert config["training"]["trainable"] == "servo"
         assert config["torque_model"]["kind"] == "physical"
         assert set(f["fine_tuned"]["30"]["objects"]) == set(f["physical"]["objects"]) == {other}
+        # Domain randomization: two simulated arms, the spread measured on the fold's object.
+        assert set(f["randomized"]["objects"]) == {other} and f["randomized"]["draws"] == 2
+        dr, meta = load_native(fold / "data" / "train_random_randomized.npz",
+                               only_at_rest=False)
+        assert meta["domain_randomization"]["draws"] == 2 and dr.n_samples == N_TRAIN
+        assert np.all(np.asarray(f["randomized"]["spread"]["gain_rel"]) > 0)
     text = format_folds(res)
     assert "Calibrated and trained with cube only, judged on white" in text
     assert "white's real plan replayed in the simulator calibrated on cube" in text

@@ -45,6 +45,7 @@ from jaxinertia.sim.calibration import (
     simulate_real_plan,
 )
 from jaxinertia.sim.params import datasheet_sim_params, params_to_dict
+from jaxinertia.sim.randomize import spread_from_samples
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
 
 __all__ = ["FoldScale", "format_folds", "run_folds"]
@@ -58,6 +59,9 @@ class FoldScale:
     train: TrainConfig
     finetune_samples: tuple[int, ...] = (1000,)  # real samples of fit_on per fine-tuning
     finetune: TrainConfig = TrainConfig(**FINETUNE_DEFAULTS, trainable="servo")
+    #: > 0: also models trained on domain-randomized data (that many simulated arms drawn
+    #: around the fold's calibration with the spread measured on the fold's object).
+    randomize_draws: int = 0
 
 
 def _stats(d: dict) -> dict:
@@ -115,6 +119,19 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
         held_l_max = [real.l_max[i] for i in idx]
         ours = evaluate_models(fold_dir / "models", *held_objects, l_max=held_l_max)
         t4 = time.perf_counter()
+        randomized = None
+        if scale.randomize_draws > 0:
+            obj = real.objects[names.index(fit_on)]
+            spread = spread_from_samples(obj.q_d, obj.q, obj.direction, obj.tau)
+            dr_files = simulate_files(params, [
+                (fold_dir / "data" / "train_random_randomized.npz", "random",
+                 scale.random_per_load, seed)], spread=spread, draws=scale.randomize_draws)
+            train(dr_files + files[1:], fold_dir / "models_randomized",
+                  scale.train.replace(seed=seed), overwrite=True, progress=progress)
+            res = evaluate_models(fold_dir / "models_randomized", *held_objects,
+                                  l_max=held_l_max)
+            randomized = {"objects": res["objects"], "torque": res["torque"],
+                          "spread": spread.to_dict(), "draws": scale.randomize_draws}
         fine, physical = {}, None
         if scale.finetune_samples:
             start = fold_dir / "models_physical"
@@ -133,7 +150,7 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
         folds[fit_on] = {
             "held_out": held,
             "ours": ours["objects"], "torque": ours["torque"],
-            "physical": physical, "fine_tuned": fine,
+            "physical": physical, "fine_tuned": fine, "randomized": randomized,
             "released": {n: {m: released[n][m] for m in ("T", "T-A")} for n in held},
             "replay": {"real": {k: st_real[k].tolist() for k in ("k", "c", "pe_mae")},
                        "sim": {k: st_sim[k].tolist() for k in ("k", "c", "pe_mae")}},
@@ -156,6 +173,11 @@ def format_folds(res: dict) -> str:
         lines += [f"### Calibrated and trained with {fit_on} only, judged on {held}", "",
                   table1(f["ours"], f"Models trained on the simulator calibrated on {fit_on}"),
                   ""]
+        if f.get("randomized"):
+            r = f["randomized"]
+            lines += [table1(r["objects"], f"Trained on domain-randomized data ({r['draws']} "
+                             "simulated arms; spread of gain and offset measured on "
+                             f"{fit_on})"), ""]
         if f.get("physical"):
             lines += [table1(f["physical"]["objects"], "The physics-structured torque model "
                              "trained on the same simulated data"), ""]

@@ -7,9 +7,14 @@ import hashlib
 import json
 from pathlib import Path
 
+import jax
+import numpy as np
+
 from jaxinertia import __version__
+from jaxinertia.errors import UsageError
 from jaxinertia.samples import Samples, load_native, save_native
 from jaxinertia.sim.params import params_to_dict
+from jaxinertia.sim.randomize import DomainSpread, perturbed
 from jaxinertia.sim.run import ScenarioRequest, native_fields, simulate_scenarios
 from jaxinertia.sim.simulator import SimParams
 
@@ -46,13 +51,19 @@ def cached(path: Path, request: dict, make) -> Path:
     return save(path, request, *make())
 
 
-def simulate_files(params, wanted: list[tuple[Path, str, int | None, int]]) -> list[Path]:
+def simulate_files(params, wanted: list[tuple[Path, str, int | None, int]], *,
+                   spread: DomainSpread | None = None, draws: int = 4) -> list[Path]:
     """Simulates the scenarios ``(path, scenario, n, seed)`` whose files are not there yet,
-    all in one stream (one compiled program, one settling tail)."""
+    all in one stream (one compiled program, one settling tail).
+
+    ``spread``: domain randomization: the samples of every file come from ``draws``
+    simulated arms drawn around ``params`` (:func:`jaxinertia.sim.randomize.perturbed`),
+    ``n / draws`` random-scenario samples each (one stream per arm)."""
     digest = params_digest(params)
+    randomized = {} if spread is None else {"spread": spread.to_dict(), "draws": draws}
 
     def request(scenario, n, seed):
-        return {"scenario": scenario, "seed": seed, "n": n, "simulator": digest}
+        return {"scenario": scenario, "seed": seed, "n": n, "simulator": digest, **randomized}
 
     missing = []
     for path, scenario, n, seed in wanted:
@@ -60,11 +71,32 @@ def simulate_files(params, wanted: list[tuple[Path, str, int | None, int]]) -> l
             print(f"reusing {path}")
         else:
             missing.append((path, scenario, n, seed))
-    if missing:
+    if missing and spread is None:
         results = simulate_scenarios(
             params, [ScenarioRequest(scenario, n, None, seed) for _, scenario, n, seed in missing])
-        for (path, scenario, n, seed), res in zip(missing, results):
-            fields, meta = native_fields(res, params, scenario=scenario, seed=seed,
-                                         version=__version__)
-            save(path, request(scenario, n, seed), fields, meta)
+    elif missing:
+        if any(scenario != "random" or n is None for _, scenario, n, _ in missing):
+            raise UsageError("domain randomization splits random-scenario files over the "
+                             "simulated arms: give n, scenario 'random'")
+        per_arm = []
+        for r in range(draws):
+            arm = perturbed(params, jax.random.fold_in(jax.random.key(missing[0][3]), r), spread)
+            per_arm.append(simulate_scenarios(arm, [
+                ScenarioRequest(scenario, -(-n // draws), None, seed + 7919 * (r + 1))
+                for _, scenario, n, seed in missing]))
+        results = [_merge([arm[i] for arm in per_arm]) for i in range(len(missing))]
+    for (path, scenario, n, seed), res in zip(missing, results):
+        fields, meta = native_fields(res, params, scenario=scenario, seed=seed,
+                                     version=__version__)
+        if spread is not None:
+            meta["domain_randomization"] = randomized
+        save(path, request(scenario, n, seed), fields, meta)
     return [w[0] for w in wanted]
+
+
+def _merge(results: list[dict]) -> dict:
+    """One scenario's results of several simulated arms: per object, the arms' samples one
+    after the other."""
+    return {name: (obj, {k: np.concatenate([r[name][1][k] for r in results])
+                         for k in fields})
+            for name, (obj, fields) in results[0].items()}

@@ -1,0 +1,70 @@
+"""Domain randomization: simulated arms drawn around the identified one.
+
+The calibration (:mod:`jaxinertia.sim.calibration`) fits one servo per joint to a real
+object's samples; what it cannot pin down is how the real arm departs from that servo as
+the load changes. That departure is measured on the same real samples, not guessed: the
+position-error law ``tau ~ k (q_d - q) - s f + c`` fitted per joint on the lighter and the
+heavier half of the samples (by the joint's true |tau|) gives two gains and two intercepts;
+their relative gain difference and intercept difference are the spreads
+(:func:`spread_from_samples`). Each simulated arm then draws its servo torque constant
+(the gain) from ``(1 + N(0, gain_rel))`` and its constant joint torque from ``N(0, offset)``
+around the identified values (:func:`perturbed`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxinertia.sim.simulator import SimParams
+
+__all__ = ["DomainSpread", "perturbed", "spread_from_samples"]
+
+
+@dataclass(frozen=True)
+class DomainSpread:
+    """Per-joint (N,) standard deviations of the simulated arms around the identified one."""
+
+    gain_rel: np.ndarray  # relative std of the servo torque constant (its P-loop gain) [-]
+    offset: np.ndarray  # std of the constant joint torque [N m]
+
+    def to_dict(self) -> dict:
+        return {"gain_rel": np.asarray(self.gain_rel).tolist(),
+                "offset_Nm": np.asarray(self.offset).tolist()}
+
+
+def _pe_fit(qe, s, tau):
+    X = np.column_stack([qe, -s, np.ones(len(qe))])
+    c, *_ = np.linalg.lstsq(X, tau, rcond=None)
+    return c[0], c[2]
+
+
+def spread_from_samples(q_d, q, direction, tau) -> DomainSpread:
+    """The load dependence of the position-error law in real samples of known objects:
+    per joint, the relative gain difference and the intercept difference between the
+    lighter and the heavier half of the samples (split at the median |tau|)."""
+    qe, s, tau = np.asarray(q_d) - np.asarray(q), np.asarray(direction), np.asarray(tau)
+    gain, offset = [], []
+    for j in range(qe.shape[1]):
+        heavy = np.abs(tau[:, j]) > np.median(np.abs(tau[:, j]))
+        (k_lo, c_lo), (k_hi, c_hi) = (_pe_fit(qe[m, j], s[m, j], tau[m, j])
+                                      for m in (~heavy, heavy))
+        gain.append(abs(k_hi - k_lo) / (0.5 * (k_hi + k_lo)))
+        offset.append(abs(c_hi - c_lo))
+    return DomainSpread(np.asarray(gain), np.asarray(offset))
+
+
+def perturbed(params: SimParams, key: jax.Array, spread: DomainSpread) -> SimParams:
+    """One simulated arm drawn around ``params``."""
+    k_gain, k_off = jax.random.split(key)
+    N = params.robot.n_joints
+    dtype = params.servo.torque_constant.dtype
+    scale = 1.0 + jnp.asarray(spread.gain_rel, dtype) * jax.random.normal(k_gain, (N,), dtype)
+    offset = jnp.zeros(N, dtype) if params.torque_offset is None else params.torque_offset
+    offset = offset + jnp.asarray(spread.offset, dtype) * jax.random.normal(k_off, (N,), dtype)
+    servo = params.servo.replace(torque_constant=params.servo.torque_constant
+                                 * jnp.maximum(scale, 0.5))
+    return params.replace(servo=servo, torque_offset=offset)
