@@ -91,7 +91,9 @@ def main() -> None:
         objs, sets = [real.objects[i] for i in idx], [real.sets[i] for i in idx]
         l_max = [real.l_max[i] for i in idx]
         held = ", ".join(names[i] for i in idx)
-        sim_files = sorted((fold / "data").glob("train_*.npz"))
+        # The fold's own simulated training files (not the domain-randomized one).
+        sim_files = [f for f in (fold / "data" / "train_random.npz",
+                                 fold / "data" / "train_planning.npz") if f.exists()]
         inits = {"paper": fold / "models", "physical": fold / "models_physical"}
         if not inits["physical"].is_dir() and any(VARIANTS[v][0] == "physical"
                                                   for v in args.variants):
