@@ -21,6 +21,10 @@ attention model's validation sets are drawn from them). Fine-tuning (``init``: a
 folder's parameters, e.g. simulator-trained models adapted on real samples of known
 objects) starts from given parameters, which compete as epoch -1, so it never returns
 models worse on validation than the ones it started from.
+
+The two trainers, the fine-tuning options and the split are one module on purpose: they
+share the epoch skeleton, the optimiser (what ``trainable`` leaves fixed) and the
+validation split that the uncertainty floor recomputes (:mod:`jaxinertia.uncertainty`).
 """
 
 from __future__ import annotations

@@ -19,6 +19,7 @@ from jaxinertia.app.pipeline import estimate
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import load_models, save_models
 from jaxinertia.errors import FileFormatError, JaxinertiaError, ModelFolderError, UsageError
+from jaxinertia.robot import data_path
 from jaxinertia.samples import Samples, lbipe_arrays, load_samples, save_native
 from jaxinertia.training import TrainConfig
 
@@ -75,6 +76,36 @@ def test_simulate_refuses_repeated_objects_before_simulating(capsys, tmp_path):
                  "--out", str(tmp_path / "x.npz")]) == 2
     _one_line_error(capsys, "--objects", "cube")
     assert not (tmp_path / "x.npz").exists()
+
+
+@pytest.mark.parametrize("content, words", [
+    ("{", ["not a readable calibration file"]),
+    ('{"servo_friction": {}}', []),
+    (None, ["[servo_friction.servo.p_gain]", "finite"]),
+], ids=["torn", "fields missing", "nan"])
+def test_simulate_refuses_a_bad_calibration_file_before_simulating(capsys, tmp_path, content,
+                                                                   words):
+    calib = tmp_path / "calib.json"
+    if content is None:  # the shipped calibration with one gain made NaN
+        doc = json.loads(data_path("open_manipulator_x_sim.json").read_text())
+        doc["servo_friction"]["servo"]["p_gain"][1] = float("nan")
+        content = json.dumps(doc)
+    calib.write_text(content)
+    assert main(["simulate", "--scenario", "test", "--n", "4", "--calibration", str(calib),
+                 "--out", str(tmp_path / "x.npz")]) == 2
+    _one_line_error(capsys, str(calib), *words)
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_camera_calibrate_refuses_a_nan_joint_angle_in_the_manifest(capsys, tmp_path):
+    (tmp_path / "m.csv").write_text("image,q1,q2,q3,q4\na.png,0.1,nan,0.2,0.3\n")
+    (tmp_path / "intr.json").write_text(json.dumps(
+        {"fx": 600.0, "fy": 600.0, "cx": 320.0, "cy": 240.0, "width": 640, "height": 480}))
+    assert main(["camera-calibrate", "--manifest", str(tmp_path / "m.csv"), "--intrinsics",
+                 str(tmp_path / "intr.json"), "--tag-size", "0.03",
+                 "--out", str(tmp_path / "cam.json")]) == 2
+    _one_line_error(capsys, "m.csv", "a.png", "not finite")
+    assert not (tmp_path / "cam.json").exists()
 
 
 # ---- outputs: checked before the work, kept unless --overwrite, written atomically -----
