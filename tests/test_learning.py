@@ -293,6 +293,7 @@ def test_tiny_end_to_end_report_numbers_come_from_the_run(tmp_path, small_lbipe_
                   # one chunk of the continuous run (it steps 128 samples at a time)
                   continuous_samples=128, switch_every=32, n_sets=20,
                   fold_calibration_iterations=0,  # the folds: tests/test_folds.py
+                  real_finetune_samples=30,
                   train=TrainConfig(n_models=2, torque_epochs=5, attention_epochs=2,
                                     attention_sets=8, attention_val_sets=4, set_size=64,
                                     val_fraction=0.2))
@@ -311,6 +312,18 @@ def test_tiny_end_to_end_report_numbers_come_from_the_run(tmp_path, small_lbipe_
     # Sim-to-real ran on the real files, beside the released models on the same sets.
     assert set(tables["real"]["ours"]["objects"]) == {"cube", "white"}
     assert set(tables["real"]["released"]) == {"cube", "white"}
+    # The models for a new real object: fine-tuned on 30 samples of every real file.
+    ft = tables["real_finetuned"]
+    assert set(ft["objects"]) == {"cube", "white"}
+    assert ft["samples"]["train"] + ft["samples"]["validation"] == 2 * 30
+    config = json.loads((run / "models_real" / "config.json").read_text())
+    assert config["torque_model"]["kind"] == "physical"
+    assert config["training"]["trainable"] == "servo" and config["samples_per_object"] == 30
+    assert {Path(d["file"]).name for d in config["data"]} == {"data_test_cube.npz",
+                                                             "data_test_white.npz"}
+    assert "## Models for a new real object" in report and "**not held out**" in report
+    v = ft["objects"]["white"]["T-A"]["mass_NMAE_pct"]
+    assert np.isfinite(v) and f"{v:.2f}" in report
     # The models load back and estimate an object from the run's own test file.
     _, meta = load_samples(run / "data" / "test.npz")
     assert meta["request"]["n"] == 70
