@@ -132,6 +132,7 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
                                   l_max=held_l_max)
             randomized = {"objects": res["objects"], "torque": res["torque"],
                           "spread": spread.to_dict(), "draws": scale.randomize_draws}
+        t5 = time.perf_counter()
         fine, physical = {}, None
         if scale.finetune_samples:
             start = fold_dir / "models_physical"
@@ -155,7 +156,8 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
             "replay": {"real": {k: st_real[k].tolist() for k in ("k", "c", "pe_mae")},
                        "sim": {k: st_sim[k].tolist() for k in ("k", "c", "pe_mae")}},
             "wall_time_s": {"calibrate": t1 - t0, "simulate": t2 - t1, "train": t3 - t2,
-                            "evaluate": t4 - t3, "fine-tune": time.perf_counter() - t4},
+                            "evaluate": t4 - t3, "randomized": t5 - t4,
+                            "fine-tune": time.perf_counter() - t5},
         }
     return {"folds": folds, "sets": dict(zip(names, real.sources))}
 
