@@ -44,6 +44,7 @@ from jaxinertia.sim.calibration import (
     real_plan,
     simulate_real_plan,
 )
+from jaxinertia.sim.identify import ESConfig, identify
 from jaxinertia.sim.params import datasheet_sim_params, params_to_dict
 from jaxinertia.sim.randomize import spread_from_samples
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
@@ -62,6 +63,11 @@ class FoldScale:
     #: > 0: also models trained on domain-randomized data (that many simulated arms drawn
     #: around the fold's calibration with the spread measured on the fold's object).
     randomize_draws: int = 0
+    #: > 0: after the fixed-point calibration, identify the simulator sample by sample on
+    #: the fold's object (:mod:`jaxinertia.sim.identify`, this many ES generations of
+    #: ``identify_population`` candidates); the fold then trains on the identified one.
+    identify_generations: int = 0
+    identify_population: int = 32
 
 
 def _stats(d: dict) -> dict:
@@ -93,19 +99,35 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
         params, info = calibrate_servo_friction(
             params, lbipe_dir, iterations=scale.calibration_iterations, seed=seed,
             fit_offset=True, objects=[fit_on], log=lambda m: None, progress=False)
-        t1 = time.perf_counter()
-        # The held-out objects' real plans replayed in the fold's simulator.
         plans = real_plan(params.robot, lbipe_dir, held)
-        sim = simulate_real_plan(params, plans, jax.random.key(seed + 7))
-        sim = {k: v[sim["at_rest"]] for k, v in sim.items()}
         real_held = {k: np.concatenate([getattr(d, k) for _, _, d in plans])
                      for k in ("q_d", "q", "direction", "tau", "current_tau")}
-        st_sim, st_real = _stats(sim), _stats(real_held)
+        st_real = _stats(real_held)
+
+        def replay(p, plans=plans):  # the held-out objects' real plans replayed in p
+            sim = simulate_real_plan(p, plans, jax.random.key(seed + 7))
+            st = _stats({k: v[sim["at_rest"]] for k, v in sim.items()})
+            return {k: st[k].tolist() for k in ("k", "c", "pe_mae")}
+
+        identified = None
+        if scale.identify_generations > 0:
+            replay_calibrated = replay(params)
+            _, obj_fit, d_fit = real_plan(params.robot, lbipe_dir, [fit_on])[0]
+            t_id = time.perf_counter()
+            params, ident = identify(params, obj_fit, d_fit, config=ESConfig(
+                population=scale.identify_population,
+                generations=scale.identify_generations, seed=seed), log=lambda m: None)
+            identified = {**ident, "wall_time_s": time.perf_counter() - t_id,
+                          "replay_calibrated": replay_calibrated}
+        t1 = time.perf_counter()
+        st_sim = replay(params)
         write_text(fold_dir / "calibration.json", _json({
             "robot": "open_manipulator_x", "fit_on": fit_on,
             "link_gravity": gravity, "servo_friction": params_to_dict(params),
             "fit": {"iterations": scale.calibration_iterations, "real_objects": [fit_on],
-                    "real": info["real"], "final_sim": info["history"][-1]["sim"]}}))
+                    "real": info["real"], "final_sim": info["history"][-1]["sim"]},
+            "identified": None if identified is None else {
+                k: identified[k] for k in ("theta", "parameters", "history")}}))
         wanted = [(fold_dir / "data" / "train_random.npz", "random", scale.random_per_load,
                    seed)]
         if scale.planning:
@@ -154,7 +176,8 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
             "physical": physical, "fine_tuned": fine, "randomized": randomized,
             "released": {n: {m: released[n][m] for m in ("T", "T-A")} for n in held},
             "replay": {"real": {k: st_real[k].tolist() for k in ("k", "c", "pe_mae")},
-                       "sim": {k: st_sim[k].tolist() for k in ("k", "c", "pe_mae")}},
+                       "sim": st_sim},
+            "identified": identified,
             "wall_time_s": {"calibrate": t1 - t0, "simulate": t2 - t1, "train": t3 - t2,
                             "evaluate": t4 - t3, "randomized": t5 - t4,
                             "fine-tune": time.perf_counter() - t5},

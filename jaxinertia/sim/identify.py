@@ -1,0 +1,177 @@
+"""Identification of the simulator from real samples, sample by sample (a population ES).
+
+:func:`jaxinertia.sim.calibration.calibrate_servo_friction` matches summary statistics of a
+real file (one PE gain, friction level and load slope per joint). Here every real sample of
+the object is *replayed* (its goal ``q_d``, approach direction, the object and its fitted
+tag pose) in candidate simulators, and the candidates are scored on how the simulated rest
+discrepancies and currents match the real ones **per approach direction and per load
+level** of each joint: the real samples are grouped per joint by direction and by tercile
+of ``|tau_j|`` (six groups per joint), and the score compares, group by group, the mean and
+the spread of ``q_d - q`` and the mean Present Current torque (each in units of the real
+group's spread). That is the apparent stiffness and bias against ``|tau|`` per direction,
+which a single PE fit averages away.
+
+The search is a separable evolution strategy (antithetic Gaussian population, rank-weighted
+recombination of the best half, per-coordinate step sizes from the selected steps; the
+diagonal form of CMA-ES without its covariance path). Per joint it moves six parameters
+(:data:`PARAMETERS`) around the starting simulator. One generation is **one jitted call**:
+the population of candidate simulators ``vmap``-ed over :func:`simulate_samples`, which
+``vmap``s the samples, so that candidates x samples run as lanes of the batched simulator
+(the GPU's natural shape). The same random numbers serve every candidate and generation
+(common random numbers), so that scores differ by the parameters alone.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxinertia.objects import HeldObject
+from jaxinertia.sim.sampling import simulate_samples
+from jaxinertia.sim.simulator import SimParams
+
+__all__ = ["PARAMETERS", "ESConfig", "apply_theta", "group_index", "group_stats", "identify",
+           "score"]
+
+#: Per-joint coordinates of a candidate, all relative to the starting simulator.
+PARAMETERS = (
+    "log P gain scale",  # position-loop gain (the stiffness seen from the encoder)
+    "log torque-constant scale",  # torque per current (the Present Current reading's gain)
+    "breakaway friction [N m]",  # added to f_s (f_c keeps its ratio to f_s)
+    "load friction coefficient",  # added to mu
+    "log friction jitter scale",  # the sample-to-sample friction spread
+    "constant torque [N m]",  # added to the joint's torque offset
+)
+#: Initial step sizes of the coordinates above.
+INITIAL_STEP = (0.04, 0.04, 0.01, 0.03, 0.2, 0.01)
+N_GROUPS = 6  # per joint: 2 directions x 3 load terciles
+
+
+@dataclass(frozen=True)
+class ESConfig:
+    population: int = 32  # candidates per generation (even: antithetic pairs)
+    generations: int = 15
+    seed: int = 0
+
+
+def apply_theta(base: SimParams, theta: jnp.ndarray) -> SimParams:
+    """The simulator ``base`` moved by ``theta`` (len(PARAMETERS), N) (see PARAMETERS)."""
+    sv, fr = base.servo, base.friction
+    ratio = fr.coulomb / jnp.maximum(fr.static, 1e-9)
+    static = jnp.maximum(fr.static + theta[2], 2e-3)
+    offset = (jnp.zeros_like(theta[5]) if base.torque_offset is None else base.torque_offset)
+    return base.replace(
+        servo=sv.replace(p_gain=sv.p_gain * jnp.exp(theta[0]),
+                         torque_constant=sv.torque_constant * jnp.exp(theta[1])),
+        friction=fr.replace(static=static, coulomb=ratio * static,
+                            load_coefficient=jnp.maximum(fr.load_coefficient + theta[3], 0.0),
+                            jitter=fr.jitter * jnp.exp(theta[4])),
+        torque_offset=offset + theta[5])
+
+
+def group_index(tau: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """(S, N) group of every sample and joint: 3 * (direction < 0) + tercile of |tau_j|."""
+    a = np.abs(np.asarray(tau))
+    edges = np.quantile(a, [1 / 3, 2 / 3], axis=0)  # (2, N)
+    tercile = (a > edges[0]).astype(int) + (a > edges[1]).astype(int)
+    return 3 * (np.asarray(direction) < 0).astype(int) + tercile
+
+
+def group_stats(values, groups, weight):
+    """(N, G) weighted mean and std of ``values`` (S, N) per group."""
+    one_hot = jax.nn.one_hot(groups, N_GROUPS, dtype=values.dtype) * weight[:, None, None]
+    n = jnp.maximum(one_hot.sum(0), 1.0)  # (N, G)
+    mean = jnp.einsum("sn,sng->ng", values, one_hot) / n
+    var = jnp.einsum("sng,sng->ng", (values[:, :, None] - mean) ** 2, one_hot) / n
+    return mean, jnp.sqrt(var + 1e-14)
+
+
+def _signature(qe, current, groups, weight):
+    m, s = group_stats(qe, groups, weight)
+    c, _ = group_stats(current, groups, weight)
+    return m, s, c
+
+
+def score(sim_qe, sim_current, at_rest, groups, real: tuple) -> jnp.ndarray:
+    """Mismatch of one simulated replay with the real samples (lower is better): per joint
+    and group, the differences of the mean discrepancy and of the mean current (in units of
+    the real group's spread) and the log ratio of the discrepancy spreads, squared and
+    averaged; a sample that did not come to rest counts as a miss of 1 per joint."""
+    m, s, c = _signature(sim_qe, sim_current, groups, at_rest.astype(sim_qe.dtype))
+    m_r, s_r, c_r, sc_r = real
+    terms = (((m - m_r) / s_r) ** 2 + jnp.log(s / s_r) ** 2 + ((c - c_r) / sc_r) ** 2)
+    return jnp.mean(terms) + jnp.mean(~at_rest)
+
+
+def identify(base: SimParams, obj: HeldObject, real, *, config: ESConfig = ESConfig(),
+             log: Callable[[str], None] = print) -> tuple[SimParams, dict]:
+    """Identifies ``base``'s servo, friction and torque offsets on one real object's samples.
+
+    Args:
+      base: the starting simulator (e.g. the fixed-point calibration on the same object).
+      obj: the held object (mass, COM, fitted tag pose), as
+        :func:`jaxinertia.sim.calibration.real_plan` builds it.
+      real: the object's real samples (``q_d``, ``q``, ``direction``, ``tau``,
+        ``current_tau``; (S, N) each).
+    Returns the identified simulator and the history (score of the mean and of the best
+    candidate per generation, the final theta)."""
+    if config.population < 2 or config.population % 2:
+        raise ValueError(f"population must be even and >= 2, got {config.population}")
+    N = base.robot.n_joints
+    dtype = base.servo.p_gain.dtype
+    groups = jnp.asarray(group_index(real.tau, real.direction))
+    qe_r = jnp.asarray(real.q_d - real.q, dtype)
+    cur_r = jnp.asarray(real.current_tau, dtype)
+    ones = jnp.ones(qe_r.shape[0], dtype)
+    m_r, s_r, c_r = _signature(qe_r, cur_r, groups, ones)
+    _, sc_r = group_stats(cur_r, groups, ones)
+    target = (m_r, s_r, c_r, jnp.maximum(sc_r, 1e-3))
+    q_d, direction = jnp.asarray(real.q_d, dtype), jnp.asarray(real.direction, dtype)
+    key = jax.random.key(config.seed)
+
+    @jax.jit
+    def scores(thetas):
+        def one(theta):
+            rec = simulate_samples(apply_theta(base, theta), obj, q_d, direction, key)
+            return score(rec.q_d - rec.q, rec.current_tau, rec.at_rest, groups, target)
+        return jax.vmap(one)(thetas)
+
+    D = (len(PARAMETERS), N)
+    mean = jnp.zeros(D, dtype)
+    step = jnp.broadcast_to(jnp.asarray(INITIAL_STEP, dtype)[:, None], D)
+    half = config.population // 2
+    w = np.log(half + 0.5) - np.log(np.arange(1, half + 1))  # the better half recombines
+    w = jnp.asarray(w / w.sum(), dtype)
+    rng = jax.random.key(config.seed + 1)
+    # Generation 0 scores the start; every call scores the current mean (row 0) beside the
+    # population, so that one program (one shape) serves the whole search.
+    eps = jnp.zeros((config.population, *D), dtype)
+    best_theta, best, history = mean, np.inf, []
+    for g in range(config.generations + 1):
+        sc = scores(jnp.concatenate([mean[None], mean + step * eps]))
+        at_mean, pop = float(sc[0]), sc[1:]
+        if at_mean < best:
+            best, best_theta = at_mean, mean
+        i = int(jnp.argmin(pop))
+        if g > 0 and float(pop[i]) < best:
+            best, best_theta = float(pop[i]), mean + step * eps[i]
+        history.append({"generation": g, "mean": at_mean, "best": best,
+                        "population_median": float(jnp.median(pop)) if g else at_mean})
+        log(f"identify: generation {g}: score of the mean {at_mean:.4f}, best {best:.4f}")
+        if g > 0:
+            elite = eps[jnp.argsort(pop)[:half]]
+            mean = mean + step * jnp.einsum("e,e...->...", w, elite)
+            # sep-CMA's rank-mu variance update of each coordinate's step (rate 0.3).
+            step = step * jnp.sqrt(0.7 + 0.3 * jnp.einsum("e,e...->...", w, elite**2))
+        if g < config.generations:
+            rng, k = jax.random.split(rng)
+            e = jax.random.normal(k, (half, *D), dtype)
+            eps = jnp.concatenate([e, -e])
+    return apply_theta(base, best_theta), {
+        "history": history, "theta": np.asarray(best_theta).tolist(),
+        "parameters": list(PARAMETERS), "population": config.population,
+        "generations": config.generations}
