@@ -42,13 +42,15 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
     scale = FoldScale(calibration_iterations=1, random_per_load=N_TRAIN // 4,
                       planning=False, train=TRAIN, finetune_samples=(30,),
                       finetune=TRAIN.replace(trainable="servo", val_fraction=0.2),
-                      randomize_draws=2)
+                      randomize_draws=2, identify_generations=1, identify_population=2)
     res = run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False, log=lambda m: None)
     assert set(res["folds"]) == {"cube", "white"}
     # Every look at real samples is restricted: to the fold's object while fitting, to the
     # held-out one for the replay; never all files at once.
     assert None not in seen
-    assert seen == [["cube"], ["cube"], ["white"], ["white"], ["white"], ["cube"]], seen
+    # (per fold: gravity, calibration, the held-out plan, the identification's plan)
+    assert seen == [["cube"], ["cube"], ["white"], ["cube"],
+                    ["white"], ["white"], ["cube"], ["white"]], seen
     for fit_on, other in (("cube", "white"), ("white", "cube")):
         f = res["folds"][fit_on]
         assert f["held_out"] == [other]
@@ -61,6 +63,12 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
         assert cal["link_gravity"]["n_samples"] == N_REAL
         replay = f["replay"]
         assert len(replay["real"]["k"]) == len(replay["sim"]["k"]) == 4
+        # Identified on the fold's object after the calibration; both replays recorded.
+        ident = f["identified"]
+        assert len(ident["history"]) == 2 and len(ident["theta"]) == 6
+        assert len(ident["replay_calibrated"]["k"]) == 4
+        assert ident["history"][-1]["best"] <= ident["history"][0]["mean"]
+        assert cal["identified"]["theta"] == ident["theta"]
         # Fine-tuned on 30 real samples of the fold's object only, from the physical model.
         fold = tmp_path / "folds" / f"fit_{fit_on}"
         config = load_models(fold / "models_finetuned_30")[3]

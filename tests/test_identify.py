@@ -25,6 +25,7 @@ from jaxinertia.sim.identify import (
     group_stats,
     identify,
     score,
+    target_of,
 )
 from jaxinertia.sim.params import default_sim_params
 from jaxinertia.sim.sampling import simulate_samples
@@ -73,20 +74,25 @@ def test_groups_are_direction_times_load_tercile_and_the_score_is_zero_on_the_tr
         assert np.all(np.abs(counts - S / 3) <= 1), counts
     qe = jnp.asarray(0.01 * tau + 0.002 * rng.normal(size=(S, N)))
     cur = jnp.asarray(tau + 0.1 * rng.normal(size=(S, N)))
-    gj, ones = jnp.asarray(g), jnp.ones(S)
-    m, s = group_stats(qe, gj, ones)
-    c, sc = group_stats(cur, gj, ones)
-    # numpy reference of one group's statistics
-    sel = g[:, 2] == 4
+    gj, tj = jnp.asarray(g), jnp.asarray(tau)
+    m, s = group_stats(qe, gj, jnp.ones(S))
+    sel = g[:, 2] == 4  # numpy references of one group
     np.testing.assert_allclose(m[2, 4], qe[sel, 2].mean(), rtol=1e-12)
     np.testing.assert_allclose(s[2, 4], qe[sel, 2].std(), rtol=1e-6)
-    real = (m, s, c, sc)
+    real = target_of(qe, cur, tj, gj)
+    b, a = np.polyfit(tau[sel, 2], np.asarray(qe)[sel, 2], 1)
+    np.testing.assert_allclose(real.slope[2, 4], b, rtol=1e-9)
+    np.testing.assert_allclose(real.level[2, 4], a + b * tau[sel, 2].mean(), rtol=1e-9)
+    resid = np.asarray(qe)[sel, 2] - (a + b * tau[sel, 2])
+    np.testing.assert_allclose(real.scatter[2, 4], resid.std(), rtol=1e-6)
     rest = jnp.ones(S, bool)
-    assert float(score(qe, cur, rest, gj, real)) == pytest.approx(0.0, abs=1e-12)
-    assert float(score(qe + 0.002, cur, rest, gj, real)) > 0.1
-    assert float(score(qe * 1.5, cur, rest, gj, real)) > 0.05
+    assert float(score(qe, cur, tj, rest, gj, real)) == pytest.approx(0.0, abs=1e-12)
+    assert float(score(qe + 0.002, cur, tj, rest, gj, real)) > 0.5  # a bias
+    assert float(score(qe * 1.2, cur, tj, rest, gj, real)) > 0.5  # a softer servo
+    assert float(score(qe + 0.001 * rng.normal(size=(S, N)), cur, tj, rest, gj,
+                       real)) > 0.01  # more scatter
     # A sample that never came to rest counts against the candidate.
-    assert float(score(qe, cur, rest.at[:60].set(False), gj, real)) > 0.05
+    assert float(score(qe, cur, tj, rest.at[:60].set(False), gj, real)) > 0.05
 
 
 def test_identification_brings_a_wrong_simulator_closer_to_the_one_that_made_the_samples(base):
@@ -121,14 +127,12 @@ def test_identification_brings_a_wrong_simulator_closer_to_the_one_that_made_the
     np.testing.assert_allclose(np.asarray(found.servo.p_gain),
                                np.asarray(base.servo.p_gain) * np.exp(theta[0]), rtol=1e-12)
     groups = jnp.asarray(group_index(real.tau, real.direction))
-    ones = jnp.ones(real.n_samples)
-    qe_r, cur_r = jnp.asarray(real.q_d - real.q), jnp.asarray(real.current_tau)
-    m, s = group_stats(qe_r, groups, ones)
-    c, sc = group_stats(cur_r, groups, ones)
+    target = target_of(jnp.asarray(real.q_d - real.q), jnp.asarray(real.current_tau),
+                       jnp.asarray(real.tau), groups)
     again = simulate_samples(found, obj, jnp.asarray(q_d), jnp.asarray(direction),
                              jax.random.key(0))
-    rescored = score(again.q_d - again.q, again.current_tau, again.at_rest, groups,
-                     (m, s, c, jnp.maximum(sc, 1e-3)))
+    rescored = score(again.q_d - again.q, again.current_tau, again.tau, again.at_rest, groups,
+                     target)
     np.testing.assert_allclose(float(rescored), h[-1]["best"], rtol=1e-9)
     with pytest.raises(ValueError, match="population"):
         identify(base, obj, real, config=ESConfig(population=5, generations=1))

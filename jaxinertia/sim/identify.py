@@ -6,10 +6,10 @@ the object is *replayed* (its goal ``q_d``, approach direction, the object and i
 tag pose) in candidate simulators, and the candidates are scored on how the simulated rest
 discrepancies and currents match the real ones **per approach direction and per load
 level** of each joint: the real samples are grouped per joint by direction and by tercile
-of ``|tau_j|`` (six groups per joint), and the score compares, group by group, the mean and
-the spread of ``q_d - q`` and the mean Present Current torque (each in units of the real
-group's spread). That is the apparent stiffness and bias against ``|tau|`` per direction,
-which a single PE fit averages away.
+of ``|tau_j|`` (six groups per joint), and the score compares, group by group, the line of
+``q_d - q`` against the load torque (its level and slope: the apparent bias and inverse
+stiffness at that load and direction), the scatter around it and the mean Present Current
+torque (:func:`score`). A single PE fit averages all of that into one gain and intercept.
 
 The search is a separable evolution strategy (antithetic Gaussian population, rank-weighted
 recombination of the best half, per-coordinate step sizes from the selected steps; the
@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -34,8 +35,8 @@ from jaxinertia.objects import HeldObject
 from jaxinertia.sim.sampling import simulate_samples
 from jaxinertia.sim.simulator import SimParams
 
-__all__ = ["PARAMETERS", "ESConfig", "apply_theta", "group_index", "group_stats", "identify",
-           "score"]
+__all__ = ["PARAMETERS", "ESConfig", "Target", "apply_theta", "group_index", "group_lines",
+           "group_stats", "identify", "score", "target_of"]
 
 #: Per-joint coordinates of a candidate, all relative to the starting simulator.
 PARAMETERS = (
@@ -90,20 +91,56 @@ def group_stats(values, groups, weight):
     return mean, jnp.sqrt(var + 1e-14)
 
 
-def _signature(qe, current, groups, weight):
-    m, s = group_stats(qe, groups, weight)
-    c, _ = group_stats(current, groups, weight)
-    return m, s, c
+def group_lines(y, x, groups, weight, at):
+    """Per joint and group (N, G): the weighted least-squares line ``y ~ a + b x`` as its
+    value at ``at`` (N, G), its slope and the residual spread."""
+    w = jax.nn.one_hot(groups, N_GROUPS, dtype=y.dtype) * weight[:, None, None]
+    n = jnp.maximum(w.sum(0), 1.0)
+    mx = jnp.einsum("sn,sng->ng", x, w) / n
+    my = jnp.einsum("sn,sng->ng", y, w) / n
+    dx, dy = x[:, :, None] - mx, y[:, :, None] - my
+    sxx = jnp.einsum("sng,sng->ng", dx**2, w)
+    b = jnp.einsum("sng,sng->ng", dx * dy, w) / jnp.maximum(sxx, 1e-14)
+    r = dy - b * dx
+    spread = jnp.sqrt(jnp.einsum("sng,sng->ng", r**2, w) / n + 1e-14)
+    return my + b * (at - mx), b, spread
 
 
-def score(sim_qe, sim_current, at_rest, groups, real: tuple) -> jnp.ndarray:
-    """Mismatch of one simulated replay with the real samples (lower is better): per joint
-    and group, the differences of the mean discrepancy and of the mean current (in units of
-    the real group's spread) and the log ratio of the discrepancy spreads, squared and
-    averaged; a sample that did not come to rest counts as a miss of 1 per joint."""
-    m, s, c = _signature(sim_qe, sim_current, groups, at_rest.astype(sim_qe.dtype))
-    m_r, s_r, c_r, sc_r = real
-    terms = (((m - m_r) / s_r) ** 2 + jnp.log(s / s_r) ** 2 + ((c - c_r) / sc_r) ** 2)
+class Target(NamedTuple):
+    """The real samples' signature (N, G each) and the scales the score divides by."""
+
+    tau_mean: jnp.ndarray  # the group's mean |tau| position (where the lines are compared)
+    tau_spread: jnp.ndarray
+    level: jnp.ndarray  # discrepancy at tau_mean
+    slope: jnp.ndarray  # d(q_d - q) / d tau: the inverse apparent stiffness
+    scatter: jnp.ndarray  # residual spread of the discrepancy around its line
+    current: jnp.ndarray  # mean Present Current torque
+    current_spread: jnp.ndarray
+
+
+def target_of(qe, current, tau, groups) -> Target:
+    """The signature of real samples (every sample weighted 1)."""
+    ones = jnp.ones(qe.shape[0], qe.dtype)
+    tm, ts = group_stats(tau, groups, ones)
+    level, slope, scatter = group_lines(qe, tau, groups, ones, tm)
+    c, cs = group_stats(current, groups, ones)
+    return Target(tm, ts, level, slope, scatter, c, jnp.maximum(cs, 1e-3))
+
+
+def score(sim_qe, sim_current, sim_tau, at_rest, groups, real: Target) -> jnp.ndarray:
+    """Mismatch of one simulated replay with the real samples (lower is better). Per joint
+    and group (approach direction x load tercile), the discrepancy's line against the load
+    torque: its level at the group's mean torque and its slope over the group's torque
+    spread, both in units of the real residual scatter, the log ratio of the scatters, and
+    the mean current in units of its real spread; squared and averaged. A sample that did
+    not come to rest counts as a miss of 1 per joint."""
+    w = at_rest.astype(sim_qe.dtype)
+    level, slope, scatter = group_lines(sim_qe, sim_tau, groups, w, real.tau_mean)
+    c, _ = group_stats(sim_current, groups, w)
+    terms = (((level - real.level) / real.scatter) ** 2
+             + ((slope - real.slope) * real.tau_spread / real.scatter) ** 2
+             + jnp.log(scatter / real.scatter) ** 2
+             + ((c - real.current) / real.current_spread) ** 2)
     return jnp.mean(terms) + jnp.mean(~at_rest)
 
 
@@ -124,12 +161,9 @@ def identify(base: SimParams, obj: HeldObject, real, *, config: ESConfig = ESCon
     N = base.robot.n_joints
     dtype = base.servo.p_gain.dtype
     groups = jnp.asarray(group_index(real.tau, real.direction))
-    qe_r = jnp.asarray(real.q_d - real.q, dtype)
-    cur_r = jnp.asarray(real.current_tau, dtype)
-    ones = jnp.ones(qe_r.shape[0], dtype)
-    m_r, s_r, c_r = _signature(qe_r, cur_r, groups, ones)
-    _, sc_r = group_stats(cur_r, groups, ones)
-    target = (m_r, s_r, c_r, jnp.maximum(sc_r, 1e-3))
+    target = target_of(jnp.asarray(real.q_d - real.q, dtype),
+                       jnp.asarray(real.current_tau, dtype), jnp.asarray(real.tau, dtype),
+                       groups)
     q_d, direction = jnp.asarray(real.q_d, dtype), jnp.asarray(real.direction, dtype)
     key = jax.random.key(config.seed)
 
@@ -137,7 +171,8 @@ def identify(base: SimParams, obj: HeldObject, real, *, config: ESConfig = ESCon
     def scores(thetas):
         def one(theta):
             rec = simulate_samples(apply_theta(base, theta), obj, q_d, direction, key)
-            return score(rec.q_d - rec.q, rec.current_tau, rec.at_rest, groups, target)
+            return score(rec.q_d - rec.q, rec.current_tau, rec.tau, rec.at_rest, groups,
+                         target)
         return jax.vmap(one)(thetas)
 
     D = (len(PARAMETERS), N)
