@@ -21,7 +21,6 @@ DIR, and their held-out Table I (NMAE) beside the released models.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import jax
@@ -31,6 +30,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from jaxinertia.fileio import write_json  # noqa: E402
 from jaxinertia.lbipe import default_lbipe_dir, find_layout, test_files  # noqa: E402
 from jaxinertia.sim.calibration import (  # noqa: E402
     baseline_statistics,
@@ -76,7 +76,6 @@ def train_folds(args) -> None:
 
     from jaxinertia.app.folds import FoldScale, run_folds  # noqa: PLC0415
     from jaxinertia.app.reproduce import FULL, QUICK  # noqa: PLC0415
-    from jaxinertia.fileio import write_json  # noqa: PLC0415
 
     scale = {"quick": QUICK, "full": FULL}[args.train[0]]
     root = Path(args.train[1])
@@ -161,8 +160,7 @@ def main() -> None:
           "PE MAE [N mm] | group mismatch |\n| --- | --- | --- | --- | --- | --- | --- |")
     print("\n".join(rows))
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(out, f, indent=1)
+        write_json(args.json, out)
 
 
 if __name__ == "__main__":

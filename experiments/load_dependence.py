@@ -26,10 +26,10 @@ the mechanics.
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 
+from jaxinertia.fileio import write_json
 from jaxinertia.lbipe import default_lbipe_dir, find_layout, test_files
 
 #: Feature families, cumulative: each adds columns to the ones before it.
@@ -127,8 +127,7 @@ def main() -> None:
         out["current_slope"][name] = a.tolist()
         print(f"| {name} | {' / '.join(f'{x:.2f}' for x in a)} |")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(out, f, indent=1)
+        write_json(args.json, out)
 
 
 if __name__ == "__main__":
