@@ -159,8 +159,21 @@ def design_section(objects, pair, fc, *, pool: int, repeats: int, seed: int) -> 
     return out
 
 
+def mean_attention(pair, fc, data) -> np.ndarray:
+    """(N,) the model pairs' attention weights averaged over the pairs and ``data``'s
+    samples (their training file: what a plan may know before any test object is seen)."""
+    from jaxinertia.estimation import predict_weights  # noqa: PLC0415
+    from jaxinertia.features import featurize  # noqa: PLC0415
+
+    feats = featurize(fc, jnp.asarray(data.q), jnp.asarray(data.q_d),
+                      jnp.asarray(data.direction)).astype(jnp.float32)
+    w = jax.vmap(lambda av: predict_weights(pair.attention_model, av, feats))(
+        pair.attention_vars)
+    return np.asarray(jnp.mean(w, axis=(0, 1)), np.float64)
+
+
 def simulated_plans_section(objects, pair, fc, *, repeats: int, seed: int,
-                            directions_only: bool = False) -> dict:
+                            directions_only: bool = False, joint_weights=None) -> dict:
     """The plan itself on the simulator: ``plan-poses --n 16`` (grid poses, balanced
     directions) simulated ``repeats`` times per test object (fresh friction draws), against
     ``repeats`` random plans of 16 and of 64 poses (uniform in the workspace, as the test
@@ -188,6 +201,10 @@ def simulated_plans_section(objects, pair, fc, *, repeats: int, seed: int,
                                        np.tile(at_limits.direction, (r, 1)))}
     if directions_only:  # the same poses with other approach directions
         designs = {"planned 16": designs["planned 16"], **ablation}
+    if joint_weights is not None:  # the criterion weighted as the T-A solve weights joints
+        weighted = plan_poses(16, joint_weights=np.asarray(joint_weights))
+        designs["planned 16, attention-weighted"] = lambda r: (
+            np.tile(weighted.q_d, (r, 1)), np.tile(weighted.direction, (r, 1)))
     jobs = [(k, o.name) for k in designs for o in objects]
     key = jax.random.key(seed)
     plans = [(test_object(name), *designs[k](repeats), jax.random.fold_in(key, i))
@@ -250,6 +267,9 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=1000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--skip", nargs="*", default=[], choices=["coverage", "design"])
+    p.add_argument("--weights-from", type=Path, default=None, metavar="FILE",
+                   help="with --simulate: also a plan weighted by the models' mean attention "
+                   "weights on FILE (their training file)")
     p.add_argument("--simulate", type=int, default=0, metavar="R",
                    help="also simulate the 16-pose plan and random 16/64-pose plans R times "
                    "per test object (a 2-core CPU: ~600 samples/s)")
@@ -315,9 +335,16 @@ def main(argv=None) -> int:
                         f"{m}: {e[m]['mass_MAE_g']:.2f} g {e[m]['com_MAE_mm']:.2f} mm"
                         for m in METHODS))
     if args.simulate:
+        weights = None
+        if args.weights_from is not None:
+            weights = mean_attention(pair, fc, load_samples(args.weights_from)[0])
+            results["plan_joint_weights"] = weights.tolist()
+            print(f"plan joint weights (mean attention on {args.weights_from}): "
+                  f"{np.round(weights, 4)}")
         sim_des = simulated_plans_section(sim_objects, pair, fc, repeats=args.simulate,
                                           seed=args.seed,
-                                          directions_only=args.directions_only)
+                                          directions_only=args.directions_only,
+                                          joint_weights=weights)
         results["simulated_plans"] = sim_des
         print(f"\n## design on the simulator: plan simulated {args.simulate} times "
               f"({sim_des['n_samples']} samples, {sim_des['wall_s']:.0f} s)")
