@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxinertia.errors import UsageError
 from jaxinertia.objects import test_object as paper_object
 from jaxinertia.plans import random_plan
 from jaxinertia.samples import Samples
@@ -134,5 +135,5 @@ def test_identification_brings_a_wrong_simulator_closer_to_the_one_that_made_the
     rescored = score(again.q_d - again.q, again.current_tau, again.tau, again.at_rest, groups,
                      target)
     np.testing.assert_allclose(float(rescored), h[-1]["best"], rtol=1e-9)
-    with pytest.raises(ValueError, match="population"):
+    with pytest.raises(UsageError, match="population"):
         identify(base, obj, real, config=ESConfig(population=5, generations=1))

@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxinertia.errors import UsageError
 from jaxinertia.objects import HeldObject
 from jaxinertia.sim.sampling import simulate_samples
 from jaxinertia.sim.simulator import SimParams
@@ -157,7 +158,7 @@ def identify(base: SimParams, obj: HeldObject, real, *, config: ESConfig = ESCon
     Returns the identified simulator and the history (score of the mean and of the best
     candidate per generation, the final theta)."""
     if config.population < 2 or config.population % 2:
-        raise ValueError(f"population must be even and >= 2, got {config.population}")
+        raise UsageError(f"population must be even and >= 2, got {config.population}")
     N = base.robot.n_joints
     dtype = base.servo.p_gain.dtype
     groups = jnp.asarray(group_index(real.tau, real.direction))
