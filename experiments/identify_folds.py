@@ -8,7 +8,8 @@ object's samples. Both simulators replay the *other* object's real plan (its goa
 directions, the object with its fitted tag pose); printed per joint: the PE gain error [%]
 and intercept error [N mm] against the real file, and the mismatch of the discrepancy
 distribution per approach direction and load tercile (the identification's own score, here
-on the held-out object: lower is better, 0 = the real groups' means, spreads and currents).
+on the held-out object: lower is better, 0 = the real groups' discrepancy lines, scatter
+and currents).
 
     python experiments/identify_folds.py [--lbipe-dir DIR] [--population 32] \\
         [--generations 15] [--json OUT]
