@@ -10,8 +10,9 @@
   code 3 and writes nothing; a port that disappears mid-collection (the virtual robot
   killed) gives one line and exit code 3, and the journal keeps every finished sample.
 
-Limits are generous (a busy host): ``--retries`` 40, wall-clock limits far beyond the
-collections' simulated time; waits are for conditions, never sleeps of a set length.
+Limits are generous (a busy host): ``--retries`` ``support.hardware.RETRIES`` (the bus may
+stay silent for seconds), wall-clock limits far beyond the collections' simulated time;
+waits are for conditions, never sleeps of a set length.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import sys
 
 import numpy as np
 import pytest
-from support.hardware import journal_indices, one_line, running, wait_for_samples
+from support.hardware import RETRIES, journal_indices, one_line, running, wait_for_samples
 
 from jaxinertia.plans import random_plan
 from jaxinertia.samples import load_native
@@ -37,13 +38,12 @@ SPEED = 15
 #: A collection: 10 minutes to start beside 20 x its simulated time (2 moves of at most
 #: 6 s per sample).
 WALL_LIMIT_S = 600 + 20 * N * 2 * 6.0 / SPEED
-RETRIES = "40"
 
 
 def collect_cmd(port: str, out, *extra: str, n: int = N) -> list[str]:
     return [sys.executable, "-m", "jaxinertia", "collect", "--port", port, "--plan", "random",
             "--n", str(n), "--seed", str(SEED), "--object", "cube", "--out", str(out),
-            "--no-progress", "--retries", RETRIES, *extra]
+            "--no-progress", "--retries", str(RETRIES), *extra]
 
 
 @pytest.mark.parametrize("faults", [

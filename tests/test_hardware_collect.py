@@ -17,6 +17,7 @@ import threading
 import jax
 import numpy as np
 import pytest
+from support.hardware import RETRIES
 
 from jaxinertia import objects
 from jaxinertia.design import PLAN_FORMAT, PLAN_FORMAT_VERSION
@@ -33,11 +34,10 @@ N = 20
 OBJECT = "cube"
 SPEED = "15"
 TICK = 2 * np.pi / 4096  # [rad]
-#: Generous limits, for a host that may be busy: the bus may stay silent for a few
-#: seconds (``--retries`` 40: about 3 s), and the wall-clock limits allow 20 x the
+#: Generous limits, for a host that may be busy: the bus may stay silent for seconds
+#: (``support.hardware.RETRIES``), and the wall-clock limits allow 20 x the
 #: collection's simulated time (2 moves of at most 6 s each per sample) beside 10 minutes
 #: for the interpreters to start and compile.
-RETRIES = "40"
 WALL_LIMIT_S = 600 + 20 * N * 2 * 6.0 / float(SPEED)
 
 #: The tolerances of this module (the virtual robot against the simulator), by what they
@@ -87,7 +87,7 @@ def collected(tmp_path_factory, reference):
         run = subprocess.run(
             [sys.executable, "-m", "jaxinertia", "collect", "--port", robot.path,
              "--plan", str(plan), "--object", OBJECT,
-             "--out", str(out), "--retries", RETRIES], capture_output=True, text=True,
+             "--out", str(out), "--retries", str(RETRIES)], capture_output=True, text=True,
             timeout=WALL_LIMIT_S)
         assert robot.proc.poll() is None, "the virtual robot died during the collection"
     assert run.returncode == 0, run.stderr

@@ -12,8 +12,8 @@ Then what is refused before anything moves (exit code 2, one line): ``--n`` that
 positive, ``--ids`` of the wrong count, a journal damaged before its last line; and a port
 that cannot be opened (exit code 3, one line, no journal left behind).
 
-Limits are generous (a busy host): ``--retries`` 40 (the bus may stay silent about 3 s),
-and wall-clock limits far beyond the collections' simulated time.
+Limits are generous (a busy host): ``--retries`` ``support.hardware.RETRIES`` (the bus may
+stay silent for seconds), and wall-clock limits far beyond the collections' simulated time.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import sys
 
 import numpy as np
 import pytest
-from support.hardware import journal_indices, one_line, running, wait_for_samples
+from support.hardware import RETRIES, journal_indices, one_line, running, wait_for_samples
 
 from jaxinertia.app.cli import main
 from jaxinertia.design import PLAN_FORMAT, PLAN_FORMAT_VERSION
@@ -60,7 +60,7 @@ def robot(tmp_path_factory):
 def collect_cmd(port: str, out, *extra: str, n: int = N) -> list[str]:
     return [sys.executable, "-m", "jaxinertia", "collect", "--port", port,
             "--plan", "random", "--n", str(n), "--seed", "4", "--object", "50g",
-            "--out", str(out), "--no-progress", "--retries", "40", *extra]
+            "--out", str(out), "--no-progress", "--retries", str(RETRIES), *extra]
 
 
 def check_complete(out, n: int = N) -> None:

@@ -28,6 +28,7 @@ from dynamixel_sdk import (
     PortHandler,
 )
 from support.compiles import compile_counter
+from support.hardware import RETRIES
 
 from jaxinertia.hardware import control_table as ct
 from jaxinertia.hardware.driver import ArmConfig, DynamixelArm, HardwareError
@@ -59,9 +60,6 @@ IDS = (11, 12, 13, 14)
 RTOL = 1e-7
 #: How long a test waits for bytes that must come [s] (a deadline, not a pace).
 PATIENCE_S = 60.0
-#: The driver's retries against the in-process bus: its thread shares this process (and
-#: its garbage collector) with the tests, so the bus may stay silent for a few seconds.
-RETRIES = 40
 Q0 = np.radians([0.0, -30.0, 30.0, 0.0])
 
 
