@@ -18,8 +18,10 @@ $(STAMP): pyproject.toml
 
 venv: $(STAMP)
 
+# The test files run in parallel, one worker per core (a file stays on one worker: its
+# module fixtures, such as a virtual robot, start once); the 15 slowest tests are printed.
 test: $(STAMP)
-	$(BIN)/python -m pytest -q --durations=15
+	$(BIN)/python -m pytest -q -n auto --dist loadfile --durations=15
 
 # The hardware tests (real driver, virtual robot) beside a busy loop on every core: they
 # must hold on a saturated host. The loops are killed when the tests end (or fail).

@@ -36,6 +36,25 @@ if os.environ["JAXINERTIA_CACHE_DIR"].lower() != "off":
 
 from support.layouts import small_layout  # noqa: E402
 
+#: Test files that take longest (seconds on the 2-core CI machine, two workers), run
+#: first so that the workers of `make test` (pytest-xdist, one file per worker at a time)
+#: finish together instead of one waiting on a long file started last. The hardware files
+#: (mostly waiting on the virtual robot) start beside test_folds, whose programs (compiled
+#: into the session's cache) test_learning's tiny end to end then finds.
+LONGEST_FIRST = ("test_folds.py",  # 113 s
+                 "test_hardware_faults.py",  # 70 s
+                 "test_hardware_bus.py",  # 70 s
+                 "test_hardware_collect.py",  # 40 s
+                 "test_learning.py",  # 100 s, its tiny end to end 69 s
+                 "test_identify.py",  # 53 s
+                 "test_finetune.py",  # 50 s
+                 "test_sim.py")  # 90 s in many short tests
+
+
+def pytest_collection_modifyitems(config, items):  # noqa: ARG001
+    rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable
+
 from jaxinertia.lbipe import default_lbipe_dir  # noqa: E402
 
 ASSETS = Path(__file__).parent / "assets"

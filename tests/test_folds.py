@@ -42,7 +42,8 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
     scale = FoldScale(calibration_iterations=1, random_per_load=N_TRAIN // 4,
                       planning=False, train=TRAIN, finetune_samples=(30,),
                       finetune=TRAIN.replace(trainable="servo", val_fraction=0.2),
-                      randomize_draws=2, identify_generations=1, identify_population=2)
+                      randomize_draws=2, identify_generations=1, identify_population=2,
+                      identify_samples=24)
     res = run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False, log=lambda m: None)
     assert set(res["folds"]) == {"cube", "white"}
     # Every look at real samples is restricted: to the fold's object while fitting, to the

@@ -68,6 +68,9 @@ class FoldScale:
     #: ``identify_population`` candidates); the fold then trains on the identified one.
     identify_generations: int = 0
     identify_population: int = 32
+    #: The identification's cost grows with the samples it replays: > 0 identifies on that
+    #: many of the fold's samples (a seeded random choice), 0 on all of them.
+    identify_samples: int = 0
 
 
 def _stats(d: dict) -> dict:
@@ -113,6 +116,9 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
         if scale.identify_generations > 0:
             replay_calibrated = replay(params)
             _, obj_fit, d_fit = real_plan(params.robot, lbipe_dir, [fit_on])[0]
+            if 0 < scale.identify_samples < d_fit.n_samples:
+                d_fit = d_fit.take(np.sort(np.random.default_rng(seed).choice(
+                    d_fit.n_samples, scale.identify_samples, replace=False)))
             t_id = time.perf_counter()
             params, ident = identify(params, obj_fit, d_fit, config=ESConfig(
                 population=scale.identify_population,
