@@ -27,6 +27,7 @@ from jaxinertia.identification import WLSResult, solve_sets
 from jaxinertia.metrics import inertial_metrics, torque_metrics
 from jaxinertia.objects import bounding_box_diagonal
 from jaxinertia.samples import Samples
+from jaxinertia.sharding import shard
 
 __all__ = [
     "METHODS",
@@ -176,6 +177,8 @@ def evaluate(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
     l_max = list(l_max) if l_max is not None else l_max_of(objects)
     names = [o.name for o in objects]
     batch = stack(objects, sets, fc)
+    # The sets (O, B, M) split along B over every local device (jaxinertia.sharding).
+    batch = batch._replace(sets=shard(batch.sets, axis=1))
     solves: dict[str, WLSResult] = {}
     tau_hat: dict[str, list[np.ndarray]] = {}
     if baselines is not None:

@@ -46,6 +46,7 @@ from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.identification import solve_normal
 from jaxinertia.networks import TORQUE_MODELS, AttentionModel, PhysicalTorqueModel, TorqueModel
 from jaxinertia.samples import Samples
+from jaxinertia.sharding import shard
 
 __all__ = [
     "FINETUNE_DEFAULTS",
@@ -304,6 +305,9 @@ def _run_epochs(epoch: Epoch, state: TrainState, data, val_data, n_epochs, key, 
     """Runs ``epoch.update`` n_epochs times with a progress bar, then calls
     ``on_epoch(e, (train_loss, val_loss))`` if given; returns the state and the
     (n_epochs, 2, K) history of training and validation losses."""
+    # The K models (state, own data) split over every local device (jaxinertia.sharding).
+    state = shard(state)
+    data, val_data = ((shared, shard(own)) for shared, own in (data, val_data))
     history = []
     with tqdm(total=n_epochs, desc=desc, unit="epoch", disable=not progress) as bar:
         for e in range(n_epochs):
