@@ -49,10 +49,12 @@ def _authors(lbipe_dir: Path):
 def _training_files(data: Path) -> None:
     """The paper-scale simulated training set in the names their baselines load:
     ``data_train_<load>.npz`` (planning grid) and ``data_train_random_<load>.npz``."""
-    if (data / "data_train_random_150g.npz").exists():
+    last = data / "data_train_random_150g.npz"
+    if last.exists() and len(np.load(last)["joint_data"]) >= 10_000:
         return
-    # their code cuts exactly 9000 random samples per load: a few more, as some time out
-    for scenario, extra in (("planning", []), ("random", ["--n", "9100"])):
+    # their training cuts random samples 0-8999 of each load for training and 9000-9999
+    # for validation: a few more, as some time out
+    for scenario, extra in (("planning", []), ("random", ["--n", "10100"])):
         tmp = data.parent / scenario
         subprocess.run([sys.executable, "-m", "jaxinertia", "simulate", "--scenario", scenario,
                         *extra, "--format", "lbipe", "--out", str(tmp), "--overwrite"],

@@ -30,6 +30,7 @@ validation split that the uncertainty floor recomputes (:mod:`jaxinertia.uncerta
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, NamedTuple
@@ -415,9 +416,15 @@ class TrainedAttention(NamedTuple):
 
 def torque_predictions(model, variables, fc: FeatureConfig, data: Samples) -> jnp.ndarray:
     """(K, S, N) torques [N m] of K stacked torque models."""
-    X = _features(fc, data)
-    scale = jnp.asarray(fc.tau_scale, jnp.float32)
-    return jax.jit(jax.vmap(lambda v: model.apply(v, X) * scale))(variables)
+    return _torque_predictions(model, variables, _features(fc, data),
+                               jnp.asarray(fc.tau_scale, jnp.float32))
+
+
+@functools.partial(jax.jit, static_argnames="model")
+def _torque_predictions(model, variables, X, scale):
+    # The features are an argument (not a constant of the program): one compilation per
+    # model and shape, found again in the persistent cache by later runs.
+    return jax.vmap(lambda v: model.apply(v, X) * scale)(variables)
 
 
 def train_attention_models(

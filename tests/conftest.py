@@ -10,7 +10,18 @@ from pathlib import Path
 import jax
 import pytest
 
-import jaxinertia  # noqa: F401  (applies the XLA:CPU settings before JAX starts)
+# XLA:CPU's older loop emitters instead of its fusion emitters: the same programs compile
+# in about 2/3 of the time (tests/test_uncertainty.py: 25 s -> 17 s of compiling on the
+# 2-core CI machine; test_sim + test_identify 144 s -> 112 s) and run as fast, and the
+# suite's time is mostly compiling. Set before JAX starts, so that the command-line and
+# virtual-robot subprocesses the tests start inherit it; what the tests check (numbers
+# against MuJoCo, the real data, golden files, within their tolerances) does not depend
+# on which emitter wrote the machine code.
+if "--xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
+                               + " --xla_cpu_use_fusion_emitters=false").strip()
+
+import jaxinertia  # noqa: E402, F401  (applies the XLA:CPU settings before JAX starts)
 
 jax.config.update("jax_enable_x64", True)
 
@@ -54,6 +65,52 @@ LONGEST_FIRST = ("test_folds.py",  # 113 s
 def pytest_collection_modifyitems(config, items):  # noqa: ARG001
     rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable
+
+#: Seconds XLA spent compiling programs in this process (JAX's tracing and lowering, whose
+#: events nest, are left out): the part of the suite's time that shared shapes and the
+#: persistent cache can save. Each test's share is recorded
+#: with its report, and the session ends with the files that compile most (under xdist the
+#: reports carry it from the workers).
+_COMPILE_EVENTS = ("/jax/core/compile/backend_compile_duration",)
+_compile_s = [0.0]
+
+
+def _on_duration(name, secs, **kwargs):  # noqa: ARG001
+    if name in _COMPILE_EVENTS:
+        _compile_s[0] += secs
+
+
+jax.monitoring.register_event_duration_secs_listener(_on_duration)
+
+
+def _timed_phase(item):
+    start = _compile_s[0]
+    yield
+    item.user_properties.append(("compile_s", _compile_s[0] - start))
+
+
+pytest_runtest_setup = pytest.hookimpl(wrapper=True)(_timed_phase)
+pytest_runtest_call = pytest.hookimpl(wrapper=True)(_timed_phase)
+
+
+def pytest_terminal_summary(terminalreporter):
+    per_file, total, compiling = {}, 0.0, 0.0
+    for reports in terminalreporter.stats.values():
+        for r in reports:
+            if getattr(r, "when", None) not in ("setup", "call"):
+                continue
+            c = sum(v for k, v in getattr(r, "user_properties", ()) if k == "compile_s")
+            f = r.nodeid.split("::")[0]
+            t, cf = per_file.get(f, (0.0, 0.0))
+            per_file[f] = (t + r.duration, cf + c)
+            total, compiling = total + r.duration, compiling + c
+    if not per_file:
+        return
+    terminalreporter.write_sep("=", f"time in tests {total:.0f} s, of it XLA compiling "
+                               f"{compiling:.0f} s; the 8 longest files")
+    for f, (t, c) in sorted(per_file.items(), key=lambda kv: -kv[1][0])[:8]:
+        terminalreporter.write_line(f"{t:7.1f} s  compiling {c:6.1f} s  {f}")
+
 
 from jaxinertia.lbipe import default_lbipe_dir  # noqa: E402
 

@@ -23,6 +23,8 @@ the population of candidate simulators ``vmap``-ed over :func:`simulate_samples`
 
 from __future__ import annotations
 
+import functools
+
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -145,6 +147,19 @@ def score(sim_qe, sim_current, sim_tau, at_rest, groups, real: Target) -> jnp.nd
     return jnp.mean(terms) + jnp.mean(~at_rest)
 
 
+@jax.jit
+def _scores(thetas, *, base, obj, q_d, direction, key, groups, target) -> jnp.ndarray:
+    """The score of every candidate ``thetas[c]`` (one replay of the real plan each). The
+    simulator, object, plan and target are arguments, not constants of the program: one
+    compilation serves every object and fold of the same plan size."""
+
+    def one(theta):
+        rec = simulate_samples(apply_theta(base, theta), obj, q_d, direction, key)
+        return score(rec.q_d - rec.q, rec.current_tau, rec.tau, rec.at_rest, groups, target)
+
+    return jax.vmap(one)(thetas)
+
+
 def identify(base: SimParams, obj: HeldObject, real, *, config: ESConfig = ESConfig(),
              log: Callable[[str], None] = print) -> tuple[SimParams, dict]:
     """Identifies ``base``'s servo, friction and torque offsets on one real object's samples.
@@ -168,13 +183,8 @@ def identify(base: SimParams, obj: HeldObject, real, *, config: ESConfig = ESCon
     q_d, direction = jnp.asarray(real.q_d, dtype), jnp.asarray(real.direction, dtype)
     key = jax.random.key(config.seed)
 
-    @jax.jit
-    def scores(thetas):
-        def one(theta):
-            rec = simulate_samples(apply_theta(base, theta), obj, q_d, direction, key)
-            return score(rec.q_d - rec.q, rec.current_tau, rec.tau, rec.at_rest, groups,
-                         target)
-        return jax.vmap(one)(thetas)
+    scores = functools.partial(_scores, base=base, obj=obj, q_d=q_d, direction=direction,
+                               key=key, groups=groups, target=target)
 
     D = (len(PARAMETERS), N)
     mean = jnp.zeros(D, dtype)
