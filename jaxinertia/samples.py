@@ -356,8 +356,10 @@ def _from_lbipe(d: dict, path: Path, name: str | None) -> Samples:
     A = checked_array(d, path, "A", (s * n, 4)).astype(np.float64)
     x = checked_array(d, path, "x", (4,)).astype(np.float64)
     checked_array(d, path, "tau", (s * n,))
-    if x[0] <= 0:
-        raise FileFormatError(path, "x", f"mass x[0] = {x[0]} must be positive")
+    # A mass of 0 is the empty gripper (the authors' data_train_0g.npz), with no COM.
+    if x[0] < 0 or (x[0] == 0 and np.any(x[1:] != 0)):
+        raise FileFormatError(path, "x", f"mass x[0] = {x[0]} must be positive (or 0 with "
+                              f"x[1:] = 0: the empty gripper), got x = {x.tolist()}")
     direction = jd[:, ROW_DIRECTION]
     if not np.all(np.abs(direction) == 1):
         bad = np.argwhere(np.abs(direction) != 1)[0]

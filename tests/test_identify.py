@@ -117,10 +117,10 @@ def test_identification_brings_a_wrong_simulator_closer_to_the_one_that_made_the
         "object_id": np.zeros(24, np.int32), "x": np.asarray(obj.x)[None]}, ["white"],
         need_truth=True)
     logs = []
-    found, info = identify(base, obj, real, config=ESConfig(population=6, generations=4,
+    found, info = identify(base, obj, real, config=ESConfig(population=2, generations=6,
                                                              seed=0), log=logs.append)
     h = info["history"]
-    assert len(h) == 5 and len(logs) == 5
+    assert len(h) == 7 and len(logs) == 7
     assert h[-1]["best"] < 0.7 * h[0]["mean"], h
     # The returned simulator is the one that scored best: re-scored independently here.
     theta = np.asarray(info["theta"])

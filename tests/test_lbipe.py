@@ -114,6 +114,23 @@ def test_authors_layout_round_trips_field_by_field(lbipe_dir, tmp_path, name):
     assert_tree_equal(load_samples(path)[0], ds, what=f"{name}: load_samples vs load_lbipe")
 
 
+def test_the_empty_gripper_file_of_the_authors_training_set_loads(lbipe_dir, tmp_path):
+    """Their training reads data_train_0g.npz (x = 0): it loads as a known object of mass 0;
+    a negative mass, or a COM without mass, is refused with the file and field named."""
+    path = lbipe_dir / "data" / "data_test_cube.npz"
+    d = dict(np.load(path))
+    for x, ok in (([0.0, 0, 0, 0], True), ([-0.01, 0, 0, 0], False),
+                  ([0.0, 0.001, 0, 0], False)):
+        out = tmp_path / "data_train_0g.npz"
+        np.savez(out, **(d | {"x": np.asarray(x)}))
+        if ok:
+            s = load_lbipe(out)
+            assert s.names == ("0g",) and s.mass == 0.0 and s.n_samples == len(d["joint_data"])
+        else:
+            with pytest.raises(FileFormatError, match=r"data_train_0g.npz \[x\]"):
+                load_lbipe(out)
+
+
 def test_pt_and_npz_give_identical_parameters(lbipe_dir):
     wdir = find_layout(lbipe_dir).weights_dir
     for k in range(1, 11):

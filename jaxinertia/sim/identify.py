@@ -24,7 +24,6 @@ the population of candidate simulators ``vmap``-ed over :func:`simulate_samples`
 from __future__ import annotations
 
 import functools
-
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
