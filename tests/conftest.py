@@ -41,9 +41,14 @@ if "JAXINERTIA_CACHE_DIR" not in os.environ:
 # when it is built anew (a jit created per call, a stream program keyed by its lane count,
 # the same program in a subprocess), and the CI machine compiles most programs in
 # 0.1-10 s. Compile counts (support.compiles) still count a cache hit as a compilation.
+# The threshold goes through the environment too, so that the command-line and
+# virtual-robot subprocesses (a collect, the virtual servos' physics) keep and find the
+# same programs.
 if os.environ["JAXINERTIA_CACHE_DIR"].lower() != "off":
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.1")
     jax.config.update("jax_compilation_cache_dir", os.environ["JAXINERTIA_CACHE_DIR"])
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs",
+                      float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"]))
 
 from support.layouts import small_layout  # noqa: E402
 
