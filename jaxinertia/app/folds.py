@@ -138,7 +138,7 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
                    seed)]
         if scale.planning:
             wanted.append((fold_dir / "data" / "train_planning.npz", "planning", None, seed))
-        files = simulate_files(params, wanted)
+        files = simulate_files(params, wanted, progress=progress)
         t2 = time.perf_counter()
         train(files, fold_dir / "models", scale.train.replace(seed=seed), overwrite=True,
               progress=progress)
@@ -153,7 +153,8 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
             spread = spread_from_samples(obj.q_d, obj.q, obj.direction, obj.tau)
             dr_files = simulate_files(params, [
                 (fold_dir / "data" / "train_random_randomized.npz", "random",
-                 scale.random_per_load, seed)], spread=spread, draws=scale.randomize_draws)
+                 scale.random_per_load, seed)], spread=spread, draws=scale.randomize_draws,
+                progress=progress)
             train(dr_files + files[1:], fold_dir / "models_randomized",
                   scale.train.replace(seed=seed), overwrite=True, progress=progress)
             res = evaluate_models(fold_dir / "models_randomized", *held_objects,

@@ -210,7 +210,7 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
                   (data_dir / "train_random.npz", "random", scale.random_per_load, seed)]
         if scale.planning:
             wanted.append((data_dir / "train_planning.npz", "planning", None, seed))
-        test_file, *train_files = simulate_files(params, wanted)
+        test_file, *train_files = simulate_files(params, wanted, progress=progress)
     with stage("simulate continuous"):
         cont_file = _continuous(params, data_dir / "continuous.npz", scale, seed)
     with stage("train"):

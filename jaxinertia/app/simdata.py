@@ -52,13 +52,15 @@ def cached(path: Path, request: dict, make) -> Path:
 
 
 def simulate_files(params, wanted: list[tuple[Path, str, int | None, int]], *,
-                   spread: DomainSpread | None = None, draws: int = 4) -> list[Path]:
+                   spread: DomainSpread | None = None, draws: int = 4,
+                   progress: bool = True) -> list[Path]:
     """Simulates the scenarios ``(path, scenario, n, seed)`` whose files are not there yet,
     all in one stream (one compiled program, one settling tail).
 
     ``spread``: domain randomization: the samples of every file come from ``draws``
     simulated arms drawn around ``params`` (:func:`jaxinertia.sim.randomize.perturbed`),
-    ``n / draws`` random-scenario samples each (one stream per arm)."""
+    ``n / draws`` random-scenario samples each (one stream per arm). ``progress``: the
+    stream's progress bar."""
     digest = params_digest(params)
     randomized = {} if spread is None else {"spread": spread.to_dict(), "draws": draws}
 
@@ -73,7 +75,8 @@ def simulate_files(params, wanted: list[tuple[Path, str, int | None, int]], *,
             missing.append((path, scenario, n, seed))
     if missing and spread is None:
         results = simulate_scenarios(
-            params, [ScenarioRequest(scenario, n, None, seed) for _, scenario, n, seed in missing])
+            params, [ScenarioRequest(scenario, n, None, seed) for _, scenario, n, seed in missing],
+            progress=progress)
     elif missing:
         if any(scenario != "random" or n is None for _, scenario, n, _ in missing):
             raise UsageError("domain randomization splits random-scenario files over the "
@@ -83,7 +86,7 @@ def simulate_files(params, wanted: list[tuple[Path, str, int | None, int]], *,
             arm = perturbed(params, jax.random.fold_in(jax.random.key(missing[0][3]), r), spread)
             per_arm.append(simulate_scenarios(arm, [
                 ScenarioRequest(scenario, -(-n // draws), None, seed + 7919 * (r + 1))
-                for _, scenario, n, seed in missing]))
+                for _, scenario, n, seed in missing], progress=progress))
         results = [_merge([arm[i] for arm in per_arm]) for i in range(len(missing))]
     for (path, scenario, n, seed), res in zip(missing, results):
         fields, meta = native_fields(res, params, scenario=scenario, seed=seed,
