@@ -73,9 +73,10 @@ def pytest_collection_modifyitems(config, items):  # noqa: ARG001
 
 #: Seconds XLA spent compiling programs in this process (JAX's tracing and lowering, whose
 #: events nest, are left out): the part of the suite's time that shared shapes and the
-#: persistent cache can save. Each test's share is recorded
-#: with its report, and the session ends with the files that compile most (under xdist the
-#: reports carry it from the workers).
+#: persistent cache can save. Compilations on other threads of the process (an in-process
+#: virtual robot's physics) count too, so a file's share can exceed its wall time. Each
+#: test's share is recorded with its report, and the session ends with the files that
+#: compile most (under xdist the reports carry it from the workers).
 _COMPILE_EVENTS = ("/jax/core/compile/backend_compile_duration",)
 _compile_s = [0.0]
 
