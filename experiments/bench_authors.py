@@ -46,6 +46,15 @@ def _authors(lbipe_dir: Path):
     return attn_test.estimate_object, TorqueModel, AttnModel
 
 
+def machine(torch) -> str:
+    """The host, torch's build and threads, and JAX's device: the line a result is filed
+    under."""
+    dev = jax.devices()[0]
+    return (f"{platform.machine()} {os.cpu_count()} CPU cores, torch {torch.__version__} "
+            f"({torch.get_num_threads()} threads), JAX {jax.__version__} on {dev.platform} "
+            f"({getattr(dev, 'device_kind', dev.platform)})")
+
+
 def _training_files(data: Path) -> None:
     """The paper-scale simulated training set in the names their baselines load:
     ``data_train_<load>.npz`` (planning grid) and ``data_train_random_<load>.npz``."""
@@ -111,12 +120,7 @@ def main() -> None:
               f"{1e3 * statistics.median(ours[1:] or ours):.1f} ms after compilation "
               f"({ours[0]:.2f} s the first call): {r['ratio_after_compile']:.0f}x, "
               f"{r['ratio_incl_compile']:.1f}x including compilation", flush=True)
-    dev = jax.devices()[0]
-    out = {"machine": f"{platform.machine()} {os.cpu_count()} CPU cores, torch "
-                      f"{torch.__version__} ({torch.get_num_threads()} threads), JAX "
-                      f"{jax.__version__} on {dev.platform} "
-                      f"({getattr(dev, 'device_kind', dev.platform)})",
-           "objects": rows}
+    out = {"machine": machine(torch), "objects": rows}
     print(out["machine"])
     if args.json:
         args.json.write_text(json.dumps(out, indent=2) + "\n")

@@ -22,8 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -37,7 +35,7 @@ import jaxinertia  # noqa: F401  (XLA settings before JAX starts)
 
 jax.config.update("jax_enable_x64", True)
 
-from bench_authors import _training_files  # noqa: E402
+from bench_authors import _training_files, machine  # noqa: E402
 
 from jaxinertia.lbipe import default_lbipe_dir  # noqa: E402
 from jaxinertia.samples import Samples, load_lbipe  # noqa: E402
@@ -169,12 +167,7 @@ def main() -> None:
     summary["pair_300_30"] = {"theirs_s": t_all, "ours_s": o_all, "ratio": t_all / o_all}
     print(f"one model pair, 300 + 30 epochs: theirs {t_all:.0f} s, ours {o_all:.0f} s "
           f"(compilation included): {t_all / o_all:.1f}x", flush=True)
-    dev = jax.devices()[0]
-    out = {"machine": f"{platform.machine()} {os.cpu_count()} CPU cores, torch "
-                      f"{torch.__version__} ({torch.get_num_threads()} threads), JAX "
-                      f"{jax.__version__} on {dev.platform} "
-                      f"({getattr(dev, 'device_kind', dev.platform)})",
-           "runs": rows, "summary": summary}
+    out = {"machine": machine(torch), "runs": rows, "summary": summary}
     print(out["machine"])
     if args.json:
         args.json.write_text(json.dumps(out, indent=2) + "\n")
