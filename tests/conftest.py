@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import os
+import resource
 import shutil
 import tempfile
 from pathlib import Path
 
 import jax
+import numpy as np
 import pytest
 
 # XLA:CPU's older loop emitters instead of its fusion emitters: the same programs compile
@@ -89,10 +91,17 @@ def _on_duration(name, secs, **kwargs):  # noqa: ARG001
 jax.monitoring.register_event_duration_secs_listener(_on_duration)
 
 
+def _cpu_s() -> float:
+    """CPU seconds of this process and of its finished (waited-for) subprocesses."""
+    own, kids = (resource.getrusage(w) for w in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
 def _timed_phase(item):
-    start = _compile_s[0]
+    start, cpu = _compile_s[0], _cpu_s()
     yield
     item.user_properties.append(("compile_s", _compile_s[0] - start))
+    item.user_properties.append(("cpu_s", _cpu_s() - cpu))
 
 
 pytest_runtest_setup = pytest.hookimpl(wrapper=True)(_timed_phase)
@@ -100,22 +109,25 @@ pytest_runtest_call = pytest.hookimpl(wrapper=True)(_timed_phase)
 
 
 def pytest_terminal_summary(terminalreporter):
-    per_file, total, compiling = {}, 0.0, 0.0
+    per_file = {}
     for reports in terminalreporter.stats.values():
         for r in reports:
             if getattr(r, "when", None) not in ("setup", "call"):
                 continue
-            c = sum(v for k, v in getattr(r, "user_properties", ()) if k == "compile_s")
+            props = dict.fromkeys(("compile_s", "cpu_s"), 0.0)
+            for k, v in getattr(r, "user_properties", ()):
+                if k in props:
+                    props[k] += v
             f = r.nodeid.split("::")[0]
-            t, cf = per_file.get(f, (0.0, 0.0))
-            per_file[f] = (t + r.duration, cf + c)
-            total, compiling = total + r.duration, compiling + c
+            per_file[f] = per_file.get(f, np.zeros(3)) + (r.duration, props["compile_s"],
+                                                             props["cpu_s"])
     if not per_file:
         return
+    total, compiling, cpu = sum(per_file.values())
     terminalreporter.write_sep("=", f"time in tests {total:.0f} s, of it XLA compiling "
-                               f"{compiling:.0f} s; the 8 longest files")
-    for f, (t, c) in sorted(per_file.items(), key=lambda kv: -kv[1][0])[:8]:
-        terminalreporter.write_line(f"{t:7.1f} s  compiling {c:6.1f} s  {f}")
+                               f"{compiling:.0f} s; CPU {cpu:.0f} s; the 10 longest files")
+    for f, (t, c, u) in sorted(per_file.items(), key=lambda kv: -kv[1][0])[:10]:
+        terminalreporter.write_line(f"{t:7.1f} s  compiling {c:6.1f} s  CPU {u:6.1f} s  {f}")
 
 
 from jaxinertia.lbipe import default_lbipe_dir  # noqa: E402
