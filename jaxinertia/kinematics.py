@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 
 from jaxinertia.robot import Robot
@@ -22,6 +23,7 @@ __all__ = [
     "axis_angle_to_matrix",
     "forward_kinematics",
     "ee_pose",
+    "ee_positions",
     "jacobian_at",
     "joint_axes",
     "point_jacobian",
@@ -97,6 +99,13 @@ def ee_pose(robot: Robot, q: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
     poses = forward_kinematics(robot, q)
     R_b, p_b = poses.rot[robot.ee_body], poses.pos[robot.ee_body]
     return R_b @ robot.ee_rot, R_b @ robot.ee_pos + p_b
+
+
+@jax.jit
+def ee_positions(robot: Robot, q: jnp.ndarray) -> jnp.ndarray:
+    """(S, 3) end-effector origins in base at configurations ``q`` (S, N): one compiled
+    call (an eager ``vmap`` would compile every operation of the kinematics on its own)."""
+    return jax.vmap(lambda qi: ee_pose(robot, qi)[1])(q)
 
 
 def jacobian_at(robot: Robot, poses: Poses, body: int, p_base: jnp.ndarray) -> jnp.ndarray:

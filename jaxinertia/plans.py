@@ -14,7 +14,7 @@ import itertools
 import jax
 import numpy as np
 
-from jaxinertia.kinematics import ee_pose
+from jaxinertia.kinematics import ee_positions
 from jaxinertia.open_manipulator_x import MOUNT_CLEARANCE_M, WORKSPACE_DEG
 from jaxinertia.robot import Robot, open_manipulator_x
 
@@ -44,13 +44,7 @@ def collides(q: np.ndarray, *, clearance: float = MOUNT_CLEARANCE_M,
     # the time an accelerator takes to compile it (~0.8 s on an H100).
     cpu = jax.devices("cpu")[0]
     robot, q = jax.device_put((robot, np.asarray(q)), cpu)
-    return np.asarray(_ee_positions(robot, q))[:, 2] < clearance
-
-
-@jax.jit
-def _ee_positions(robot, q):
-    """(S, 3) end-effector positions at goals (S, N), in one compiled call."""
-    return jax.vmap(lambda qi: ee_pose(robot, qi)[1])(q)
+    return np.asarray(ee_positions(robot, q))[:, 2] < clearance
 
 
 def planning_plan(step_deg: float = 10.0, *, clearance: float = MOUNT_CLEARANCE_M,

@@ -20,7 +20,6 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.linalg
 
 from jaxinertia.kinematics import (
     axis_angle_to_matrix,
@@ -136,6 +135,8 @@ def gravity_base_parameters(
     r64 = robot.astype(jnp.float64) if jax.config.jax_enable_x64 else robot
     Y = np.asarray(jax.vmap(link_gravity_regressor, in_axes=(None, 0))(r64, jnp.asarray(q)))
     Y = Y.reshape(-1, Y.shape[-1])
+    import scipy.linalg  # (a tenth of a second to import: here, not at start)
+
     _, R, piv = scipy.linalg.qr(Y, mode="economic", pivoting=True)
     d = np.abs(np.diag(R))
     rank = int(np.sum(d > rtol * d[0]))

@@ -39,12 +39,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from statistics import NormalDist
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.stats
 
 from jaxinertia.baselines import Baselines
 from jaxinertia.checkpoints import file_sha256
@@ -90,9 +90,17 @@ DEFAULT_TORQUE_NOISE_NM = 0.02
 LEVELS = (0.68, 0.95)
 
 
+def _chi2_3_ppf(level: float) -> float:
+    """Quantile of the chi-square distribution with 3 degrees of freedom (scipy.stats, half
+    a second to import, only when coverage is measured)."""
+    import scipy.stats  # here, not at start: see the docstring
+
+    return float(scipy.stats.chi2.ppf(level, 3))
+
+
 def z_of(level: float) -> float:
     """Two-sided normal quantile: the half-width of a ``level`` interval in standard errors."""
-    return float(scipy.stats.norm.ppf(0.5 + level / 2))
+    return NormalDist().inv_cdf(0.5 + level / 2)
 
 
 # ---- per-set covariance -----------------------------------------------------------------
@@ -253,7 +261,7 @@ def coverage(x, cov, x_true, *, levels: Sequence[float] = LEVELS, inflate=1.0) -
         out[level] = {"mass": float(inside[:, 0].mean()),
                       "com_xyz": inside[:, 1:].mean(axis=0).tolist(),
                       "com": float(inside[:, 1:].mean()),
-                      "com_region": float((maha <= scipy.stats.chi2.ppf(level, 3)).mean())}
+                      "com_region": float((maha <= _chi2_3_ppf(level)).mean())}
     return out
 
 

@@ -2,25 +2,35 @@
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Sequence
 from pathlib import Path
 
-import matplotlib
 import numpy as np
 
 from jaxinertia.fileio import replacing
 from jaxinertia.samples import Samples
 
-matplotlib.use("Agg")  # headless: files only, before pyplot is imported
-import matplotlib.pyplot as plt  # noqa: E402
-
 __all__ = ["plot_calibration", "plot_continuous", "plot_lbipe_estimates", "plot_table1",
-           "plot_training"]
+           "plot_training", "pyplot"]
+
+
+@functools.cache
+def pyplot():
+    """``matplotlib.pyplot`` on the headless Agg backend (files only), imported at the first
+    figure: a third of a second that every command drawing nothing would pay at start."""
+    import matplotlib  # here, not at start: see the docstring
+
+    matplotlib.use("Agg")  # before pyplot is imported
+    import matplotlib.pyplot as plt  # after the backend is chosen
+
+    return plt
 
 
 def _save(fig, path: str | os.PathLike, dpi: int) -> Path:
     """Lays out, writes (creating the folder) and closes a figure."""
+    plt = pyplot()
     fig.tight_layout()
     with replacing(path, suffix=Path(path).suffix) as tmp:
         fig.savefig(tmp, dpi=dpi)
@@ -33,6 +43,7 @@ def plot_lbipe_estimates(objects: Sequence[Samples], estimates: dict, path: str 
     """Per object: the distribution of mass estimates and of COM errors over every model
     pair and set, T beside T-A, with the truth marked. ``estimates``: ``{"T": (O, K, B, 4),
     "T-A": ...}`` as :func:`jaxinertia.evaluation.evaluate` returns them."""
+    plt = pyplot()
     n = len(objects)
     fig, axes = plt.subplots(2, n, figsize=(4.2 * n, 6.4), squeeze=False)
     colors = {"T": "tab:orange", "T-A": "tab:blue"}
@@ -65,6 +76,7 @@ def plot_lbipe_estimates(objects: Sequence[Samples], estimates: dict, path: str 
 def plot_calibration(real: dict, sim: dict, path: str | os.PathLike) -> Path:
     """Per joint: q_d - q against tau by direction, real beside simulated, and the
     residual histograms of the position-error baseline fit on each."""
+    plt = pyplot()
     n = real["q"].shape[1]
     fig, axes = plt.subplots(3, n, figsize=(3.6 * n, 9.6), squeeze=False)
     for col, (label, d) in enumerate((("real", real), ("simulated", sim))):
@@ -99,6 +111,7 @@ _METHOD_COLORS = {"Sensor": "tab:gray", "PE": "tab:green", "T": "tab:orange", "T
 
 def plot_training(history: dict, path: str | os.PathLike) -> Path:
     """Validation loss per epoch of every model (torque MSE; attention loss)."""
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
     for ax, (name, label) in zip(axes, (("torque", "torque model: MSE (normalised)"),
                                         ("attention", "attention model: loss [SI]"))):
@@ -116,6 +129,7 @@ def plot_training(history: dict, path: str | os.PathLike) -> Path:
 
 def plot_table1(objects: dict, path: str | os.PathLike, title: str = "") -> Path:
     """Mass and COM NMAE per object and method (Table I as bars)."""
+    plt = pyplot()
     names = list(objects)
     methods = [m for m in ("Sensor", "PE", "T", "T-A") if m in objects[names[0]]]
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
@@ -140,6 +154,7 @@ def plot_table1(objects: dict, path: str | os.PathLike, title: str = "") -> Path
 def plot_continuous(res: dict, path: str | os.PathLike, joints=(0, 1, 2, 3)) -> Path:
     """Switching-load run: filtered vertical force per method against the truth, and the
     joint torques along the trajectory."""
+    plt = pyplot()
     n_j = len(joints)
     fig, axes = plt.subplots(1 + n_j, 1, figsize=(10, 2.4 * (1 + n_j)), sharex=True)
     ax = axes[0]

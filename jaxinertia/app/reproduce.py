@@ -30,7 +30,6 @@ from jaxinertia.app.pipeline import (
     sim_to_real,
     train,
 )
-from jaxinertia.app.plots import plt  # pyplot, headless (Agg) as plots sets it up
 from jaxinertia.app.report import coverage_table, table1, table2, table3
 from jaxinertia.app.simdata import cached, params_digest, simulate_files
 from jaxinertia.checkpoints import load_models
@@ -158,6 +157,7 @@ def _finetune_on_real(out: Path, train_files: list[Path], lbipe_dir: Path, scale
 def plot_interval_width(cal: dict, path: Path, title: str, method: str = "T-A") -> Path:
     """|error| against the 95 % interval's half-width, per set: mass and COM coordinates;
     points under the diagonal are sets whose interval holds the truth."""
+    plt = plots.pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
     se, err = cal["per_set"][method]["se"], cal["per_set"][method]["error"]
     z = z_of(0.95)

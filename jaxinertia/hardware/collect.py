@@ -229,6 +229,14 @@ def collect(
             bar.update(1)
 
 
+@jax.jit
+def _statics(robot: Robot, q, R_base_tag, p_base_tag):
+    """``A`` (S, N, 4) and ``tau_g`` (S, N) of the bare ``robot`` at the measured samples:
+    one program (the robot an argument, not constants), kept in the compilation cache."""
+    A = jax.vmap(load_regressor, in_axes=(None, 0, 0, 0))(robot, q, R_base_tag, p_base_tag)
+    return A, jax.vmap(gravity_torques, in_axes=(None, 0))(robot, q)
+
+
 def samples_from_records(records: dict[int, dict], robot: Robot, x: np.ndarray | None,
                          name: str) -> Samples:
     """The samples of the journal ``records`` (plan order) holding object ``name``: ``A``
@@ -241,9 +249,7 @@ def samples_from_records(records: dict[int, dict], robot: Robot, x: np.ndarray |
     f = {k: np.asarray([records[i][k] for i in idx]) for k in cols}
     f["at_rest"] = f["at_rest"].astype(bool)
     q = f["q"].astype(np.float64)
-    A = np.asarray(jax.jit(jax.vmap(lambda q, R, p: load_regressor(robot, q, R, p)))(
-        q, f["R_base_tag"], f["p_base_tag"]))
-    tau_g = np.asarray(jax.jit(jax.vmap(lambda q: gravity_torques(robot, q)))(q))
+    A, tau_g = (np.asarray(v) for v in _statics(robot, q, f["R_base_tag"], f["p_base_tag"]))
     f["A"], f["tau_g"] = A, tau_g
     if x is not None:
         f["tau"] = tau_g + A @ x

@@ -8,7 +8,7 @@ import jax
 import numpy as np
 
 from jaxinertia.errors import UsageError
-from jaxinertia.kinematics import ee_pose
+from jaxinertia.kinematics import ee_pose, ee_positions
 from jaxinertia.open_manipulator_x import WORKSPACE_DEG
 from jaxinertia.robot import Robot
 
@@ -45,7 +45,7 @@ class SafetyLimits:
         limits = default_joint_limits(margin_deg)
         axes = [np.linspace(lo, hi, 5) for lo, hi in limits]
         grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(limits))
-        p = np.asarray(jax.vmap(lambda q: ee_pose(robot, q)[1])(grid))
+        p = np.asarray(ee_positions(robot, grid))
         box = np.stack([p.min(0) - box_margin, p.max(0) + box_margin])
         return cls(limits, box)
 

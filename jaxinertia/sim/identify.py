@@ -181,6 +181,9 @@ def identify(base: SimParams, obj: HeldObject, real, *, config: ESConfig = ESCon
                        groups)
     q_d, direction = jnp.asarray(real.q_d, dtype), jnp.asarray(real.direction, dtype)
     key = jax.random.key(config.seed)
+    # Strongly typed leaves: an object built from Python floats (weakly typed) would trace
+    # and compile its own program for the same shapes.
+    base, obj = jax.tree.map(lambda v: jnp.asarray(v, jnp.result_type(v)), (base, obj))
 
     scores = functools.partial(_scores, base=base, obj=obj, q_d=q_d, direction=direction,
                                key=key, groups=groups, target=target)

@@ -95,6 +95,9 @@ def loaded_params(params: SimParams, obj: HeldObject) -> SimParams:
     return params.replace(robot=attach_payload(physical, obj.mass, obj.com_ee(), inertia_ee))
 
 
+# Compiled as one program (the parameters, object and plan are arguments): run eagerly, each
+# call compiled its settling loops again.
+@jax.jit
 def simulate_samples(
     params: SimParams,
     obj: HeldObject,

@@ -34,7 +34,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
 from jaxinertia.errors import CameraError, FileFormatError, UsageError
 from jaxinertia.fileio import write_text
@@ -204,6 +203,8 @@ def calibrate_camera_pose(
 
     # Rotations are perturbations on the left of the start (no angle-pi singularity).
     n = 6 if fixed_y else 12
+    from scipy.optimize import least_squares  # (half a second to import: only here)
+
     sol = least_squares(residuals, np.zeros(n), loss="soft_l1", f_scale=loss_scale_px,
                         x_scale=np.tile([1e-2, 1e-2, 1e-2, 1e-3, 1e-3, 1e-3], n // 6))
     R_x, p_x, R_y, p_y = unpack(sol.x)
