@@ -63,14 +63,14 @@ from support.layouts import small_layout  # noqa: E402
 #: finish together instead of one waiting on a long file started last. The hardware files
 #: (mostly waiting on the virtual robot) start beside test_folds, whose programs (compiled
 #: into the session's cache) test_learning's tiny end to end then finds.
-LONGEST_FIRST = ("test_folds.py",  # 100 s (session 13, fresh clone)
-                 "test_hardware_faults.py",  # 93 s
-                 "test_hardware_bus.py",  # 78 s
-                 "test_hardware_collect.py",  # 52 s
-                 "test_learning.py",  # 102 s, its tiny end to end 79 s
-                 "test_identify.py",  # 51 s
-                 "test_finetune.py",  # 55 s
-                 "test_sim.py")  # 131 s in many short tests (128 s of it compiling)
+LONGEST_FIRST = ("test_folds.py",  # 91 s (session 14, fresh clone)
+                 "test_hardware_faults.py",  # 54 s
+                 "test_hardware_bus.py",  # 58 s
+                 "test_hardware_collect.py",  # < 28 s
+                 "test_learning.py",  # 87 s, its tiny end to end 63 s
+                 "test_identify.py",  # 28 s
+                 "test_finetune.py",  # 43 s
+                 "test_sim.py")  # 106 s in many short tests (94 s of it compiling)
 
 
 def pytest_collection_modifyitems(config, items):  # noqa: ARG001
