@@ -15,6 +15,7 @@ pairs stack into one pytree and ``jax.vmap`` evaluates all of them in one call.
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 from collections.abc import Sequence
@@ -243,11 +244,19 @@ def attention_params_from_torch(
 
 def _check_against_init(model, variables, n, path):
     """Every tensor must have exactly the shape the architecture initialises."""
-    ref = jax.eval_shape(model.init, jax.random.key(0), jnp.zeros((1, n, 4), jnp.float32))
-    ref_shapes = jax.tree_util.tree_map(lambda a: a.shape, ref)
+    ref_shapes = _init_shapes(model, n)
     got_shapes = jax.tree_util.tree_map(lambda a: a.shape, variables)
     if ref_shapes != got_shapes:
         raise WeightsError(f"{path}: tensors do not fit {model}: {got_shapes} vs {ref_shapes}")
+
+
+@functools.lru_cache(maxsize=64)
+def _init_shapes(model, n: int):
+    """The parameter shapes ``model`` initialises for N joints: traced once per architecture
+    (a Flax module is a frozen dataclass, hashed by its fields), not once per weight file
+    (the ten released pairs took a second to check)."""
+    ref = jax.eval_shape(model.init, jax.random.key(0), jnp.zeros((1, n, 4), jnp.float32))
+    return jax.tree_util.tree_map(lambda a: a.shape, ref)
 
 
 def load_released_pair(weights_dir: str | os.PathLike, index: int, *, prefer: str = "npz"):
