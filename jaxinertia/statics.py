@@ -15,6 +15,7 @@ how the link gravity parameters are identified.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -179,8 +180,14 @@ def fit_tag_pose(robot: Robot, q: jnp.ndarray, A: jnp.ndarray, *, iterations: in
     depend only on the orientation. Both start from linear least squares (the rotation is
     projected onto SO(3)) and the orientation is refined by Gauss-Newton.
     """
-    q = jnp.asarray(q)
-    A = jnp.asarray(A)
+    R_et, p_et, err = _fit_tag_pose(robot, jnp.asarray(q), jnp.asarray(A), iterations)
+    err = np.asarray(err).reshape(-1, 4)
+    return TagFit(np.asarray(R_et), np.asarray(p_et), err.max(axis=0), err.mean(axis=0))
+
+
+@partial(jax.jit, static_argnums=3)
+def _fit_tag_pose(robot: Robot, q: jnp.ndarray, A: jnp.ndarray, iterations: int):
+    """:func:`fit_tag_pose` as one program (the robot an argument): ``(R, p, |A_fit - A|)``."""
     zero = jnp.zeros(3, dtype=A.dtype)
     eye = jnp.eye(3, dtype=A.dtype)
 
@@ -203,25 +210,19 @@ def fit_tag_pose(robot: Robot, q: jnp.ndarray, A: jnp.ndarray, *, iterations: in
     U, _, Vt = jnp.linalg.svd(r_lin.reshape(3, 3))
     R0 = U @ jnp.diag(jnp.array([1.0, 1.0, jnp.linalg.det(U @ Vt)], dtype=A.dtype)) @ Vt
 
-    def resid(w):
+    def rotation(w):
         n = jnp.sqrt(jnp.sum(w**2) + 1e-30)
-        return cols((R0 @ axis_angle_to_matrix(w / n, n)).ravel()) - A[..., 1:].ravel()
+        return R0 @ axis_angle_to_matrix(w / n, n)
 
-    w = jnp.full(3, 1e-9, dtype=A.dtype)
-    step = jax.jit(
-        lambda w: w - jnp.linalg.lstsq(jax.jacfwd(resid)(w), resid(w))[0]
-    )
-    for _ in range(iterations):
-        w = step(w)
-    n = jnp.sqrt(jnp.sum(w**2) + 1e-30)
-    R_et = R0 @ axis_angle_to_matrix(w / n, n)
-    err = jnp.abs(regress(R_et, p_et) - A).reshape(-1, 4)
-    return TagFit(
-        np.asarray(R_et),
-        np.asarray(p_et),
-        np.asarray(err.max(axis=0)),
-        np.asarray(err.mean(axis=0)),
-    )
+    def resid(w):
+        return cols(rotation(w).ravel()) - A[..., 1:].ravel()
+
+    def step(_, w):  # Gauss-Newton
+        return w - jnp.linalg.lstsq(jax.jacfwd(resid)(w), resid(w))[0]
+
+    w = jax.lax.fori_loop(0, iterations, step, jnp.full(3, 1e-9, dtype=A.dtype))
+    R_et = rotation(w)
+    return R_et, p_et, jnp.abs(regress(R_et, p_et) - A)
 
 
 def robot_with_gravity_parameters(
