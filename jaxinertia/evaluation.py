@@ -154,10 +154,11 @@ def _finite(x: np.ndarray) -> np.ndarray:
 
 
 def _diagnostics(res: WLSResult, o: int) -> dict:
-    return {"rank_deficient": int(np.sum(np.asarray(res.rank_deficient[o]))),
-            "ill_conditioned": int(np.sum(np.asarray(res.ill_conditioned[o]))),
-            "max_condition": float(np.nanmax(np.asarray(res.condition[o]))),
-            "n_solves": int(np.asarray(res.condition[o]).size)}
+    # Indexed on the host: indexing the device arrays compiles a slice per shape.
+    cond = np.asarray(res.condition)[o]
+    return {"rank_deficient": int(np.sum(np.asarray(res.rank_deficient)[o])),
+            "ill_conditioned": int(np.sum(np.asarray(res.ill_conditioned)[o])),
+            "max_condition": float(np.nanmax(cond)), "n_solves": int(cond.size)}
 
 
 def evaluate(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,

@@ -178,7 +178,10 @@ def _features(fc: FeatureConfig, d: Samples) -> jnp.ndarray:
         jnp.float32)
 
 
+@functools.partial(jax.jit, static_argnums=0)
 def _init_stacked(model, keys, example):
+    # One program per architecture and shape (eager, every layer's initialiser compiled
+    # op by op: dozens of small programs per training).
     return jax.vmap(lambda k: model.init(k, example))(keys)
 
 
