@@ -228,7 +228,10 @@ class Plan(NamedTuple):
 #: the limits, where the torque models (trained on poses uniform in the workspace) are least
 #: accurate: on the simulator (1000 repeats) 16 grid poses at the limits gave a T-A mass /
 #: COM error of 9.4 g / 27.6 mm against 8.0 g / 17.5 mm for 16 random poses, and 10 deg
-#: inside them 6.0 g / 11.2 mm (docs/results.md, "The most informative poses").
+#: inside them 6.0 g / 11.2 mm (docs/results.md, "The most informative poses"), with the
+#: quick run's models. Models trained on the planning grid (which includes the limits) are
+#: accurate there: with the full-scale ones the limits gave 3.0 g / 9.7 mm, 10 deg inside
+#: 4.0 g / 9.0 mm; ``--margin-deg 0`` suits such models.
 DEFAULT_MARGIN_DEG = 10.0
 
 
