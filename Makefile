@@ -10,18 +10,28 @@ RUNS := runs
 
 all: test
 
+# uv (one wheel, installed into the venv by pip) installs the same packages from the same
+# index as pip, but downloads, unpacks and byte-compiles them in parallel: 13 s instead of
+# 26 s on the 2-core CI machine, a tenth of `make test`'s target. Where uv cannot be had or
+# fails, pip does the whole job.
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	@if $(BIN)/python -m pip install --quiet 'uv>=0.4' && \
+	    $(BIN)/python -m uv pip install --quiet --python $(BIN)/python --compile-bytecode \
+	        -e '.[dev]'; then echo "venv: installed with uv"; \
+	else echo "venv: uv unavailable, installing with pip"; \
+	    $(BIN)/python -m pip install --quiet --upgrade pip && \
+	    $(BIN)/python -m pip install --quiet -e '.[dev]'; fi
 	@touch $(STAMP)
 
 venv: $(STAMP)
 
 # The test files run in parallel, one worker per core (a file stays on one worker: its
-# module fixtures, such as a virtual robot, start once); the 15 slowest tests are printed.
+# module fixtures, such as a virtual robot, start once), in the order tests/conftest.py
+# gives them (longest first; xdist would otherwise reorder them by their number of tests);
+# the 15 slowest tests are printed.
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n auto --dist loadfile --durations=15
+	$(BIN)/python -m pytest -q -n auto --dist loadfile --no-loadscope-reorder --durations=15
 
 # The hardware tests (real driver, virtual robot) beside a busy loop on every core: they
 # must hold on a saturated host. The loops are killed when the tests end (or fail).

@@ -22,8 +22,13 @@ import pytest
 # Likewise LLVM without its expensive passes and at optimisation level 1 (of 0-3; 0 made
 # the simulator's tests run slower): test_sim + test_learning 135 -> 121 s, 216 -> 185 CPU
 # seconds (session 14, idle 2-core VM), the simulator's tests run no slower.
+# And one thread per process for XLA's compiler (the LLVM module compiled in one piece, not
+# split over threads) and for its Eigen kernels: the two workers already keep both cores
+# busy, and the threads only contended (session 16, 2-core VM: test_sim + test_learning +
+# test_identify 225 -> 210 CPU seconds; the whole suite 364 -> 358 s).
 for _flag in ("--xla_cpu_use_fusion_emitters=false", "--xla_llvm_disable_expensive_passes=true",
-              "--xla_backend_optimization_level=1"):
+              "--xla_backend_optimization_level=1", "--xla_cpu_multi_thread_eigen=false",
+              "--xla_cpu_parallel_codegen_split_count=1"):
     if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _flag).strip()
 
@@ -61,19 +66,33 @@ if os.environ["JAXINERTIA_CACHE_DIR"].lower() != "off":
 
 from support.layouts import small_layout  # noqa: E402
 
-#: Test files that take longest (seconds on the 2-core CI machine, two workers), run
-#: first so that the workers of `make test` (pytest-xdist, one file per worker at a time)
-#: finish together instead of one waiting on a long file started last. The hardware files
-#: (mostly waiting on the virtual robot) start beside test_folds, whose programs (compiled
-#: into the session's cache) test_learning's tiny end to end then finds.
-LONGEST_FIRST = ("test_folds.py",  # 91 s (session 14, fresh clone)
-                 "test_hardware_faults.py",  # 54 s
-                 "test_hardware_bus.py",  # 58 s
-                 "test_hardware_collect.py",  # < 28 s
-                 "test_learning.py",  # 87 s, its tiny end to end 63 s
-                 "test_identify.py",  # 28 s
-                 "test_finetune.py",  # 43 s
-                 "test_sim.py")  # 106 s in many short tests (94 s of it compiling)
+#: Test files, longest first (seconds on the 2-core CI machine, two workers, session 16),
+#: so that the workers of `make test` (pytest-xdist, one file per worker at a time, in this
+#: order: the Makefile passes --no-loadscope-reorder, without which xdist orders files by
+#: their number of tests) finish together instead of one waiting on a long file started
+#: last; files not named run after these. test_folds comes first: test_learning's tiny end
+#: to end and test_identify's search find its programs in the session's cache (started
+#: together on two workers, both would compile them). The two hardware files that run a
+#: virtual robot the longest are spread over both workers.
+LONGEST_FIRST = ("test_folds.py",  # 81 s
+                 "test_sim.py",  # 97 s in many short tests (82 s of it compiling)
+                 "test_hardware_bus.py",  # 57 s
+                 "test_learning.py",  # 89 s, its tiny end to end 65 s
+                 "test_hardware_faults.py",  # 51 s
+                 "test_finetune.py",  # 44 s
+                 "test_dynamics.py",  # 33 s
+                 "test_sharding.py",  # 29 s
+                 "test_identify.py",  # 27 s
+                 "test_kinematics.py",  # 25 s
+                 "test_uncertainty.py",  # 22 s
+                 "test_calibration.py",  # 21 s
+                 "test_hardware_collect.py",  # 20 s
+                 "test_reliability.py",  # 20 s
+                 "test_statics.py",  # 17 s
+                 "test_design.py",  # 16 s
+                 "test_hardware_protocol.py",  # 12 s
+                 "test_sim_batched.py",  # 12 s
+                 "test_identification.py")  # 10 s
 
 
 def pytest_collection_modifyitems(config, items):  # noqa: ARG001
