@@ -253,10 +253,17 @@ def make_epoch(tx: optax.GradientTransformation, loss_fn, batches_fn, val_fn) ->
 
     ``data`` and ``val_data`` are pairs ``(shared, own)``: ``shared`` is the same for every
     model, ``own`` is stacked (K, ...) (``None`` when the models share all data).
-    ``batches_fn(key)`` gives one model's (steps, ...) minibatches of the epoch (the leading
-    axis is scanned), ``loss_fn(params, shared, own, batch)`` one model's minibatch loss and
-    ``val_fn(params, shared, own)`` its validation loss.
+    ``batches_fn(key, shared)`` gives one model's (steps, ...) minibatches of the epoch (the
+    leading axis is scanned), ``loss_fn(params, shared, own, batch)`` one model's minibatch
+    loss and ``val_fn(params, shared, own)`` its validation loss. Everything that varies
+    between trainings is in ``data``: one ``Epoch`` serves every training of its shapes,
+    traced once (:func:`_torque_epoch`, :func:`_attention_epoch` keep them).
     """
+
+    @jax.jit
+    def val_losses(params, val_data):
+        v_shared, v_own = val_data
+        return jax.vmap(lambda p, o: val_fn(p, v_shared, o))(params, v_own)
 
     def init(params, loss_dtype, val_data=None) -> TrainState:
         """With ``val_data`` the starting parameters compete for the best validation loss
@@ -264,9 +271,7 @@ def make_epoch(tx: optax.GradientTransformation, loss_fn, batches_fn, val_fn) ->
         K = jax.tree_util.tree_leaves(params)[0].shape[0]
         best = jnp.full(K, jnp.inf, loss_dtype)
         if val_data is not None:
-            v_shared, v_own = val_data
-            best = jax.jit(jax.vmap(lambda p, o: val_fn(p, v_shared, o)))(params, v_own)
-            best = best.astype(loss_dtype)
+            best = val_losses(params, val_data).astype(loss_dtype)
         return TrainState(params, jax.vmap(tx.init)(params), params, best,
                           jnp.full(K, -1 if val_data is not None else 0, jnp.int32),
                           jnp.int32(0))
@@ -282,7 +287,7 @@ def make_epoch(tx: optax.GradientTransformation, loss_fn, batches_fn, val_fn) ->
                 upd, o = tx.update(g, o, p)
                 return (optax.apply_updates(p, upd), o), loss
 
-            (p, o), losses = jax.lax.scan(step, (p, o), batches_fn(k))
+            (p, o), losses = jax.lax.scan(step, (p, o), batches_fn(k, shared))
             return p, o, jnp.mean(losses)
 
         K = state.best_loss.shape[0]
@@ -361,24 +366,54 @@ def train_torque_models(
     scale = jnp.asarray(fc.tau_scale, jnp.float32)
     Y = jnp.asarray(train.tau, jnp.float32) / scale
     Yv = jnp.asarray(val.tau, jnp.float32) / scale
-    S = X.shape[0]
-    batch = min(cfg.torque_batch, S)
-    steps = S // batch
     k_init, k_epochs = jax.random.split(key)
-
-    def mse(p, x, y):
-        return jnp.mean((model.apply(p, x) - y) ** 2)
-
-    epoch = make_epoch(
-        optimizer(cfg.torque_lr, trainable=cfg.trainable),
-        loss_fn=lambda p, XY, _, idx: mse(p, XY[0][idx], XY[1][idx]),
-        batches_fn=lambda k: jax.random.permutation(k, S)[: steps * batch].reshape(steps, batch),
-        val_fn=lambda p, XYv, _: mse(p, *XYv))
+    epoch = _torque_epoch(model, cfg.torque_lr, cfg.trainable, min(cfg.torque_batch, len(X)))
     state = epoch.init(_start(model, k_init, cfg.n_models, X[:1], init), jnp.float32,
                        None if init is None else ((Xv, Yv), None))
     state, hist = _run_epochs(epoch, state, ((X, Y), None), ((Xv, Yv), None), cfg.torque_epochs,
                               k_epochs, "torque model", progress, on_epoch)
     return TrainedTorque(model, state.best_params, hist, np.asarray(state.best_epoch))
+
+
+# The epochs are kept per architecture and setting (models are hashable Flax modules): a
+# later training of the same kind and shapes (the second fold, another fine-tuning) runs
+# the jitted epoch it already traced, instead of tracing and lowering it again.
+@functools.lru_cache(maxsize=32)
+def _torque_epoch(model, lr: float, trainable: str, batch: int) -> Epoch:
+    """Minibatches of ``batch`` samples of the features and scaled torques ``(X, Y)``."""
+
+    def mse(p, x, y):
+        return jnp.mean((model.apply(p, x) - y) ** 2)
+
+    def batches(k, XY):
+        S = XY[0].shape[0]
+        return jax.random.permutation(k, S)[: S // batch * batch].reshape(-1, batch)
+
+    return make_epoch(optimizer(lr, trainable=trainable),
+                      loss_fn=lambda p, XY, _, idx: mse(p, XY[0][idx], XY[1][idx]),
+                      batches_fn=batches, val_fn=lambda p, XYv, _: mse(p, *XYv))
+
+
+@functools.lru_cache(maxsize=32)
+def _attention_epoch(model, lr: float, trainable: str, batch: int, w_mass: float,
+                     w_com: float) -> Epoch:
+    """Minibatches of ``batch`` of the sets; ``shared`` is (features, A, x per sample,
+    sets), each model's own data its torque model's ``tau_hat - tau_g``."""
+
+    def loss(p, shared, y, idx):
+        feats, A, x_obj, _ = shared
+        w = model.apply(p, feats[idx])
+        value, _ = attention_loss(w, A[idx], y[idx], x_obj[idx[:, 0]], w_mass=w_mass,
+                                  w_com=w_com)
+        return value
+
+    def batches(k, shared):
+        sets = shared[3]
+        perm = jax.random.permutation(k, sets.shape[0])[: sets.shape[0] // batch * batch]
+        return sets[perm].reshape(-1, batch, sets.shape[1])
+
+    return make_epoch(optimizer(lr, trainable=trainable), loss, batches,
+                      val_fn=lambda p, shared, y: loss(p, shared, y, shared[3]))
 
 
 def attention_loss(weights, A, y, x_true, *, w_mass: float, w_com: float):
@@ -451,8 +486,6 @@ def train_attention_models(
     sets = jnp.asarray(draw_sets(train.object_id, cfg.attention_sets, cfg.set_size, cfg.seed))
     vsets = jnp.asarray(draw_sets(val.object_id, cfg.attention_val_sets, cfg.set_size,
                                   cfg.seed + 1))
-    B = min(cfg.attention_batch, sets.shape[0])
-    steps = sets.shape[0] // B
 
     def arrays(d: Samples):
         y = torque_predictions(torque.model, torque.variables, fc, d).astype(dtype)
@@ -462,24 +495,11 @@ def train_attention_models(
 
     (feats, A, y, x_obj), (vf, vA, vy, vx) = arrays(train), arrays(val)
     k_init, k_epochs = jax.random.split(key)
-
-    def loss_fn(p, shared, y, idx):
-        feats, A, x_obj = shared
-        w = model.apply(p, feats[idx])
-        loss, _ = attention_loss(w, A[idx], y[idx], x_obj[idx[:, 0]], w_mass=cfg.w_mass,
-                                 w_com=cfg.w_com)
-        return loss
-
-    def batches(k):
-        perm = jax.random.permutation(k, sets.shape[0])[: steps * B]
-        return sets[perm].reshape(steps, B, -1)
-
-    epoch = make_epoch(optimizer(cfg.attention_lr, trainable=cfg.trainable),
-                       loss_fn, batches, val_fn=lambda p, shared, y_k: loss_fn(p, shared, y_k,
-                                                                                 vsets))
+    epoch = _attention_epoch(model, cfg.attention_lr, cfg.trainable,
+                             min(cfg.attention_batch, sets.shape[0]), cfg.w_mass, cfg.w_com)
+    data, val_data = ((feats, A, x_obj, sets), y), ((vf, vA, vx, vsets), vy)
     state = epoch.init(_start(model, k_init, K, feats[:1], init), dtype,
-                       None if init is None else ((vf, vA, vx), vy))
-    state, hist = _run_epochs(epoch, state, ((feats, A, x_obj), y), ((vf, vA, vx), vy),
-                              cfg.attention_epochs, k_epochs, "attention model", progress,
-                              on_epoch)
+                       None if init is None else val_data)
+    state, hist = _run_epochs(epoch, state, data, val_data, cfg.attention_epochs, k_epochs,
+                              "attention model", progress, on_epoch)
     return TrainedAttention(model, state.best_params, hist, np.asarray(state.best_epoch))
