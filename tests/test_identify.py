@@ -25,11 +25,11 @@ from jaxinertia.sim.identify import (
     group_index,
     group_stats,
     identify,
+    replay,
     score,
     target_of,
 )
 from jaxinertia.sim.params import default_sim_params
-from jaxinertia.sim.sampling import simulate_samples
 
 
 @pytest.fixture(scope="module")
@@ -98,19 +98,23 @@ def test_groups_are_direction_times_load_tercile_and_the_score_is_zero_on_the_tr
 
 def test_identification_brings_a_wrong_simulator_closer_to_the_one_that_made_the_samples(base):
     """The 'real' samples come from ``base`` with the joint gains 8 % higher and the joint
-    torque offsets moved, simulated with the random numbers the search uses (so that the
-    truth scores 0); the search starts from ``base`` (small population and sample count:
-    CPU time), and must lower the score by a third, returning the simulator it scored."""
+    torque offsets moved, replayed by the search's own :func:`replay` with its random
+    numbers (so that the truth scores 0); the search starts from ``base`` (small population
+    and sample count: CPU time), and must lower the score by a third, returning the
+    simulator it scored."""
     N = base.robot.n_joints
     true = np.zeros((len(PARAMETERS), N))
     true[0] = np.log(1.08)
     true[5] = [0.01, -0.02, 0.01, 0.005]
-    truth = apply_theta(base, jnp.asarray(true))
     obj = paper_object("white")
     q_d, direction = random_plan(24, 3)
-    rec = jax.tree.map(np.asarray, simulate_samples(truth, obj, jnp.asarray(q_d),
-                                                    jnp.asarray(direction),
-                                                    jax.random.key(0)))  # ESConfig.seed's key
+    key = jax.random.key(0)  # ESConfig.seed's key
+
+    def replayed(theta):  # as the search replays a candidate (population 2: 3 replays)
+        rec = replay(np.broadcast_to(theta, (3, *theta.shape)), base, obj, q_d, direction, key)
+        return jax.tree.map(lambda a: np.asarray(a[0]), rec)
+
+    rec = replayed(true)
     assert rec.at_rest.all()
     real = Samples.from_fields({k: getattr(rec, k) for k in (
         "q_d", "q", "current_tau", "direction", "tau", "tau_g", "A")} | {
@@ -122,18 +126,21 @@ def test_identification_brings_a_wrong_simulator_closer_to_the_one_that_made_the
     h = info["history"]
     assert len(h) == 7 and len(logs) == 7
     assert h[-1]["best"] < 0.7 * h[0]["mean"], h
-    # The returned simulator is the one that scored best: re-scored independently here.
+    # The returned simulator is the one that scored best: base moved by the returned theta,
+    # whose replay is re-scored here.
     theta = np.asarray(info["theta"])
     assert theta.shape == (len(PARAMETERS), N)
+    for a, b in zip(jax.tree.leaves(found), jax.tree.leaves(apply_theta(base,
+                                                                        jnp.asarray(theta)))):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     np.testing.assert_allclose(np.asarray(found.servo.p_gain),
                                np.asarray(base.servo.p_gain) * np.exp(theta[0]), rtol=1e-12)
     groups = jnp.asarray(group_index(real.tau, real.direction))
     target = target_of(jnp.asarray(real.q_d - real.q), jnp.asarray(real.current_tau),
                        jnp.asarray(real.tau), groups)
-    again = simulate_samples(found, obj, jnp.asarray(q_d), jnp.asarray(direction),
-                             jax.random.key(0))
-    rescored = score(again.q_d - again.q, again.current_tau, again.tau, again.at_rest, groups,
-                     target)
+    again = replayed(theta)
+    rescored = score(jnp.asarray(again.q_d - again.q), jnp.asarray(again.current_tau),
+                     jnp.asarray(again.tau), jnp.asarray(again.at_rest), groups, target)
     np.testing.assert_allclose(float(rescored), h[-1]["best"], rtol=1e-9)
     with pytest.raises(UsageError, match="population"):
         identify(base, obj, real, config=ESConfig(population=5, generations=1))

@@ -23,7 +23,6 @@ the population of candidate simulators ``vmap``-ed over :func:`simulate_samples`
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -34,11 +33,11 @@ import numpy as np
 
 from jaxinertia.errors import UsageError
 from jaxinertia.objects import HeldObject
-from jaxinertia.sim.sampling import simulate_samples
+from jaxinertia.sim.sampling import Record, simulate_samples
 from jaxinertia.sim.simulator import SimParams
 
 __all__ = ["PARAMETERS", "ESConfig", "Target", "apply_theta", "group_index", "group_lines",
-           "group_stats", "identify", "score", "target_of"]
+           "group_stats", "identify", "replay", "score", "target_of"]
 
 #: Per-joint coordinates of a candidate, all relative to the starting simulator.
 PARAMETERS = (
@@ -146,17 +145,31 @@ def score(sim_qe, sim_current, sim_tau, at_rest, groups, real: Target) -> jnp.nd
     return jnp.mean(terms) + jnp.mean(~at_rest)
 
 
+def replay(thetas, base: SimParams, obj: HeldObject, q_d, direction, key) -> Record:
+    """The plan ``q_d``, ``direction`` (S, N) replayed by every candidate simulator
+    ``apply_theta(base, thetas[c])``, each with ``key``'s random draws (as
+    :func:`jaxinertia.sim.sampling.simulate_samples`): a Record with a leading candidate
+    axis. One compiled program per plan size and candidate count serves every object, fold
+    and simulator: they are arguments, not constants of the program."""
+    # Strongly typed leaves: an object built from Python floats (weakly typed) would trace
+    # and compile its own program for the same shapes.
+    base, obj = jax.tree.map(lambda v: jnp.asarray(v, jnp.result_type(v)), (base, obj))
+    dtype = base.servo.p_gain.dtype
+    return _replay(jnp.asarray(thetas, dtype), base, obj, jnp.asarray(q_d, dtype),
+                   jnp.asarray(direction, dtype), key)
+
+
 @jax.jit
-def _scores(thetas, *, base, obj, q_d, direction, key, groups, target) -> jnp.ndarray:
-    """The score of every candidate ``thetas[c]`` (one replay of the real plan each). The
-    simulator, object, plan and target are arguments, not constants of the program: one
-    compilation serves every object and fold of the same plan size."""
+def _replay(thetas, base, obj, q_d, direction, key) -> Record:
+    return jax.vmap(lambda th: simulate_samples(apply_theta(base, th), obj, q_d, direction,
+                                                key))(thetas)
 
-    def one(theta):
-        rec = simulate_samples(apply_theta(base, theta), obj, q_d, direction, key)
-        return score(rec.q_d - rec.q, rec.current_tau, rec.tau, rec.at_rest, groups, target)
 
-    return jax.vmap(one)(thetas)
+@jax.jit
+def _scores(rec: Record, groups, target: Target) -> jnp.ndarray:
+    """The score of every candidate's replay (leading axis of ``rec``)."""
+    return jax.vmap(lambda r: score(r.q_d - r.q, r.current_tau, r.tau, r.at_rest, groups,
+                                    target))(rec)
 
 
 def identify(base: SimParams, obj: HeldObject, real, *, config: ESConfig = ESConfig(),
@@ -179,14 +192,11 @@ def identify(base: SimParams, obj: HeldObject, real, *, config: ESConfig = ESCon
     target = target_of(jnp.asarray(real.q_d - real.q, dtype),
                        jnp.asarray(real.current_tau, dtype), jnp.asarray(real.tau, dtype),
                        groups)
-    q_d, direction = jnp.asarray(real.q_d, dtype), jnp.asarray(real.direction, dtype)
     key = jax.random.key(config.seed)
-    # Strongly typed leaves: an object built from Python floats (weakly typed) would trace
-    # and compile its own program for the same shapes.
-    base, obj = jax.tree.map(lambda v: jnp.asarray(v, jnp.result_type(v)), (base, obj))
+    base = jax.tree.map(lambda v: jnp.asarray(v, jnp.result_type(v)), base)
 
-    scores = functools.partial(_scores, base=base, obj=obj, q_d=q_d, direction=direction,
-                               key=key, groups=groups, target=target)
+    def scores(thetas):
+        return _scores(replay(thetas, base, obj, real.q_d, real.direction, key), groups, target)
 
     D = (len(PARAMETERS), N)
     mean = jnp.zeros(D, dtype)
