@@ -14,8 +14,7 @@ import os
 import sys
 from pathlib import Path
 
-import jax
-
+from jaxinertia import compilation_cache
 from jaxinertia.app import commands, estimate_commands, hardware_commands, vision_commands
 from jaxinertia.app.options import Parser
 from jaxinertia.errors import JaxinertiaError
@@ -44,8 +43,7 @@ def _compilation_cache() -> None:
     where = os.environ.get("JAXINERTIA_CACHE_DIR",
                            str(Path.home() / ".cache" / "jaxinertia" / "xla"))
     if where.lower() != "off":
-        jax.config.update("jax_compilation_cache_dir", where)
-        jax.config.update("jax_compilation_cache_max_size", 512 * 2**20)  # LRU beyond
+        compilation_cache.enable(where)  # LRU beyond compilation_cache.MAX_BYTES
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -47,6 +47,7 @@ from dataclasses import dataclass
 import jax
 import numpy as np
 
+from jaxinertia import compilation_cache
 from jaxinertia.hardware import control_table as ct
 from jaxinertia.objects import HeldObject
 from jaxinertia.sim.servo import ServoParams, goal_ticks
@@ -285,6 +286,7 @@ class PhysicsSpec:
     seed: int
     speed: float
     cache_dir: str | None
+    cache_max_size: int  # the parent's cap: every writer of a cache folder needs the same
 
 
 def physics_main(spec: PhysicsSpec, tables, goal_writes, lock, events, ready, stop,
@@ -293,7 +295,7 @@ def physics_main(spec: PhysicsSpec, tables, goal_writes, lock, events, ready, st
     try:
         jax.config.update("jax_enable_x64", True)
         if spec.cache_dir:
-            jax.config.update("jax_compilation_cache_dir", spec.cache_dir)
+            compilation_cache.enable(spec.cache_dir, spec.cache_max_size)
         arm = ArmPhysics(spec.params, q0=spec.q0, chunk=spec.chunk, seed=spec.seed)
         arm.compile()
         servos = [ServoMemory(i, v, reset=False)

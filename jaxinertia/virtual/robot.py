@@ -88,7 +88,8 @@ class VirtualServoBus(ServoBus):
         q0 = np.zeros(n) if q0 is None else np.asarray(q0, np.float64)
         self._spec = PhysicsSpec(jax.tree.map(np.asarray, physical_params(params, obj)),
                                  tuple(ids), q0, int(chunk), int(seed), float(speed),
-                                 jax.config.jax_compilation_cache_dir)
+                                 jax.config.jax_compilation_cache_dir,
+                                 jax.config.jax_compilation_cache_max_size)
         self.speed = float(speed)
         self._events_in, self._events_out = ctx.Pipe(duplex=False)
         self._ready, self._physics_stop = ctx.Event(), ctx.Event()
