@@ -20,9 +20,10 @@ import argparse
 import time
 from pathlib import Path
 
-from jaxinertia.app.folds import FoldScale, format_folds, run_folds
+from jaxinertia.app.folds import FoldScale, run_folds
 from jaxinertia.app.options import enable_x64
 from jaxinertia.app.pipeline import evaluate_models, load_real, released_benchmark, train
+from jaxinertia.app.report import format_folds
 from jaxinertia.app.reproduce import FULL, QUICK
 from jaxinertia.evaluation import average
 from jaxinertia.fileio import write_json, write_text

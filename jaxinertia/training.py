@@ -89,6 +89,11 @@ class TrainConfig:
     #: fixed); "servo" (only the physical model's servo parameters; the attention fixed).
     trainable: str = "all"
     torque_model: str = "paper"  # or "physical" (networks.TORQUE_MODELS)
+    #: Each training file is a recording session: its discrepancy is rescaled towards the
+    #: session of the training data as a whole by ``(g_file / g_ref) ** session_strength``
+    #: (:mod:`jaxinertia.session`; 0: off), and the folder records the reference and the
+    #: strength, so that a new file is adapted the same way when it is evaluated.
+    session_strength: float = 1.0
 
     def __post_init__(self):
         positive = ("n_models", "torque_epochs", "torque_batch", "attention_epochs",
@@ -105,6 +110,8 @@ class TrainConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise UsageError(f"{name} must be a finite number >= 0, got {v!r}")
+        if not (np.isfinite(self.session_strength) and 0 <= self.session_strength <= 1):
+            raise UsageError(f"session_strength must be in [0, 1], got {self.session_strength!r}")
         if self.w_mass + self.w_com <= 0:
             raise UsageError("w_mass and w_com are both zero: the attention loss would be zero")
         if not 0.0 < self.val_fraction < 1.0:

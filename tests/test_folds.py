@@ -13,8 +13,9 @@ from support.layouts import N_REAL
 from support.synthetic import synthetic_samples
 
 from jaxinertia.app.cli import main
-from jaxinertia.app.folds import FoldScale, format_folds, run_folds
+from jaxinertia.app.folds import FoldScale, run_folds
 from jaxinertia.app.pipeline import train
+from jaxinertia.app.report import format_folds
 from jaxinertia.checkpoints import load_models
 from jaxinertia.errors import UsageError
 from jaxinertia.samples import load_native, save_lbipe, save_native
@@ -85,7 +86,19 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
                                only_at_rest=False)
         assert meta["domain_randomization"]["draws"] == 2 and dr.n_samples == N_TRAIN
         assert np.all(np.asarray(f["randomized"]["spread"]["gain_rel"]) > 0)
+        # Judged with and without session adaptation; the held-out file's ratio recorded
+        # (its own current gain against the fold's simulated training data).
+        assert set(f["by_strength"]) == {"0.0", "0.5", "1.0"}
+        assert f["by_strength"]["1.0"] == f["ours"]
+        assert len(f["session_ratio"][other]) == 4
+        assert set(f["fine_tuned"]["30"]["by_strength"]) == {"0.0", "0.5", "1.0"}
+    # The recipe for a new object's models: chosen from the held-out numbers alone, among
+    # every candidate both folds judged.
+    recipe = res["recipe"]
+    assert recipe["folds"] == 2 and len(recipe["scores"]) == 3 * 3
+    assert recipe["score"] == min(c["score"] for c in recipe["scores"])
     text = format_folds(res)
+    assert "Recipes ranked on the held-out sessions" in text
     assert "Calibrated and trained with cube only, judged on white" in text
     assert "white's real plan replayed in the simulator calibrated on cube" in text
     assert "fine-tuned (servo part) on 24 + 6 (validation) real samples of cube" in text
@@ -108,8 +121,10 @@ def test_training_on_the_authors_layout_gives_the_models_of_the_native_files(tmp
     native = save_native(tmp_path / "native.npz", d, {"robot": "open_manipulator_x"})
     lbipe = save_lbipe(tmp_path / "lbipe", "train", d)
     assert [p.name for p in lbipe] == [f"data_train_o{i}.npz" for i in range(4)]
-    a = train([native], tmp_path / "a", TRAIN, progress=False)
-    b = train(lbipe, tmp_path / "b", TRAIN, progress=False)
+    # The authors' layout splits one session into a file per object; with session
+    # adaptation each file would be its own session (tests/test_session.py), so it is off.
+    a = train([native], tmp_path / "a", TRAIN.replace(session_strength=0.0), progress=False)
+    b = train(lbipe, tmp_path / "b", TRAIN.replace(session_strength=0.0), progress=False)
     assert a["samples"] == b["samples"] and a["best_epoch"] == b["best_epoch"]
     np.testing.assert_array_equal(a["history"]["torque"], b["history"]["torque"])
     np.testing.assert_array_equal(a["history"]["attention"], b["history"]["attention"])

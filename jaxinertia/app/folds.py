@@ -1,7 +1,8 @@
-"""The held-out protocol on the real data: fit on one real object, judge on the other.
+"""The held-out protocol on the real data: fit on one real session, judge on the others.
 
-Real data are scarce (two objects in shared/lbipe), so anything fitted to them is judged
-on the object the fit did not see. One fold per real object ``fit_on``:
+Real data are scarce (two objects in shared/lbipe, each file its own recording session),
+so anything fitted to them is judged on a file the fit did not see: leave one session out.
+One fold per real file ``fit_on``:
 
 1. calibrate the simulator from the datasheet start (never the shipped calibration, which
    saw every real file) on ``fit_on``'s real samples only: link gravity from its ``tau_g``,
@@ -12,19 +13,22 @@ on the object the fit did not see. One fold per real object ``fit_on``:
 3. simulate training data with it, train model pairs, and evaluate them on the held-out
    real objects (Sensor, PE, T, T-A) beside the authors' released models on the same sets;
 4. train the physics-structured torque model (``torque_model="physical"``) on the same
-   simulated data, fine-tune its servo part (per joint stiffness, offset and friction; the
-   residual network and the attention fixed) on ``fit_on``'s real samples (64, 250, 1000
+   simulated data, fine-tune its servo part on ``fit_on``'s real samples (64, 250, 1000
    of them: a user's few minutes with a known object), refit the baselines on them, and
-   judge again on the held-out objects. Why this variant: fine-tuning every parameter on
+   judge again on the held-out objects. Why the servo part: fine-tuning every parameter on
    one real object teaches the network that object's torque as a function of the pose
-   (mass errors of 45-85 % on the other object, ``experiments/finetune_ablation.py``);
-   the servo part cannot learn that shortcut. The choice was made on the fold "cube ->
-   white" alone; the fold "white -> cube" was its check.
+   (``experiments/finetune_ablation.py``).
+
+Every model folder is judged twice on each held-out file: with the session adaptation of
+:mod:`jaxinertia.session` (its discrepancy read in the training session, from its own
+current gain) and without. :func:`choose_recipe` then picks, from these held-out numbers
+alone, what ``reproduce`` trains the models for a new real object with
+(``models_real``): which candidate (simulator only, or fine-tuned on how many real samples)
+and whether to adapt sessions.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from dataclasses import dataclass
@@ -33,10 +37,19 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxinertia.app.pipeline import evaluate_models, load_real, released_benchmark, train
-from jaxinertia.app.report import render, table1
+from jaxinertia.app.pipeline import (
+    RealData,
+    adapt_objects,
+    evaluate_models,
+    load_real,
+    released_benchmark,
+    session_reference,
+    train,
+)
 from jaxinertia.app.simdata import simulate_files
-from jaxinertia.fileio import write_text
+from jaxinertia.checkpoints import load_models
+from jaxinertia.evaluation import evaluate
+from jaxinertia.fileio import write_json
 from jaxinertia.sim.calibration import (
     baseline_statistics,
     calibrate_servo_friction,
@@ -49,7 +62,10 @@ from jaxinertia.sim.params import datasheet_sim_params, params_to_dict
 from jaxinertia.sim.randomize import spread_from_samples
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
 
-__all__ = ["FoldScale", "format_folds", "run_folds"]
+__all__ = ["FoldScale", "SESSION_STRENGTHS", "choose_recipe", "run_folds"]
+
+#: Session adaptation off and on: every candidate of a fold is judged both ways.
+SESSION_STRENGTHS = (0.0, 0.5, 1.0)
 
 
 @dataclass(frozen=True)
@@ -73,160 +89,214 @@ class FoldScale:
     identify_samples: int = 0
 
 
-def _stats(d: dict) -> dict:
-    return baseline_statistics(d["q_d"], d["q"], d["direction"], d["tau"], d["current_tau"])
+@dataclass(frozen=True)
+class _Fold:
+    """What one fold's stages share: where it writes, which object it fits and judges."""
+
+    dir: Path
+    fit_on: str
+    held: list[str]
+    real: RealData
+    lbipe_dir: Path
+    scale: FoldScale
+    seed: int
+    progress: bool
+
+    @property
+    def held_index(self) -> list[int]:
+        names = [o.name for o in self.real.objects]
+        return [names.index(n) for n in self.held]
+
+    def judge(self, models: Path) -> dict:
+        """The folder on the held-out objects at every strength of
+        :data:`SESSION_STRENGTHS` (``objects``, ``torque``: at the folder's own)."""
+        idx = self.held_index
+        objects = [self.real.objects[i] for i in idx]
+        sets, l_max = [self.real.sets[i] for i in idx], [self.real.l_max[i] for i in idx]
+        pair, baselines, fc, config = load_models(models)
+        own = session_reference(config)
+        out = {"by_strength": {}}
+        for s in SESSION_STRENGTHS:
+            adapted, ratios = adapt_objects(objects, session_reference(config, s))
+            res = evaluate(adapted, sets, pair=pair, baselines=baselines, fc=fc, l_max=l_max)
+            out["by_strength"][str(s)] = res["objects"]
+            if own is None or own.strength == s:
+                out.update(objects=res["objects"], torque=res["torque"],
+                           session_ratio={o.name: r for o, r in zip(objects, ratios)})
+        if "objects" not in out:  # a strength outside the grid: judged once more
+            res = evaluate_models(models, objects, sets, l_max=l_max)
+            out.update(objects=res["objects"], torque=res["torque"],
+                       session_ratio=res["session_ratio"])
+        return out
 
 
 def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldScale, *,
-              seed: int = 0, progress: bool = True, log=print) -> dict | None:
+              seed: int = 0, progress: bool = True, log=print,
+              real: RealData | None = None) -> dict | None:
     """Every fold into ``out/fit_<object>/`` (calibration.json, data, models); returns the
-    held-out results (None when there is no real data, or only one object)."""
+    held-out results and the recipe they choose (None when there is no real data, or only
+    one object). ``real``: the folder's real data when already loaded."""
     if not Path(lbipe_dir).is_dir():
         return None
-    real = load_real(lbipe_dir, seed=seed)
+    real = real or load_real(lbipe_dir, seed=seed)
     names = [o.name for o in real.objects]
     if len(names) < 2:
         return None
     released = released_benchmark(lbipe_dir, real=real)["objects"]
-    out = Path(out)
     folds = {}
     for fit_on in names:
-        held = [n for n in names if n != fit_on]
-        idx = [names.index(n) for n in held]
-        fold_dir = out / f"fit_{fit_on}"
-        t0 = time.perf_counter()
-        log(f"-- fold: calibrate on {fit_on}, judge on {', '.join(held)}")
-        params = datasheet_sim_params()
-        robot, gravity = fit_link_gravity(params.robot, lbipe_dir, [fit_on])
-        params = params.replace(robot=robot)
-        params, info = calibrate_servo_friction(
-            params, lbipe_dir, iterations=scale.calibration_iterations, seed=seed,
-            fit_offset=True, objects=[fit_on], log=lambda m: None, progress=False)
-        plans = real_plan(params.robot, lbipe_dir, held)
-        real_held = {k: np.concatenate([getattr(d, k) for _, _, d in plans])
-                     for k in ("q_d", "q", "direction", "tau", "current_tau")}
-        st_real = _stats(real_held)
-
-        def replay(p, plans=plans):  # the held-out objects' real plans replayed in p
-            sim = simulate_real_plan(p, plans, jax.random.key(seed + 7))
-            st = _stats({k: v[sim["at_rest"]] for k, v in sim.items()})
-            return {k: st[k].tolist() for k in ("k", "c", "pe_mae")}
-
-        identified = None
-        if scale.identify_generations > 0:
-            replay_calibrated = replay(params)
-            _, obj_fit, d_fit = real_plan(params.robot, lbipe_dir, [fit_on])[0]
-            if 0 < scale.identify_samples < d_fit.n_samples:
-                d_fit = d_fit.take(np.sort(np.random.default_rng(seed).choice(
-                    d_fit.n_samples, scale.identify_samples, replace=False)))
-            t_id = time.perf_counter()
-            params, ident = identify(params, obj_fit, d_fit, config=ESConfig(
-                population=scale.identify_population,
-                generations=scale.identify_generations, seed=seed), log=lambda m: None)
-            identified = {**ident, "wall_time_s": time.perf_counter() - t_id,
-                          "replay_calibrated": replay_calibrated}
-        t1 = time.perf_counter()
-        st_sim = replay(params)
-        write_text(fold_dir / "calibration.json", _json({
-            "robot": "open_manipulator_x", "fit_on": fit_on,
-            "link_gravity": gravity, "servo_friction": params_to_dict(params),
-            "fit": {"iterations": scale.calibration_iterations, "real_objects": [fit_on],
-                    "real": info["real"], "final_sim": info["history"][-1]["sim"]},
-            "identified": None if identified is None else {
-                k: identified[k] for k in ("theta", "parameters", "history")}}))
-        wanted = [(fold_dir / "data" / "train_random.npz", "random", scale.random_per_load,
-                   seed)]
-        if scale.planning:
-            wanted.append((fold_dir / "data" / "train_planning.npz", "planning", None, seed))
-        files = simulate_files(params, wanted, progress=progress)
-        t2 = time.perf_counter()
-        train(files, fold_dir / "models", scale.train.replace(seed=seed), overwrite=True,
-              progress=progress)
-        t3 = time.perf_counter()
-        held_objects = ([real.objects[i] for i in idx], [real.sets[i] for i in idx])
-        held_l_max = [real.l_max[i] for i in idx]
-        ours = evaluate_models(fold_dir / "models", *held_objects, l_max=held_l_max)
-        t4 = time.perf_counter()
-        randomized = None
-        if scale.randomize_draws > 0:
-            obj = real.objects[names.index(fit_on)]
-            spread = spread_from_samples(obj.q_d, obj.q, obj.direction, obj.tau)
-            dr_files = simulate_files(params, [
-                (fold_dir / "data" / "train_random_randomized.npz", "random",
-                 scale.random_per_load, seed)], spread=spread, draws=scale.randomize_draws,
-                progress=progress)
-            train(dr_files + files[1:], fold_dir / "models_randomized",
-                  scale.train.replace(seed=seed), overwrite=True, progress=progress)
-            res = evaluate_models(fold_dir / "models_randomized", *held_objects,
-                                  l_max=held_l_max)
-            randomized = {"objects": res["objects"], "torque": res["torque"],
-                          "spread": spread.to_dict(), "draws": scale.randomize_draws}
-        t5 = time.perf_counter()
-        fine, physical = {}, None
-        if scale.finetune_samples:
-            start = fold_dir / "models_physical"
-            train(files, start, scale.train.replace(seed=seed, torque_model="physical"),
-                  overwrite=True, progress=progress)
-            res = evaluate_models(start, *held_objects, l_max=held_l_max)
-            physical = {"objects": res["objects"], "torque": res["torque"]}
-        for n in scale.finetune_samples:
-            models = fold_dir / f"models_finetuned_{n}"
-            info = train([real.layout.test_files[fit_on]], models,
-                         scale.finetune.replace(seed=seed), overwrite=True, progress=progress,
-                         init=fold_dir / "models_physical", samples_per_object=n)
-            res = evaluate_models(models, *held_objects, l_max=held_l_max)
-            fine[str(n)] = {"objects": res["objects"], "torque": res["torque"],
-                            "samples": info["samples"], "best_epoch": info["best_epoch"]}
-        folds[fit_on] = {
-            "held_out": held,
-            "ours": ours["objects"], "torque": ours["torque"],
-            "physical": physical, "fine_tuned": fine, "randomized": randomized,
-            "released": {n: {m: released[n][m] for m in ("T", "T-A")} for n in held},
-            "replay": {"real": {k: st_real[k].tolist() for k in ("k", "c", "pe_mae")},
-                       "sim": st_sim},
-            "identified": identified,
-            "wall_time_s": {"calibrate": t1 - t0, "simulate": t2 - t1, "train": t3 - t2,
-                            "evaluate": t4 - t3, "randomized": t5 - t4,
-                            "fine-tune": time.perf_counter() - t5},
-        }
-    return {"folds": folds, "sets": dict(zip(names, real.sources))}
+        fold = _Fold(Path(out) / f"fit_{fit_on}", fit_on, [n for n in names if n != fit_on],
+                     real, Path(lbipe_dir), scale, seed, progress)
+        log(f"-- fold: calibrate on {fit_on}, judge on {', '.join(fold.held)}")
+        folds[fit_on] = _run_fold(fold)
+        folds[fit_on]["released"] = {n: {m: released[n][m] for m in ("T", "T-A")}
+                                     for n in fold.held}
+    return {"folds": folds, "sets": dict(zip(names, real.sources)),
+            "recipe": choose_recipe(folds)}
 
 
-def _json(obj) -> str:
-    return json.dumps(obj, indent=2) + "\n"
+def _run_fold(fold: _Fold) -> dict:
+    t = [time.perf_counter()]
+    params, replay = _calibrate(fold)
+    t.append(time.perf_counter())
+    wanted = [(fold.dir / "data" / "train_random.npz", "random", fold.scale.random_per_load,
+               fold.seed)]
+    if fold.scale.planning:
+        wanted.append((fold.dir / "data" / "train_planning.npz", "planning", None, fold.seed))
+    files = simulate_files(params, wanted, progress=fold.progress)
+    t.append(time.perf_counter())
+    cfg = fold.scale.train.replace(seed=fold.seed)
+    train(files, fold.dir / "models", cfg, overwrite=True, progress=fold.progress)
+    t.append(time.perf_counter())
+    ours = fold.judge(fold.dir / "models")
+    t.append(time.perf_counter())
+    randomized = _randomized(fold, params, files) if fold.scale.randomize_draws > 0 else None
+    t.append(time.perf_counter())
+    physical, fine = _finetuned(fold, files)
+    t.append(time.perf_counter())
+    return {"held_out": fold.held, "ours": ours["objects"], "torque": ours["torque"],
+            "session_ratio": ours["session_ratio"], "by_strength": ours["by_strength"],
+            "physical": physical, "fine_tuned": fine, "randomized": randomized, **replay,
+            "wall_time_s": dict(zip(("calibrate", "simulate", "train", "evaluate",
+                                     "randomized", "fine-tune"), np.diff(t).tolist()))}
 
 
-def format_folds(res: dict) -> str:
-    """The held-out results as markdown: per fold, Table I on the held-out objects (ours
-    beside the released models on the same sets) and the replayed baseline statistics."""
-    lines = []
-    for fit_on, f in res["folds"].items():
-        held = ", ".join(f["held_out"])
-        lines += [f"### Calibrated and trained with {fit_on} only, judged on {held}", "",
-                  table1(f["ours"], f"Models trained on the simulator calibrated on {fit_on}"),
-                  ""]
-        if f.get("randomized"):
-            r = f["randomized"]
-            lines += [table1(r["objects"], f"Trained on domain-randomized data ({r['draws']} "
-                             "simulated arms; spread of gain and offset measured on "
-                             f"{fit_on})"), ""]
-        if f.get("physical"):
-            lines += [table1(f["physical"]["objects"], "The physics-structured torque model "
-                             "trained on the same simulated data"), ""]
-        for ft in f.get("fine_tuned", {}).values():
-            used = ft["samples"]
-            lines += [table1(ft["objects"], f"It fine-tuned (servo part) on {used['train']} + "
-                             f"{used['validation']} (validation) real samples of {fit_on}; "
-                             "baselines refitted on them"), ""]
-        lines += [table1(f["released"], "The authors' released models, same sets"), ""]
-        r, s = f["replay"]["real"], f["replay"]["sim"]
-        rows = [[label, str(j + 1), f"{r[key][j] * scale:.{nd}f}", f"{s[key][j] * scale:.{nd}f}",
-                 f"{(s[key][j] - r[key][j]) * scale:+.{nd}f}"]
-                for label, key, scale, nd in (("PE gain k [N m/rad]", "k", 1, 2),
-                                              ("PE intercept c [N mm]", "c", 1e3, 1),
-                                              ("PE MAE [N mm]", "pe_mae", 1e3, 1))
-                for j in range(len(r[key]))]
-        lines += [render(f"{held}'s real plan replayed in the simulator calibrated on {fit_on}",
-                         ["statistic", "joint", "real", "simulated", "sim - real"], rows,
-                         n_left=2), ""]
-    return "\n".join(lines)
+def _stats(d: dict) -> dict:
+    st = baseline_statistics(d["q_d"], d["q"], d["direction"], d["tau"], d["current_tau"])
+    return {k: st[k].tolist() for k in ("k", "c", "pe_mae")}
+
+
+def _calibrate(fold: _Fold):
+    """The simulator calibrated on ``fit_on`` alone (then identified, when asked), written
+    to ``calibration.json``; the held-out objects' real plans replayed in it."""
+    scale, seed = fold.scale, fold.seed
+    params = datasheet_sim_params()
+    robot, gravity = fit_link_gravity(params.robot, fold.lbipe_dir, [fold.fit_on])
+    params, info = calibrate_servo_friction(
+        params.replace(robot=robot), fold.lbipe_dir, iterations=scale.calibration_iterations,
+        seed=seed, fit_offset=True, objects=[fold.fit_on], log=lambda m: None, progress=False)
+    plans = real_plan(params.robot, fold.lbipe_dir, fold.held)
+    real_held = _stats({k: np.concatenate([getattr(d, k) for _, _, d in plans])
+                        for k in ("q_d", "q", "direction", "tau", "current_tau")})
+
+    def replay(p):  # the held-out objects' real plans replayed in p
+        sim = simulate_real_plan(p, plans, jax.random.key(seed + 7))
+        return _stats({k: v[sim["at_rest"]] for k, v in sim.items()})
+
+    identified = None
+    if scale.identify_generations > 0:
+        replay_calibrated = replay(params)
+        _, obj_fit, d_fit = real_plan(params.robot, fold.lbipe_dir, [fold.fit_on])[0]
+        if 0 < scale.identify_samples < d_fit.n_samples:
+            d_fit = d_fit.take(np.sort(np.random.default_rng(seed).choice(
+                d_fit.n_samples, scale.identify_samples, replace=False)))
+        t_id = time.perf_counter()
+        params, ident = identify(params, obj_fit, d_fit, config=ESConfig(
+            population=scale.identify_population, generations=scale.identify_generations,
+            seed=seed), log=lambda m: None)
+        identified = {**ident, "wall_time_s": time.perf_counter() - t_id,
+                      "replay_calibrated": replay_calibrated}
+    write_json(fold.dir / "calibration.json", {
+        "robot": "open_manipulator_x", "fit_on": fold.fit_on,
+        "link_gravity": gravity, "servo_friction": params_to_dict(params),
+        "fit": {"iterations": scale.calibration_iterations, "real_objects": [fold.fit_on],
+                "real": info["real"], "final_sim": info["history"][-1]["sim"]},
+        "identified": None if identified is None else {
+            k: identified[k] for k in ("theta", "parameters", "history")}})
+    return params, {"replay": {"real": real_held, "sim": replay(params)},
+                    "identified": identified}
+
+
+def _randomized(fold: _Fold, params, files: list[Path]) -> dict:
+    """Models trained on domain-randomized data, judged like the others."""
+    obj = fold.real.objects[[o.name for o in fold.real.objects].index(fold.fit_on)]
+    spread = spread_from_samples(obj.q_d, obj.q, obj.direction, obj.tau)
+    dr_files = simulate_files(params, [
+        (fold.dir / "data" / "train_random_randomized.npz", "random",
+         fold.scale.random_per_load, fold.seed)], spread=spread,
+        draws=fold.scale.randomize_draws, progress=fold.progress)
+    train(dr_files + files[1:], fold.dir / "models_randomized",
+          fold.scale.train.replace(seed=fold.seed), overwrite=True, progress=fold.progress)
+    res = fold.judge(fold.dir / "models_randomized")
+    return {**res, "spread": spread.to_dict(), "draws": fold.scale.randomize_draws}
+
+
+def _finetuned(fold: _Fold, files: list[Path]) -> tuple[dict | None, dict]:
+    """The physical model trained on the simulated files, then its servo part fine-tuned on
+    each number of ``fit_on``'s real samples; all judged on the held-out objects."""
+    if not fold.scale.finetune_samples:
+        return None, {}
+    start = fold.dir / "models_physical"
+    train(files, start, fold.scale.train.replace(seed=fold.seed, torque_model="physical"),
+          overwrite=True, progress=fold.progress)
+    physical = fold.judge(start)
+    fine = {}
+    for n in fold.scale.finetune_samples:
+        models = fold.dir / f"models_finetuned_{n}"
+        info = train([fold.real.layout.test_files[fold.fit_on]], models,
+                     fold.scale.finetune.replace(seed=fold.seed), overwrite=True,
+                     progress=fold.progress, init=start, samples_per_object=n)
+        fine[str(n)] = {**fold.judge(models), "samples": info["samples"],
+                        "best_epoch": info["best_epoch"],
+                        "fit_session_ratio": info["data"][0]["session_ratio"]}
+    return physical, fine
+
+
+# ---- the recipe for models of a new real object -----------------------------------------
+
+
+def _candidates(fold: dict) -> dict[str, dict]:
+    """A fold's candidate recipes: name -> {strength: held-out objects}."""
+    out = {"paper network, simulator only": fold["by_strength"]}
+    if fold.get("physical"):
+        out["physical, simulator only"] = fold["physical"]["by_strength"]
+    for n, ft in (fold.get("fine_tuned") or {}).items():
+        out[f"physical, servo part fine-tuned on {n} real samples"] = ft["by_strength"]
+    return out
+
+
+def choose_recipe(folds: dict, method: str = "T-A") -> dict:
+    """The candidate and session strength with the lowest held-out error, from the folds
+    alone: per fold and held-out object, ``method``'s mass and COM NMAE each divided by the
+    released models' on the same sets, averaged over both and over every fold (a recipe
+    must hold on every session left out, not on one). Returns the choice and every score."""
+    scores: dict[tuple[str, str], list[float]] = {}
+    for f in folds.values():
+        for name, by_strength in _candidates(f).items():
+            for s, objects in by_strength.items():
+                for obj, e in objects.items():
+                    ref = f["released"][obj][method]
+                    scores.setdefault((name, s), []).extend(
+                        [e[method][k] / ref[k] for k in ("mass_NMAE_pct", "com_NMAE_pct")])
+    n_folds = len(folds)
+    # Only recipes that every fold judged compete.
+    table = {k: float(np.mean(v)) for k, v in scores.items()
+             if len(v) == 2 * sum(len(f["held_out"]) for f in folds.values())}
+    (name, strength), best = min(table.items(), key=lambda kv: kv[1])
+    finetune = None
+    if "fine-tuned on" in name:
+        finetune = int(name.split("fine-tuned on ")[1].split()[0])
+    return {"candidate": name, "session_strength": float(strength),
+            "finetune_samples": finetune, "score": best, "method": method, "folds": n_folds,
+            "scores": [{"candidate": k[0], "session_strength": float(k[1]), "score": v}
+                       for k, v in sorted(table.items(), key=lambda kv: kv[1])]}

@@ -37,6 +37,7 @@ from jaxinertia.lbipe import (
 )
 from jaxinertia.networks import torque_model_kind
 from jaxinertia.samples import Samples, load_samples
+from jaxinertia.session import SessionReference, adapt, servo_session
 from jaxinertia.training import (
     TrainConfig,
     feature_config_from,
@@ -56,8 +57,9 @@ from jaxinertia.uncertainty import (
     uncertainty_of,
 )
 
-__all__ = ["RealData", "estimate", "evaluate_models", "evaluate_samples", "load_real",
-           "released_benchmark", "sim_to_real", "train"]
+__all__ = ["RealData", "adapt_objects", "copy_models", "estimate", "evaluate_models",
+           "evaluate_samples", "load_real", "released_benchmark", "session_reference",
+           "sim_to_real", "train"]
 
 
 def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg: TrainConfig,
@@ -85,9 +87,6 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
     if len(robots) > 1:
         raise FileFormatError(sample_files[0], "metadata", f"files of different robots {robots}")
     robot = robots.pop() if robots else None
-    data = Samples.concatenate(parts)
-    if samples_per_object is not None:
-        data = per_object_subset(data, samples_per_object, cfg.seed)
     start = None
     if init is not None:
         pair0, _, fc0, config0 = load_models(init, robot=robot)
@@ -95,6 +94,20 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
         cfg = cfg.replace(n_models=pair0.n_models,
                           torque_model=torque_model_kind(pair0.torque_model))
         start = (pair0, fc0, config0)
+    # Each file is one recording session: read as if recorded in the reference session
+    # (the init folder's, else the training data's own pooled current gain), as strongly as
+    # cfg.session_strength says.
+    reference = None if start is None else session_reference(start[2], cfg.session_strength)
+    if reference is None:
+        reference = SessionReference(servo_session(parts).current_gain,
+                                     strength=float(cfg.session_strength))
+    ratios = []
+    for i, p in enumerate(parts):
+        parts[i], ratio = adapt(p, reference)
+        ratios.append(ratio.tolist())
+    data = Samples.concatenate(parts)
+    if samples_per_object is not None:
+        data = per_object_subset(data, samples_per_object, cfg.seed)
     t0 = time.perf_counter()
     train_set, val_set = split_validation(data, cfg.val_fraction, cfg.seed)
     if val_set.n_samples == 0 or train_set.n_samples == 0:
@@ -122,8 +135,10 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
         "training": cfg.to_dict(),
         "data": [{"file": str(Path(f).resolve()), "sha256": file_sha256(f),
                   "objects": m.get("objects"), "scenario": m.get("scenario"),
-                  "seed": m.get("seed"), "source": m.get("source")}
-                 for f, m in zip(sample_files, metas)],
+                  "seed": m.get("seed"), "source": m.get("source"),
+                  "session_ratio": r}
+                 for f, m, r in zip(sample_files, metas, ratios)],
+        "session": None if reference is None else reference.to_dict(),
         "samples_per_object": samples_per_object,
         "simulator": metas[0].get("simulator") or (start[2].get("simulator") if start else None),
         "samples": {"train": train_set.n_samples, "validation": val_set.n_samples},
@@ -188,15 +203,47 @@ def released_benchmark(lbipe_dir: str | os.PathLike, *, seed: int = 0,
     return res
 
 
+def copy_models(src: str | os.PathLike, dst: str | os.PathLike, *,
+                session_strength: float | None = None) -> Path:
+    """A model folder written anew at ``dst`` (replacing it), with the session strength
+    changed when given; the weights, baselines and the rest of its record unchanged."""
+    pair, baselines, fc, config = load_models(src)
+    standard = ("format", "format_version", "robot", "n_models", "torque_model",
+                "attention_model", "features", "baselines")
+    extra = {k: v for k, v in config.items() if k not in standard}
+    ref = session_reference(config, session_strength)
+    extra["session"] = None if ref is None else ref.to_dict()
+    extra["copied_from"] = str(Path(src).resolve())
+    return save_models(dst, pair, baselines, fc, robot=config.get("robot"), extra=extra)
+
+
+def session_reference(config: dict, strength: float | None = None) -> SessionReference | None:
+    """A model folder's session reference (None: the folder predates sessions, or was
+    trained without); ``strength`` overrides the recorded one."""
+    ref = SessionReference.from_dict(config.get("session"))
+    return ref if ref is None or strength is None else ref.replace(strength=float(strength))
+
+
+def adapt_objects(objects: Sequence[Samples], reference: SessionReference | None
+                  ) -> tuple[list[Samples], list[list[float]]]:
+    """Each object's samples (one recording session each) read in the reference session,
+    from its own current-discrepancy slope; returns them and the per-joint ratios."""
+    pairs = [adapt(o, reference) for o in objects]
+    return [p[0] for p in pairs], [p[1].tolist() for p in pairs]
+
+
 def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
                     sets: Sequence[np.ndarray], *, l_max: Sequence[float] | None = None,
-                    robot: str | None = None) -> dict:
-    """A model folder (its pairs and baselines) on known objects over the given sets."""
+                    robot: str | None = None, session_strength: float | None = None) -> dict:
+    """A model folder (its pairs and baselines) on known objects over the given sets, each
+    object adapted to the folder's session (``session_strength``: override, 0 = off)."""
     pair, baselines, fc, config = load_models(models, robot=robot)
+    objects, ratios = adapt_objects(objects, session_reference(config, session_strength))
     t = time.perf_counter()
     res = evaluate(objects, sets, pair=pair, baselines=baselines, fc=fc, l_max=l_max)
     res["wall_time_s"] = time.perf_counter() - t
     res["config"] = config
+    res["session_ratio"] = {o.name: r for o, r in zip(objects, ratios)}
     return res
 
 
@@ -211,12 +258,13 @@ def evaluate_samples(models: str | os.PathLike, sample_file: str | os.PathLike, 
 
 
 def sim_to_real(models: str | os.PathLike, lbipe_dir: str | os.PathLike, *, seed: int = 0,
-                n_sets: int = 1000, l_max: dict[str, float] | None = None) -> dict | None:
+                n_sets: int = 1000, l_max: dict[str, float] | None = None,
+                real: RealData | None = None) -> dict | None:
     """Trained models on every real test file in ``lbipe_dir``, beside the released models
-    on the same sets. None when the folder is absent."""
-    if not Path(lbipe_dir).is_dir():
+    on the same sets. None when the folder is absent. ``real``: the folder already loaded."""
+    if real is None and not Path(lbipe_dir).is_dir():
         return None
-    real = load_real(lbipe_dir, seed=seed, n_sets=n_sets, l_max=l_max)
+    real = real or load_real(lbipe_dir, seed=seed, n_sets=n_sets, l_max=l_max)
     ours = evaluate_models(models, real.objects, real.sets, l_max=real.l_max)
     names = [o.name for o in real.objects]
     out = {"ours": {"objects": ours["objects"], "torque": ours["torque"]},
@@ -277,7 +325,8 @@ def _uncertainty_fields(u, o: int) -> dict:
 
 def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_size: int = 64,
              n_sets: int = 200, seed: int = 0, max_mass: float = 5.0,
-             max_com: float = 0.5, max_com_se: float | None = None) -> dict:
+             max_com: float = 0.5, max_com_se: float | None = None,
+             session_strength: float | None = None) -> dict:
     """Mass and COM of each object in a sample file (ground truth, if any, is not used),
     by every method, with standard errors, intervals and covariance.
 
@@ -286,6 +335,10 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
     impossible (mass not in (0, ``max_mass``], COM farther than ``max_com`` from the tag)
     is reported as failed, with the reason, never as a number; an object no method can
     estimate is an error.
+
+    Session (:mod:`jaxinertia.session`): each object's discrepancy is first rescaled per
+    joint by its own current-discrepancy slope against the model folder's (the ratio is in
+    the answer; ``session_strength`` overrides the folder's strength, 0 = off).
 
     Uncertainty (:mod:`jaxinertia.uncertainty`): residual scatter with a floor at the
     torque models' validation error (recomputed from the training files the model folder
@@ -298,7 +351,8 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
     """
     data, meta = load_samples(sample_file, need_truth=False)
     pair, baselines, fc, config = load_models(models, robot=meta.get("robot"))
-    objects = data.without_truth().by_object()
+    objects, ratios = adapt_objects(data.without_truth().by_object(),
+                                    session_reference(config, session_strength))
     floor, floor_source = training_validation_error(pair, fc, config)
     noise = floor if floor is not None else np.full(data.n_joints, DEFAULT_TORQUE_NOISE_NM)
     noise_source = ("torque models' validation error" if floor is not None else
@@ -315,7 +369,7 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
     out: dict = {"file": str(sample_file), "objects": {},
                  "torque_error_floor": {"Nm": None if floor is None else floor.tolist(),
                                         "source": floor_source}}
-    for obj in objects:
+    for obj, ratio in zip(objects, ratios):
         all_samples = [np.arange(obj.n_samples)[None]]
         res = evaluate([obj], all_samples, pair=pair, baselines=baselines, fc=fc,
                        l_max=[np.nan])
@@ -353,7 +407,7 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
                                 jnp.asarray(noise), jnp.asarray(x_best))
         pred_se = np.asarray(ident.se[0])
         out["objects"][obj.name] = {
-            "n_samples": obj.n_samples, "methods": methods,
+            "n_samples": obj.n_samples, "methods": methods, "session_ratio": ratio,
             "identifiability": {"condition": float(ident.condition[0]),
                                 "predicted_mass_se_kg": float(pred_se[0]),
                                 "predicted_com_se_m": pred_se[1:].tolist(),

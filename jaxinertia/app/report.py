@@ -6,10 +6,13 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 
+import numpy as np
+
 from jaxinertia.evaluation import METHODS, average
 from jaxinertia.sim.calibration import baseline_statistics
 
-__all__ = ["calibration_report", "coverage_table", "render", "table1", "table2", "table3"]
+__all__ = ["calibration_report", "coverage_table", "format_folds", "recipe_table", "render",
+           "reproduce_report", "table1", "table2", "table3"]
 
 _T1_COLS = (("mass_MAE_g", "mass MAE [g]"), ("mass_NMAE_pct", "mass NMAE [%]"),
             ("mass_NRMSE_pct", "mass NRMSE [%]"), ("com_MAE_mm", "COM MAE [mm]"),
@@ -122,3 +125,145 @@ def calibration_report(real: dict, sim: dict, *, source: str | os.PathLike, iter
     return "\n".join(["# Simulator calibration", "", f"Real data: {source}; {iterations} "
                       f"iterations; parameters in `{parameters}`.", "", table, "",
                       f"![calibration]({figure})", ""])
+
+
+def format_folds(res: dict) -> str:
+    """The held-out results as markdown: per fold, Table I on the held-out objects (ours,
+    session-adapted and not, beside the released models on the same sets), the replayed
+    baseline statistics; then the recipe they choose for the models of a new object."""
+    lines = []
+    for fit_on, f in res["folds"].items():
+        held = ", ".join(f["held_out"])
+        ratio = "; ".join(f"{o} {np.round(r, 3).tolist()}" for o, r in
+                          (f.get("session_ratio") or {}).items())
+        lines += [f"### Calibrated and trained with {fit_on} only, judged on {held}", "",
+                  table1(f["ours"], f"Models trained on the simulator calibrated on {fit_on}"),
+                  ""]
+        if f.get("by_strength"):
+            lines += [table1(f["by_strength"]["0.0"], "The same, without session adaptation"),
+                      "", f"Session ratio (held-out discrepancy per joint): {ratio}.", ""]
+        if f.get("randomized"):
+            r = f["randomized"]
+            lines += [table1(r["objects"], f"Trained on domain-randomized data ({r['draws']} "
+                             "simulated arms; spread of gain and offset measured on "
+                             f"{fit_on})"), ""]
+        if f.get("physical"):
+            lines += [table1(f["physical"]["objects"], "The physics-structured torque model "
+                             "trained on the same simulated data"), ""]
+        for ft in f.get("fine_tuned", {}).values():
+            used = ft["samples"]
+            lines += [table1(ft["objects"], f"It fine-tuned (servo part) on {used['train']} + "
+                             f"{used['validation']} (validation) real samples of {fit_on}; "
+                             "baselines refitted on them"), ""]
+        lines += [table1(f["released"], "The authors' released models, same sets"), ""]
+        r, s = f["replay"]["real"], f["replay"]["sim"]
+        rows = [[label, str(j + 1), f"{r[key][j] * scale:.{nd}f}", f"{s[key][j] * scale:.{nd}f}",
+                 f"{(s[key][j] - r[key][j]) * scale:+.{nd}f}"]
+                for label, key, scale, nd in (("PE gain k [N m/rad]", "k", 1, 2),
+                                              ("PE intercept c [N mm]", "c", 1e3, 1),
+                                              ("PE MAE [N mm]", "pe_mae", 1e3, 1))
+                for j in range(len(r[key]))]
+        lines += [render(f"{held}'s real plan replayed in the simulator calibrated on {fit_on}",
+                         ["statistic", "joint", "real", "simulated", "sim - real"], rows,
+                         n_left=2), ""]
+    if res.get("recipe"):
+        lines += [recipe_table(res["recipe"]), ""]
+    return "\n".join(lines)
+
+
+def recipe_table(recipe: dict) -> str:
+    """The candidates for a new object's models, ranked by their held-out score."""
+    rows = [[c["candidate"], "yes" if c["session_strength"] > 0 else "no", f"{c['score']:.3f}"]
+            for c in recipe["scores"]]
+    return render(f"Recipes ranked on the held-out sessions ({recipe['method']} mass and COM "
+                  "NMAE over the released models', mean of every fold; lower is better). "
+                  f"Chosen: {recipe['candidate']}, session adaptation "
+                  f"{'on' if recipe['session_strength'] > 0 else 'off'}",
+                  ["candidate", "session adaptation", "score"], rows, n_left=2)
+
+
+def reproduce_report(results: dict, figs: dict, *, full: bool, seed: int, scale,
+                     continuous: dict, real_note: str | None, lbipe_dir) -> str:
+    """``jaxinertia reproduce``'s report.md, from the run's results (tables.json) alone."""
+    t, tr = results["timings_s"], results["training"]
+    sim, cov = results["simulated"], results["coverage"]
+    lines = [
+        "# jaxinertia reproduce", "",
+        f"{'Full (paper-scale)' if full else 'Quick'} run, seed {seed}, on "
+        f"{results['machine']}.",
+        f"Total {t['total']:.0f} s: " + ", ".join(
+            f"{k} {v:.0f} s" for k, v in t.items() if k != "total") + ".", "",
+        f"Training samples: {tr['samples']['train']} (+{tr['samples']['validation']} "
+        f"validation), {scale.train.n_models} model pairs; test: {scale.test_per_object} "
+        f"samples per object, {scale.n_sets} sets of {scale.train.set_size} per object and "
+        "model.", "",
+        "## Simulated test objects", "",
+        table1(sim["objects"], "Table I: mass and COM"), "",
+        table2(sim["torque"], "Table II: joint torque (all test samples)"), "",
+        table3(sim["objects"], "Table III: mean attention weights"), "",
+        f"![Table I]({figs['table1'].name})", "",
+        "## How sure: coverage of the intervals", "",
+        "Per set, the covariance of x = [m, m p] from the residual scatter (floored at the "
+        "torque models' validation error: " + cov["floor"]["source"] + ") and the spread "
+        "over the model pairs; delta-method intervals for mass and COM. Coverage: the share "
+        "of sets whose interval holds the truth (COM: mean over x, y, z; region: the joint "
+        "3-D ellipsoid).", "",
+        coverage_table(cov["simulated"], "Simulated test objects"), "",
+        *([coverage_table(cov["real"], "Real files, models trained on the simulator"), ""]
+          if "real" in cov else []),
+        f"![coverage]({figs['coverage'].name})", "",
+        "## Switching loads (continuous run)", "",
+        f"{continuous['n']} consecutive samples, held object switching every "
+        f"{scale.switch_every} samples ({' -> '.join(dict.fromkeys(continuous['objects']))}); "
+        "windows of 128 samples, 128-wide mean filter. MAE of the vertical force: " + ", ".join(
+            f"{m} {v:.3f} N" for m, v in results["continuous"].items()) + ".", "",
+        f"![continuous]({figs['continuous'].name})", "",
+        "## Sim-to-real", "",
+    ]
+    real = results["real"]
+    if real is None:
+        lines += [f"Skipped: no real data at {lbipe_dir} (see README: shared/lbipe)."]
+    else:
+        lines += [real_note or "", "",
+                  "**These objects are not held out:** the shipped simulator calibration was "
+                  "fitted on every real file (cube and white), so the numbers below are on "
+                  "objects the fit saw. The held-out folds below are the honest numbers.", "",
+                  table1(real["ours"]["objects"], "Models trained on the simulator, "
+                         "real test files (calibration saw them)"), ""]
+        if real.get("released"):
+            lines += [table1(real["released"], "The authors' released models, same "
+                             "files and sets"), ""]
+        lines += [f"![real]({figs['real'].name})", ""]
+    lines += _new_object_section(results["real_finetuned"])
+    lines += ["## Held-out real objects (fit on one, judge on the other)", ""]
+    if results["held_out"] is None:
+        lines += ["Not run: it needs at least two real objects in the lbipe folder (and "
+                  "scale.fold_calibration_iterations > 0).", ""]
+    else:
+        lines += ["Per fold, the simulator is calibrated from the datasheet on one real "
+                  "object's samples only (link gravity, servo, friction, joint torque "
+                  "offsets), models are trained on data simulated with it, and they are judged "
+                  "on the other real object, beside the released models on the same sets.", "",
+                  format_folds(results["held_out"]), ""]
+    lines += ["## Training", "", f"Best epochs: torque {tr['best_epoch']['torque']}, "
+              f"attention {tr['best_epoch']['attention']}.", "",
+              f"![training]({figs['training'].name})", ""]
+    return "\n".join(lines)
+
+
+def _new_object_section(ft: dict | None) -> list[str]:
+    if ft is None:
+        return []
+    names = ", ".join(ft["objects"])
+    recipe = ft["recipe"]
+    used = ("" if ft["samples"] is None else f" on {ft['samples']['train']} + "
+            f"{ft['samples']['validation']} (validation) real samples of {names}")
+    return ["## Models for a new real object", "",
+            f"`{ft['models']}`: {recipe['candidate']}{used}, session adaptation "
+            f"{'on' if recipe['session_strength'] > 0 else 'off'}; the recipe was chosen by "
+            f"{recipe.get('chosen_by', 'the held-out folds')} (table in the held-out section). "
+            "Use it (`jaxinertia estimate --models ...`) on objects none of the models saw; "
+            "how well such models do on an object they did not see is what the held-out "
+            "folds below measure.", "",
+            table1(ft["objects"], f"On {names}: **not held out** (the models saw these "
+                   "files)"), ""]

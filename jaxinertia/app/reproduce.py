@@ -12,6 +12,7 @@ minutes on a 2-core CPU. ``FULL`` is the paper's scale (GPU recommended).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import platform
@@ -22,15 +23,19 @@ from pathlib import Path
 import jax
 
 from jaxinertia.app import plots
-from jaxinertia.app.folds import FoldScale, format_folds, run_folds
+from jaxinertia.app.folds import FoldScale, run_folds
 from jaxinertia.app.pipeline import (
+    RealData,
+    adapt_objects,
+    copy_models,
     evaluate_models,
     evaluate_samples,
     load_real,
+    session_reference,
     sim_to_real,
     train,
 )
-from jaxinertia.app.report import coverage_table, table1, table2, table3
+from jaxinertia.app.report import reproduce_report
 from jaxinertia.app.simdata import cached, params_digest, simulate_files
 from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import choose_sets, continuous_force
@@ -117,41 +122,61 @@ def _continuous(params, path: Path, scale: Scale, seed: int) -> Path:
                   make)
 
 
-def _coverage(models: Path, test_file: Path, lbipe_dir: Path, *, n_sets: int, set_size: int,
-              seed: int) -> dict:
+def _coverage(models: Path, test_file: Path, real: RealData | None, *, n_sets: int,
+              set_size: int, seed: int) -> dict:
     """Coverage of the trained models' intervals on the simulated test objects (the sets of
-    the evaluate stage) and, when the folder is there, on the real files."""
+    the evaluate stage) and, when there are real files, on them."""
     pair, _, fc, config = load_models(models)
     floor, why = training_validation_error(pair, fc, config)
+    reference = session_reference(config)
     data, _ = load_samples(test_file)
-    objects = data.by_object()
+    objects, _ = adapt_objects(data.by_object(), reference)
     sets, _ = choose_sets(objects, n_sets=n_sets, set_size=set_size, seed=seed)
     out = {"floor": {"Nm": None if floor is None else floor.tolist(), "source": why},
            "simulated": calibration(objects, uncertainty_of(objects, sets, pair=pair, fc=fc,
                                                             floor=floor))}
-    if (Path(lbipe_dir) / "data").is_dir():
-        real = load_real(lbipe_dir, seed=seed, n_sets=n_sets)
-        out["real"] = calibration(real.objects, uncertainty_of(
-            real.objects, real.sets, pair=pair, fc=fc, floor=floor))
+    if real is not None:
+        real_objects, _ = adapt_objects(real.objects, reference)
+        out["real"] = calibration(real_objects, uncertainty_of(
+            real_objects, real.sets, pair=pair, fc=fc, floor=floor))
     return out
 
 
-def _finetune_on_real(out: Path, train_files: list[Path], lbipe_dir: Path, scale: Scale,
-                      seed: int, progress: bool) -> dict:
-    """``out/models_real``: the physical torque model trained on the simulated files, its
-    servo part fine-tuned on every real file of the folder; evaluated on those files."""
-    real = load_real(lbipe_dir, seed=seed, n_sets=scale.n_sets)
-    start = out / "models_physical"
-    train(train_files, start, scale.train.replace(seed=seed, torque_model="physical"),
-          overwrite=True, progress=progress)
-    files = list(real.layout.test_files.values())
-    info = train(files, out / "models_real", TrainConfig(**FINETUNE_DEFAULTS, seed=seed,
-                                                         trainable="servo"),
-                 overwrite=True, progress=progress, init=start,
-                 samples_per_object=scale.real_finetune_samples)
-    res = evaluate_models(out / "models_real", real.objects, real.sets, l_max=real.l_max)
-    return {"objects": res["objects"], "files": [str(f) for f in files],
-            "samples": info["samples"], "models": str(out / "models_real")}
+#: The recipe for the models of a new real object when no held-out folds chose one: the
+#: physical model fine-tuned on every real file, sessions adapted.
+DEFAULT_RECIPE = {"candidate": "physical, servo part fine-tuned", "session_strength": 1.0,
+                  "finetune_samples": None, "chosen_by": "default (no held-out folds)"}
+
+
+def _models_real(out: Path, train_files: list[Path], real: RealData, scale: Scale,
+                 recipe: dict, seed: int, progress: bool) -> dict:
+    """``out/models_real``, the models for a new real object, made as ``recipe`` says (the
+    held-out folds' choice): the run's simulator-trained paper models, the physical model
+    trained on the simulated files, or that model's servo part fine-tuned on every real
+    file of the folder; the session strength the recipe chose. Evaluated on those files
+    (not held out)."""
+    strength = float(recipe["session_strength"])
+    dst = out / "models_real"
+    info = None
+    if recipe["candidate"].startswith("paper"):
+        copy_models(out / "models", dst, session_strength=strength)
+    else:
+        start = out / "models_physical"
+        physical_cfg = scale.train.replace(seed=seed, torque_model="physical",
+                                           session_strength=strength)
+        if "fine-tuned" not in recipe["candidate"]:
+            train(train_files, dst, physical_cfg, overwrite=True, progress=progress)
+        else:
+            train(train_files, start, physical_cfg, overwrite=True, progress=progress)
+            n = recipe.get("finetune_samples") or scale.real_finetune_samples
+            info = train(list(real.layout.test_files.values()), dst,
+                         TrainConfig(**FINETUNE_DEFAULTS, seed=seed, trainable="servo",
+                                     session_strength=strength),
+                         overwrite=True, progress=progress, init=start, samples_per_object=n)
+    res = evaluate_models(dst, real.objects, real.sets, l_max=real.l_max)
+    return {"objects": res["objects"], "files": [str(f) for f in real.layout.test_files.values()],
+            "samples": None if info is None else info["samples"], "models": str(dst),
+            "recipe": recipe, "session_ratio": res["session_ratio"]}
 
 
 def plot_interval_width(cal: dict, path: Path, title: str, method: str = "T-A") -> Path:
@@ -183,27 +208,37 @@ def plot_interval_width(cal: dict, path: Path, title: str, method: str = "T-A") 
     return path
 
 
+class _Stages:
+    """Times each stage of a run (printed as it starts and ends)."""
+
+    def __init__(self):
+        self.timings: dict[str, float] = {}
+        self.t0 = time.perf_counter()
+
+    @contextlib.contextmanager
+    def __call__(self, name: str):
+        print(f"== {name}", flush=True)
+        t = time.perf_counter()
+        yield
+        self.timings[name] = time.perf_counter() - t
+        print(f"   {name}: {self.timings[name]:.1f} s", flush=True)
+
+    def total(self) -> dict[str, float]:
+        return {**self.timings, "total": time.perf_counter() - self.t0}
+
+
 def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
               lbipe_dir: str | os.PathLike | None = None, scale: Scale | None = None,
               progress: bool = True) -> dict:
-    """Runs every stage into the folder ``out``; returns the results (also in tables.json)."""
+    """Runs every stage into the folder ``out``; returns the results (also in tables.json).
+    The real-data folder is read once, here, and handed down."""
     scale = scale or (FULL if full else QUICK)
     out = Path(out)
     data_dir = out / "data"
-    timings: dict[str, float] = {}
-    t_all = time.perf_counter()
+    stage = _Stages()
     params = default_sim_params()
-
-    def stage(name):
-        class _T:
-            def __enter__(self):
-                print(f"== {name}", flush=True)
-                self.t = time.perf_counter()
-
-            def __exit__(self, *exc):
-                timings[name] = time.perf_counter() - self.t
-                print(f"   {name}: {timings[name]:.1f} s", flush=True)
-        return _T()
+    lbipe_dir = Path(lbipe_dir) if lbipe_dir else default_lbipe_dir()
+    real = load_real(lbipe_dir, seed=seed, n_sets=scale.n_sets) if lbipe_dir.is_dir() else None
 
     with stage("simulate"):
         wanted = [(data_dir / "test.npz", "test", scale.test_per_object, seed + 1000),
@@ -219,125 +254,65 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
     with stage("evaluate"):
         sim = evaluate_samples(out / "models", test_file, n_sets=scale.n_sets, seed=seed)
     with stage("uncertainty"):
-        coverage = _coverage(out / "models", test_file, lbipe_dir or default_lbipe_dir(),
-                             n_sets=scale.n_sets, set_size=scale.train.set_size, seed=seed)
+        coverage = _coverage(out / "models", test_file, real, n_sets=scale.n_sets,
+                             set_size=scale.train.set_size, seed=seed)
     with stage("continuous"):
-        pair, baselines, fc, _ = load_models(out / "models")
-        run, _ = load_samples(cont_file, only_at_rest=False)
-        cont_mass = run.x[run.object_id, 0]
-        cont_names = [run.names[i] for i in run.object_id]
-        cres = continuous_force(run, pair, baselines, fc)
-    real = None
-    lbipe_dir = Path(lbipe_dir) if lbipe_dir else default_lbipe_dir()
+        cres, cont = _continuous_force(out / "models", cont_file)
     with stage("sim-to-real"):
-        real = sim_to_real(out / "models", lbipe_dir, seed=seed)
-    real_ft = None
-    if real is not None and scale.real_finetune_samples > 0:
-        with stage("fine-tune on real"):
-            real_ft = _finetune_on_real(out, train_files, lbipe_dir, scale, seed, progress)
+        s2r = sim_to_real(out / "models", lbipe_dir, seed=seed, real=real)
     folds = None
-    if scale.fold_calibration_iterations > 0:
+    if real is not None and scale.fold_calibration_iterations > 0:
         with stage("held-out folds"):
             folds = run_folds(out / "folds", lbipe_dir, FoldScale(
                 calibration_iterations=scale.fold_calibration_iterations,
                 random_per_load=scale.random_per_load, planning=scale.planning,
                 train=scale.train, finetune_samples=scale.fold_finetune_samples),
-                seed=seed, progress=progress)
-    timings["total"] = time.perf_counter() - t_all
-
-    # Report.
-    figs = {"training": plots.plot_training(info["history"], out / "training.png"),
-            "table1": plots.plot_table1(sim["objects"], out / "table1_sim.png",
-                                        "simulated test objects"),
-            "continuous": plots.plot_continuous(cres, out / "continuous.png")}
-    figs["coverage"] = plot_interval_width(coverage["simulated"], out / "coverage_sim.png",
-                                           "simulated test objects: interval width against error")
-    if real and "ours" in real:
-        figs["real"] = plots.plot_table1(real["ours"]["objects"], out / "table1_real.png",
-                                         "real lbipe files, models trained on the simulator")
+                seed=seed, progress=progress, real=real)
+    real_ft = None
+    if real is not None and scale.real_finetune_samples > 0:
+        recipe = ({**folds["recipe"], "chosen_by": "held-out folds"} if folds
+                  else DEFAULT_RECIPE)
+        with stage("models for a new real object"):
+            real_ft = _models_real(out, train_files, real, scale, recipe, seed, progress)
     results = {
-        "machine": _machine(), "scale": dataclasses.asdict(scale), "timings_s": timings,
+        "machine": _machine(), "scale": dataclasses.asdict(scale), "timings_s": stage.total(),
         "training": {k: info[k] for k in ("samples", "best_epoch", "wall_time_s", "data")},
         "simulated": {"objects": sim["objects"], "torque": sim["torque"],
                       "diagnostics": sim["diagnostics"]},
         "continuous": {m: v["MAE_N"] for m, v in cres["methods"].items()},
-        "real": None if real is None else {k: v for k, v in real.items() if k != "note"},
+        "real": None if s2r is None else {k: v for k, v in s2r.items() if k != "note"},
         "held_out": folds,
         "real_finetuned": real_ft,
         "coverage": {"floor": coverage["floor"],
                      **{k: coverage[k]["objects"] for k in ("simulated", "real") if k in coverage}},
     }
     write_json(out / "tables.json", results)
-    lines = [
-        "# jaxinertia reproduce", "",
-        f"{'Full (paper-scale)' if full else 'Quick'} run, seed {seed}, on {_machine()}.",
-        f"Total {timings['total']:.0f} s: " + ", ".join(
-            f"{k} {v:.0f} s" for k, v in timings.items() if k != "total") + ".", "",
-        f"Training samples: {info['samples']['train']} (+{info['samples']['validation']} "
-        f"validation), {scale.train.n_models} model pairs; test: {scale.test_per_object} "
-        f"samples per object, {scale.n_sets} sets of {scale.train.set_size} per object and "
-        "model.", "",
-        "## Simulated test objects", "",
-        table1(sim["objects"], "Table I: mass and COM"), "",
-        table2(sim["torque"], "Table II: joint torque (all test samples)"), "",
-        table3(sim["objects"], "Table III: mean attention weights"), "",
-        f"![Table I]({figs['table1'].name})", "",
-        "## How sure: coverage of the intervals", "",
-        "Per set, the covariance of x = [m, m p] from the residual scatter (floored at the "
-        "torque models' validation error: " + coverage["floor"]["source"] + ") and the spread "
-        "over the model pairs; delta-method intervals for mass and COM. Coverage: the share "
-        "of sets whose interval holds the truth (COM: mean over x, y, z; region: the joint "
-        "3-D ellipsoid).", "",
-        coverage_table(coverage["simulated"]["objects"], "Simulated test objects"), "",
-        *([coverage_table(coverage["real"]["objects"], "Real files, models trained on the "
-                          "simulator"), ""] if "real" in coverage else []),
-        f"![coverage]({figs['coverage'].name})", "",
-        "## Switching loads (continuous run)", "",
-        f"{len(cont_mass)} consecutive samples, held object switching every "
-        f"{scale.switch_every} samples ({' -> '.join(dict.fromkeys(cont_names))}); windows "
-        "of 128 samples, 128-wide mean filter. MAE of the vertical force: " + ", ".join(
-            f"{m} {v['MAE_N']:.3f} N" for m, v in cres["methods"].items()) + ".", "",
-        f"![continuous]({figs['continuous'].name})", "",
-        "## Sim-to-real", "",
-    ]
-    if real is None:
-        lines += [f"Skipped: no real data at {lbipe_dir} (see README: shared/lbipe)."]
-    else:
-        lines += [real.get("note", ""), "",
-                  "**These objects are not held out:** the shipped simulator calibration was "
-                  "fitted on every real file (cube and white), so the numbers below are on "
-                  "objects the fit saw. The held-out folds below are the honest numbers.", "",
-                  table1(real["ours"]["objects"], "Models trained on the simulator, "
-                         "real test files (calibration saw them)"), ""]
-        if real.get("released"):
-            lines += [table1(real["released"], "The authors' released models, same "
-                                    "files and sets"), ""]
-        lines += [f"![real]({figs['real'].name})", ""]
-    if real_ft is not None:
-        names = ", ".join(real_ft["objects"])
-        lines += ["## Models for a new real object", "",
-                  f"`{real_ft['models']}`: the physics-structured torque model trained on "
-                  f"this run's simulated data, its servo part fine-tuned on "
-                  f"{real_ft['samples']['train']} + {real_ft['samples']['validation']} "
-                  f"(validation) real samples of {names}. Use it (`jaxinertia estimate "
-                  "--models ...`) on objects none of the models saw; how well such models do "
-                  "on an object they did not see is what the held-out folds below measure "
-                  "(their fine-tuned rows).", "",
-                  table1(real_ft["objects"], f"On {names}: **not held out** (the fine-tuning "
-                         "saw these files)"), ""]
-    lines += ["## Held-out real objects (fit on one, judge on the other)", ""]
-    if folds is None:
-        lines += ["Not run: it needs at least two real objects in the lbipe folder (and "
-                  "scale.fold_calibration_iterations > 0).", ""]
-    else:
-        lines += ["Per fold, the simulator is calibrated from the datasheet on one real "
-                  "object's samples only (link gravity, servo, friction, joint torque "
-                  "offsets), models are trained on data simulated with it, and they are judged "
-                  "on the other real object, beside the released models on the same sets.", "",
-                  format_folds(folds), ""]
-    lines += ["## Training", "", f"Best epochs: torque {info['best_epoch']['torque']}, "
-              f"attention {info['best_epoch']['attention']}.", "",
-              f"![training]({figs['training'].name})", ""]
-    write_text(out / "report.md", "\n".join(lines))
+    figs = _figures(out, info, sim, cres, coverage, s2r)
+    write_text(out / "report.md", reproduce_report(
+        results, figs, full=full, seed=seed, scale=scale, continuous=cont,
+        real_note=None if s2r is None else s2r.get("note", ""), lbipe_dir=lbipe_dir))
     print(f"wrote {out / 'report.md'}, {out / 'tables.json'} and {len(figs)} plots")
     return results
+
+
+def _continuous_force(models: Path, cont_file: Path) -> tuple[dict, dict]:
+    """The switching-load run's vertical force by every method, and what it held."""
+    pair, baselines, fc, _ = load_models(models)
+    run, _ = load_samples(cont_file, only_at_rest=False)
+    names = [run.names[i] for i in run.object_id]
+    return continuous_force(run, pair, baselines, fc), {"n": len(names), "objects": names}
+
+
+def _figures(out: Path, info: dict, sim: dict, cres: dict, coverage: dict,
+             s2r: dict | None) -> dict[str, Path]:
+    figs = {"training": plots.plot_training(info["history"], out / "training.png"),
+            "table1": plots.plot_table1(sim["objects"], out / "table1_sim.png",
+                                        "simulated test objects"),
+            "continuous": plots.plot_continuous(cres, out / "continuous.png"),
+            "coverage": plot_interval_width(coverage["simulated"], out / "coverage_sim.png",
+                                            "simulated test objects: interval width against "
+                                            "error")}
+    if s2r and "ours" in s2r:
+        figs["real"] = plots.plot_table1(s2r["ours"]["objects"], out / "table1_real.png",
+                                         "real lbipe files, models trained on the simulator")
+    return figs

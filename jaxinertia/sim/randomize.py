@@ -21,7 +21,8 @@ import numpy as np
 
 from jaxinertia.sim.simulator import SimParams
 
-__all__ = ["DomainSpread", "perturbed", "spread_from_samples"]
+__all__ = ["DomainSpread", "SessionSpread", "perturbed", "session_drawn", "session_spread",
+           "spread_from_samples"]
 
 
 @dataclass(frozen=True)
@@ -68,3 +69,50 @@ def perturbed(params: SimParams, key: jax.Array, spread: DomainSpread) -> SimPar
     servo = params.servo.replace(torque_constant=params.servo.torque_constant
                                  * jnp.maximum(scale, 0.5))
     return params.replace(servo=servo, torque_offset=offset)
+
+
+# ---- recording sessions: the servo's state of the day ---------------------------------
+
+
+@dataclass(frozen=True)
+class SessionSpread:
+    """Per-joint (N,) log-normal spreads of a recording session's servo state."""
+
+    #: Supply voltage over winding resistance (temperature, supply): scales the motor
+    #: current and so the torque per tick of error, and the Present Current with it [-].
+    electrical_rel: np.ndarray
+    #: Torque per ampere (magnet temperature, gear wear): the torque alone [-].
+    torque_rel: np.ndarray
+
+    def to_dict(self) -> dict:
+        return {"electrical_rel": np.asarray(self.electrical_rel).tolist(),
+                "torque_rel": np.asarray(self.torque_rel).tolist()}
+
+
+def session_spread(current_gains, torque_gains) -> SessionSpread:
+    """The spread that real sessions show: per joint, the standard deviation over sessions
+    of log current gain (the electrical part, measured without ground truth) and of log
+    torque gain beyond it (the torque per tick of known objects, whose load range also
+    moves it, so an upper bound). ``current_gains``, ``torque_gains``: (sessions, N)."""
+    lc, lt = np.log(np.asarray(current_gains)), np.log(np.asarray(torque_gains))
+    if lc.shape[0] < 2:
+        raise ValueError("a spread needs at least two sessions")
+    return SessionSpread(np.std(lc, axis=0, ddof=1), np.std(lt - lc, axis=0, ddof=1))
+
+
+def session_drawn(params: SimParams, key: jax.Array, spread: SessionSpread, *,
+                  scale: float = 1.0) -> SimParams:
+    """One recording session drawn around ``params``: supply voltage (the electrical gain)
+    times ``exp(N(0, electrical_rel))``, torque constant times ``exp(N(0, torque_rel))``,
+    both per joint; ``scale`` widens the draw (an unusual day)."""
+    k_el, k_kt = jax.random.split(key)
+    N = params.robot.n_joints
+    sv = params.servo
+    dtype = sv.torque_constant.dtype
+
+    def factor(k, rel):
+        return jnp.exp(scale * jnp.asarray(rel, dtype) * jax.random.normal(k, (N,), dtype))
+
+    servo = sv.replace(supply_voltage=sv.supply_voltage * factor(k_el, spread.electrical_rel),
+                       torque_constant=sv.torque_constant * factor(k_kt, spread.torque_rel))
+    return params.replace(servo=servo)

@@ -1,0 +1,120 @@
+"""The servo's state of the day: session terms read from a sample file itself.
+
+Each recording session (a real file, a simulated arm) has its own servo state: supply
+voltage, winding temperature and wear change how much motor torque one tick of position
+error buys. On the real OpenMANIPULATOR-X files the slope of the joint torque against the
+discrepancy differs between sessions (joint 2: 22.0 N m/rad on cube's file, 20.1 on
+white's), and the slope of the servo's own Present Current against the discrepancy moves
+with it (18.3 against 17.5): the position loop turns the error into PWM, the winding turns
+PWM into current and the current into torque, so a change of voltage or resistance scales
+the current and the torque alike. That slope needs no ground truth: it is measured on the
+unknown object's own samples.
+
+A model folder records the current gain of the data it was trained on (its reference); a
+file of another session is read as if recorded in the reference session by rescaling its
+discrepancy per joint, ``e' = e (g_file / g_ref) ** strength`` (``strength`` 1: the
+current tracks the torque fully; 0: no adaptation). :func:`adapt` does it on a
+:class:`~jaxinertia.samples.Samples` record, so training, evaluation and estimation see one
+door, and everything past it (networks, baselines) is unchanged.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from flax import struct
+
+from jaxinertia.errors import UsageError
+from jaxinertia.samples import Samples
+
+__all__ = ["ServoSession", "SessionReference", "adapt", "servo_session"]
+
+
+@struct.dataclass
+class ServoSession:
+    """Per-joint (N,) servo terms of one session, from its at-rest samples alone."""
+
+    #: Slope of the current torque (k_t * Present Current) against the discrepancy q_d - q,
+    #: per joint, fitted with an intercept over every sample [N m/rad].
+    current_gain: np.ndarray
+    #: Its standard error [N m/rad].
+    current_gain_se: np.ndarray
+    n_samples: int = struct.field(pytree_node=False, default=0)
+
+    def to_dict(self) -> dict:
+        return {"current_gain": np.asarray(self.current_gain).tolist(),
+                "current_gain_se": np.asarray(self.current_gain_se).tolist(),
+                "n_samples": self.n_samples}
+
+
+def servo_session(data: Samples | Sequence[Samples]) -> ServoSession:
+    """The session terms of one session's samples (several records: pooled)."""
+    parts = [data] if isinstance(data, Samples) else list(data)
+    e = np.concatenate([np.asarray(p.q_d, np.float64) - np.asarray(p.q, np.float64)
+                        for p in parts])
+    cur = np.concatenate([np.asarray(p.current_tau, np.float64) for p in parts])
+    S, N = e.shape
+    gain, se = np.zeros(N), np.zeros(N)
+    for j in range(N):
+        X = np.column_stack([e[:, j], np.ones(S)])
+        coef, *_ = np.linalg.lstsq(X, cur[:, j], rcond=None)
+        r = cur[:, j] - X @ coef
+        dof = max(S - 2, 1)
+        var_e = np.sum((e[:, j] - e[:, j].mean()) ** 2)
+        gain[j] = coef[0]
+        se[j] = np.sqrt((r @ r / dof) / var_e) if var_e > 0 else np.inf
+    return ServoSession(gain, se, n_samples=int(S))
+
+
+#: A session's current gain is used only where its standard error is below this share
+#: of it (a real file of 1000 samples: 0.3-2 %; 64 samples: 2-8 %).
+MAX_RELATIVE_SE = 0.1
+#: Ratios beyond this range are not a servo's day but another servo or a broken reading;
+#: they are clipped to it (the answer records the ratio that was used).
+RATIO_RANGE = (0.7, 1.4)
+
+
+@struct.dataclass
+class SessionReference:
+    """What a model folder records: the current gain of its training session(s) and how
+    strongly a new session's discrepancy is rescaled towards it."""
+
+    current_gain: np.ndarray  # (N,) [N m/rad]
+    strength: float = struct.field(pytree_node=False, default=1.0)
+
+    def ratio(self, session: ServoSession) -> np.ndarray:
+        """(N,) the factor on a session's discrepancy, ``(g / g_ref) ** strength``."""
+        g, g_ref = np.asarray(session.current_gain), np.asarray(self.current_gain)
+        if g.shape != g_ref.shape:
+            raise UsageError(f"session terms of {g.shape[0]} joints against a reference of "
+                             f"{g_ref.shape[0]}")
+        se = np.asarray(session.current_gain_se)
+        # A joint whose current does not follow its discrepancy (no spread, a dead current
+        # reading, too few samples to tell the slope within MAX_RELATIVE_SE) is left as it is.
+        ok = (g > 0) & (g_ref > 0) & np.isfinite(g) & (se < MAX_RELATIVE_SE * np.abs(g))
+        ratio = np.clip(np.abs(g / np.where(ok, g_ref, 1.0)), *RATIO_RANGE)
+        return np.where(ok, ratio ** self.strength, 1.0)
+
+    def to_dict(self) -> dict:
+        return {"current_gain": np.asarray(self.current_gain).tolist(),
+                "strength": float(self.strength)}
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> SessionReference | None:
+        if not d:
+            return None
+        return cls(np.asarray(d["current_gain"], np.float64), float(d.get("strength", 1.0)))
+
+
+def adapt(data: Samples, reference: SessionReference | None,
+          session: ServoSession | None = None) -> tuple[Samples, np.ndarray]:
+    """``data`` read as if recorded in the reference session: its discrepancy rescaled per
+    joint by ``reference.ratio(session)`` (``session``: measured on ``data`` when not
+    given). Returns the record and the (N,) ratio; no reference: unchanged, ratio 1."""
+    if reference is None or reference.strength == 0.0:
+        return data, np.ones(data.n_joints)
+    ratio = reference.ratio(session if session is not None else servo_session(data))
+    q = np.asarray(data.q)
+    q_d = q + (np.asarray(data.q_d) - q) * ratio.astype(q.dtype)
+    return data.replace(q_d=q_d), ratio

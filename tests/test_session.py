@@ -1,0 +1,118 @@
+"""Session terms read from a file itself (issue 30): the current-discrepancy gain, the
+rescaling towards a model folder's reference session, and the recipe the held-out folds
+choose."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from support.synthetic import synthetic_samples
+
+from jaxinertia.app.folds import choose_recipe
+from jaxinertia.errors import UsageError
+from jaxinertia.lbipe import find_layout
+from jaxinertia.lbipe import test_files as real_files
+from jaxinertia.session import (
+    MAX_RELATIVE_SE,
+    RATIO_RANGE,
+    ServoSession,
+    SessionReference,
+    adapt,
+    servo_session,
+)
+
+
+def _session(rng, gain, n=500, noise=0.004):
+    """Samples whose current torque is ``gain * (q_d - q)`` + offset + noise per joint."""
+    d = synthetic_samples(rng, n=n, n_obj=1)
+    e = d.q_d - d.q
+    return d.replace(current_tau=e * np.asarray(gain) + 0.01 + noise * rng.normal(size=e.shape))
+
+
+def test_the_current_gain_is_read_from_the_samples_alone():
+    rng = np.random.default_rng(0)
+    gain = np.array([13.4, 18.3, 13.4, 5.5])
+    s = servo_session(_session(rng, gain))
+    # Within four standard errors, and the standard errors are what the noise implies.
+    np.testing.assert_array_less(np.abs(s.current_gain - gain), 4 * s.current_gain_se)
+    assert np.all(s.current_gain_se < 0.01 * gain) and s.n_samples == 500
+    # Truth plays no part: the same without tau, x.
+    s2 = servo_session(_session(np.random.default_rng(0), gain).without_truth())
+    np.testing.assert_array_equal(s.current_gain, s2.current_gain)
+
+
+def test_adapt_rescales_the_discrepancy_towards_the_reference_session():
+    rng = np.random.default_rng(1)
+    ref_gain = np.array([13.4, 18.3, 13.4, 5.5])
+    day = np.array([1.0, 0.95, 1.03, 1.2])  # another session: the servo's gain of the day
+    d = _session(rng, ref_gain * day)
+    ref = SessionReference(ref_gain)
+    out, ratio = adapt(d, ref)
+    np.testing.assert_allclose(ratio, day, rtol=5e-3)
+    # Only the discrepancy changes: q, current, truth and the regressor are untouched.
+    np.testing.assert_allclose(out.q_d - out.q, (d.q_d - d.q) * ratio, rtol=1e-12, atol=1e-15)
+    for k in ("q", "current_tau", "tau", "tau_g", "A", "direction"):
+        np.testing.assert_array_equal(getattr(out, k), getattr(d, k), err_msg=k)
+    # Read in the reference session, the file's current gain is the reference's.
+    np.testing.assert_allclose(servo_session(out).current_gain, ref_gain, rtol=5e-3)
+    # Strength 0 (and no reference): unchanged; strength 1/2: the square root.
+    assert adapt(d, ref.replace(strength=0.0))[0] is d and adapt(d, None)[0] is d
+    np.testing.assert_allclose(adapt(d, ref.replace(strength=0.5))[1], np.sqrt(ratio))
+
+
+def test_a_gain_that_cannot_be_told_or_is_not_a_servos_day_is_not_followed():
+    ref = SessionReference(np.array([10.0, 10.0, 10.0, 10.0]))
+    s = ServoSession(current_gain=np.array([11.0, 30.0, 4.0, 11.0]),
+                     current_gain_se=np.array([0.1, 0.1, 0.1, MAX_RELATIVE_SE * 11.0 * 1.01]))
+    r = ref.ratio(s)
+    assert r[0] == pytest.approx(1.1)
+    assert r[1] == RATIO_RANGE[1] and r[2] == RATIO_RANGE[0]  # clipped
+    assert r[3] == 1.0  # too uncertain: left as it is
+    # A dead current reading (no slope) leaves the joint alone.
+    assert ref.ratio(s.replace(current_gain=np.array([0.0, 10.0, 10.0, 10.0])))[0] == 1.0
+    with pytest.raises(UsageError, match="3 joints"):
+        ref.ratio(ServoSession(np.ones(3), np.zeros(3)))
+    assert SessionReference.from_dict(ref.to_dict()).current_gain.tolist() == [10.0] * 4
+    assert SessionReference.from_dict(None) is None
+
+
+def test_the_real_files_are_two_sessions(lbipe_dir):
+    """The two real files' current gains (no ground truth used): joint 2's differs by
+    4.4 %, as their torque gains do in part (issue 30)."""
+    files = {o.name: o for o in real_files(find_layout(lbipe_dir))}
+    cube, white = (servo_session(files[n]) for n in ("cube", "white"))
+    assert cube.n_samples == white.n_samples == 1000
+    ratio = white.current_gain / cube.current_gain
+    assert ratio[1] == pytest.approx(0.956, abs=0.005)
+    assert 4 * max(cube.current_gain_se[1], white.current_gain_se[1]) < 0.044 * cube.current_gain[1]
+
+
+def _objects(ta_mass, ta_com):
+    return {"o": {"T-A": {"mass_NMAE_pct": ta_mass, "com_NMAE_pct": ta_com}}}
+
+
+def test_the_recipe_is_the_lowest_mean_over_every_fold():
+    released = {"o": {"T-A": {"mass_NMAE_pct": 4.0, "com_NMAE_pct": 10.0},
+                      "T": {"mass_NMAE_pct": 4.0, "com_NMAE_pct": 10.0}}}
+
+    def fold(sim, ft, only_here=None):
+        f = {"held_out": ["o"], "released": released,
+             "by_strength": {"0.0": _objects(*sim[0]), "1.0": _objects(*sim[1])},
+             "fine_tuned": {"250": {"by_strength": {"0.0": _objects(*ft[0]),
+                                                    "1.0": _objects(*ft[1])}}}}
+        if only_here:
+            f["fine_tuned"]["64"] = {"by_strength": {"0.0": _objects(*only_here),
+                                                     "1.0": _objects(*only_here)}}
+        return f
+
+    # Fine-tuned + adapted is best on average though not in the first fold; a candidate
+    # that only one fold judged (64 samples, excellent there) does not compete.
+    folds = {"a": fold(((8, 20), (6, 15)), ((6, 14), (5, 13)), only_here=(1, 1)),
+             "b": fold(((8, 20), (7, 18)), ((9, 22), (5, 12)))}
+    r = choose_recipe(folds)
+    assert r["candidate"] == "physical, servo part fine-tuned on 250 real samples"
+    assert r["session_strength"] == 1.0 and r["finetune_samples"] == 250
+    want = np.mean([5 / 4, 13 / 10, 5 / 4, 12 / 10])
+    assert r["score"] == pytest.approx(want)
+    assert [c["score"] for c in r["scores"]] == sorted(c["score"] for c in r["scores"])
+    assert len(r["scores"]) == 4 and r["folds"] == 2
