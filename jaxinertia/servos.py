@@ -36,6 +36,7 @@ Sources (values marked "estimate" are not on the cited page and are explained in
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -107,6 +108,10 @@ class ServoModel:
     def __post_init__(self):
         if self.sensed not in ("current", "load"):
             raise ValueError(f"{self.name}: sensed must be 'current' or 'load'")
+
+    def replace_gains(self, gains: tuple[float, float, float]) -> ServoModel:
+        """The same servo with other (P, I, D) registers set (an arm's per-joint override)."""
+        return dataclasses.replace(self, gains=tuple(float(g) for g in gains))
 
     @property
     def rad_per_tick(self) -> float:
