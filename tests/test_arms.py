@@ -55,7 +55,8 @@ def test_open_manipulator_x_record_is_todays_constants():
         0.5, 2.0, 0.2, 6.0, arm.bus_ids, arm.gripper_id, arm.baudrate)
     assert (cfg.p_gain, cfg.i_gain, cfg.d_gain) == XM430_W350.gains
     assert arm.pre_position == lanes.DELTA == collect.DELTA
-    assert arm.pre_position == _default(sampling.simulate_samples, "delta")
+    assert _default(sampling.simulate_samples, "delta") is None  # -> SimParams.pre_position
+    assert arm.pre_position == fields["pre_position"]
     assert arm.planning_step_deg == _default(planning_plan, "step_deg")
     # The robot: the embedded description, bit for bit, mounted as in the paper.
     robot, ref = arm.robot(), open_manipulator_x()
@@ -129,3 +130,31 @@ def test_bad_arms_say_what_is_wrong(tmp_path):
     path.write_text(json.dumps({**d, "arm_joints": ["a", "b", "c", "d", "e"]}))
     with pytest.raises(Exception, match="no joints named"):
         get_arm(path).robot()
+
+
+def test_arm_sim_params():
+    from jaxinertia.sim.params import arm_sim_params, default_sim_params
+    from jaxinertia.sim.run import _scenario_jobs
+
+    # The OpenMANIPULATOR-X: exactly the calibrated simulator it always had.
+    ours, ref = arm_sim_params(), default_sim_params()
+    assert jax.tree.structure(ours) == jax.tree.structure(ref)
+    for a, b in zip(jax.tree.leaves(ours), jax.tree.leaves(ref), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert ours.pre_position == ref.pre_position == lanes.DELTA
+    # An arm without a calibration: its links, datasheet servos, its timing.
+    koch = arm_sim_params(KOCH_V1_1)
+    assert koch.robot.name == "koch_v1_1" and koch.robot.n_joints == 5
+    np.testing.assert_array_equal(np.asarray(koch.servo.p_gain), [640.0, 640.0, 1500.0, 400.0,
+                                                                  400.0])
+    np.testing.assert_array_equal(np.asarray(koch.servo.supply_voltage), [12.0] * 2 + [5.0] * 3)
+    np.testing.assert_array_equal(np.asarray(koch.robot.armature), [0.005] * 5)
+    assert koch.hold_time == KOCH_V1_1.timing.settle_time
+    with pytest.raises(ConfigError, match="not the arm 'so101'"):
+        arm_sim_params(SO101, data_path(omx.CALIBRATION_FILE))
+    # Scenario goals inside the arm's workspace, objects on the arm's tag mount.
+    for scenario in ("random", "test"):
+        for name, obj, (q_d, d) in _scenario_jobs(scenario, 32, None, 0, arm=SO101):
+            lo, hi = np.radians(np.asarray(SO101.workspace_deg)).T
+            assert q_d.shape == d.shape == (32, 5) and np.all((q_d >= lo) & (q_d <= hi)), name
+            np.testing.assert_array_equal(np.asarray(obj.p_ee_tag), SO101.tag_position)
