@@ -78,25 +78,26 @@ EMPTY = "empty"
 _EMPTY_ALIASES = ("empty", "none", "0g")
 
 
-def make_object(mass: float, com_tag, *, l_max: float = 0.07) -> HeldObject:
-    """A held object as a uniform solid cube of diagonal ``l_max`` (for its inertia),
-    tag mounted as on the paper's arm."""
+def make_object(mass: float, com_tag, *, l_max: float = 0.07, tag_in_ee=None) -> HeldObject:
+    """A held object as a uniform solid cube of diagonal ``l_max`` (for its inertia), its
+    tag mounted at ``tag_in_ee`` = (R, p) in the end-effector frame (default: as on the
+    paper's arm; an arm record's ``tag_in_ee`` for another arm)."""
     side = l_max / np.sqrt(3.0)
     inertia = mass * side**2 / 6.0 * np.eye(3)
-    R, p = TAG_IN_EE
+    R, p = TAG_IN_EE if tag_in_ee is None else tag_in_ee
     return HeldObject(jnp.asarray(mass, float), jnp.asarray(com_tag, float),
                       jnp.asarray(R), jnp.asarray(p), jnp.asarray(inertia))
 
 
-def test_object(name: str) -> HeldObject:
+def test_object(name: str, *, tag_in_ee=None) -> HeldObject:
     """One of :data:`TEST_OBJECTS` by name."""
     t = TEST_OBJECTS[name]
-    return make_object(t.mass, t.com_tag, l_max=t.diagonal)
+    return make_object(t.mass, t.com_tag, l_max=t.diagonal, tag_in_ee=tag_in_ee)
 
 
-def training_object(mass: float) -> HeldObject:
+def training_object(mass: float, *, tag_in_ee=None) -> HeldObject:
     """A training load: its COM on the tag axis 20 mm below the tag (as the cube's)."""
-    return make_object(mass, (0.0, 0.0, -0.020))
+    return make_object(mass, (0.0, 0.0, -0.020), tag_in_ee=tag_in_ee)
 
 
 def load_name(mass: float) -> str:

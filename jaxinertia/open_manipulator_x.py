@@ -1,9 +1,9 @@
 """The OpenMANIPULATOR-X as the paper mounts and uses it: every constant of the arm in one
 place (as MuJoCo Playground keeps ``<robot>_constants.py``).
 
-A second arm gets a module like this one (its description file, workspace, tag mount and
-calibration file) and a loader in :mod:`jaxinertia.robot`; nothing else in the library
-assumes four joints.
+The constants below are the data of :data:`ARM`, the arm's :class:`jaxinertia.arm.Arm`
+record (registered in :mod:`jaxinertia.arms` as ``open_manipulator_x``); other arms are
+records there. Nothing else in the library assumes four joints.
 """
 
 from __future__ import annotations
@@ -15,10 +15,12 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
+from jaxinertia.arm import Arm, MotionTiming
 from jaxinertia.errors import ConfigError
-from jaxinertia.robot import Robot, data_path, open_manipulator_x
+from jaxinertia.robot import OPEN_MANIPULATOR_X_XML, Robot, data_path, open_manipulator_x
 
 __all__ = [
+    "ARM",
     "CALIBRATION_FILE",
     "DEFAULT_ARMATURE",
     "JOINT_IDS",
@@ -57,6 +59,35 @@ DEFAULT_ARMATURE = 0.01
 #: The shipped calibration: link gravity fitted to the real ``tau_g``, servo and friction
 #: parameters of the simulated arm (``jaxinertia calibrate`` writes it).
 CALIBRATION_FILE = "open_manipulator_x_sim.json"
+
+
+#: The arm as one record (the constants above, the collection protocol's motion timing and
+#: pre-position, the planning grid, the paper's wall mounting).
+ARM = Arm(
+    name=NAME,
+    description=OPEN_MANIPULATOR_X_XML,
+    ee_site="end_effector",
+    arm_joints=("joint1", "joint2", "joint3", "joint4"),
+    gripper_joint=None,  # the embedded description has no jaw (shared/robots/README.md)
+    servos=("xm430_w350",) * 4,
+    bus_ids=JOINT_IDS,
+    gripper_servo="xm430_w350",
+    gripper_id=GRIPPER_ID,
+    baudrate=1_000_000,
+    workspace_deg=WORKSPACE_DEG,
+    safety_margin_deg=8.0,
+    safety_box_margin_m=0.03,
+    tag_position=tuple(float(x) for x in TAG_IN_EE[1]),
+    mount_clearance_m=MOUNT_CLEARANCE_M,
+    timing=MotionTiming(profile_velocity=0.5, profile_acceleration=2.0, settle_time=0.2,
+                        move_timeout=6.0),
+    pre_position_deg=3.0,
+    planning_step_deg=10.0,
+    gravity=(-9.81, 0.0, 0.0),  # joint 1's axis horizontal (Lao et al.)
+    armature=DEFAULT_ARMATURE,
+    calibration_file=CALIBRATION_FILE,
+    notes="ROBOTIS OpenMANIPULATOR-X (RM-X52-TNM) as the paper mounts and uses it",
+)
 
 
 def load_calibration(path: str | os.PathLike | None = None) -> dict:

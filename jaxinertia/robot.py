@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import importlib.resources
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import jax
@@ -246,11 +247,60 @@ def from_mujoco(
     )
 
 
-def compile_mujoco(path: str | os.PathLike):
-    """Compiles an MJCF or URDF file with MuJoCo.
+def _strip_files(spec, where) -> None:
+    """Removes what would make MuJoCo's compiler open files: mesh and height-field geoms and
+    assets, skins, and textures (materials keep their colours). They play no part in
+    kinematics or statics; the links' inertials are the file's explicit ``<inertial>``.
+
+    A body that states no inertial would take its mass from the removed geometry: that is an
+    error, not a silent zero."""
+    t = mujoco.mjtGeom
+    file_geoms = (t.mjGEOM_MESH, t.mjGEOM_HFIELD, t.mjGEOM_SDF)
+    removed_from: set[str] = set()
+    for geom in list(spec.geoms):
+        if geom.type in file_geoms:
+            removed_from.add(geom.parent.name)
+            spec.delete(geom)
+    for kind in (spec.meshes, spec.hfields, spec.skins, spec.textures):
+        for element in list(kind):
+            spec.delete(element)
+    for material in spec.materials:
+        material.textures = [""] * len(material.textures)
+    implicit = [b.name for b in spec.bodies if b.name in removed_from and not b.explicitinertial]
+    if implicit:
+        raise RobotDescriptionError(
+            f"{where}: bodies {implicit} state no <inertial>; their mass would come from mesh "
+            "files, which the loader does not read (add an <inertial> to each)")
+    from_geom = mujoco.mjtInertiaFromGeom
+    if removed_from and spec.compiler.inertiafromgeom == from_geom.mjINERTIAFROMGEOM_TRUE:
+        # With the meshes gone the explicit inertials are the only mass data left.
+        spec.compiler.inertiafromgeom = from_geom.mjINERTIAFROMGEOM_AUTO
+
+
+def _weld_joints(spec, arm_joints, where) -> None:
+    """Removes every joint not named in ``arm_joints`` (a gripper's, say): its body is welded
+    to its parent at the joint's zero, its inertia lumped into the arm link that carries it.
+    Actuators, sensors, tendons, equalities and keyframes go too (they may name a removed
+    joint, and statics uses none of them)."""
+    names = [j.name for j in spec.joints]
+    missing = [n for n in arm_joints if n not in names]
+    if missing:
+        raise RobotDescriptionError(f"{where}: no joints named {missing} (it has {names})")
+    for kind in (spec.actuators, spec.sensors, spec.tendons, spec.equalities, spec.keys):
+        for element in list(kind):
+            spec.delete(element)
+    for joint in list(spec.joints):
+        if joint.name not in arm_joints:
+            spec.delete(joint)
+
+
+def compile_mujoco(path: str | os.PathLike, *, arm_joints: Sequence[str] | None = None):
+    """Compiles an MJCF or URDF file with MuJoCo, without the mesh (or texture) files it
+    names: published descriptions load as they are, meshes absent (:func:`_strip_files`).
 
     URDF links are kept as separate bodies (``fusestatic="false"``) so that massless frames
-    such as an ``end_effector_link`` survive compilation.
+    such as an ``end_effector_link`` survive compilation. ``arm_joints``: the joints to
+    keep (default: all); the others are welded at zero (:func:`_weld_joints`).
     """
     path = Path(path)
     try:
@@ -259,19 +309,21 @@ def compile_mujoco(path: str | os.PathLike):
         raise RobotDescriptionError(f"{path}: cannot read robot description ({e})") from e
     try:
         if path.suffix.lower() == ".urdf":
-            start = text.find("<robot")
-            end = text.find(">", start)
-            if start < 0 or end < 0:
+            if text.find("<robot") < 0:
                 raise RobotDescriptionError(f"{path}: no <robot> element")
-            text = (
-                text[: end + 1]
-                + '<mujoco><compiler fusestatic="false" discardvisual="true" '
-                'balanceinertia="false"/></mujoco>'
-                + text[end + 1 :]
-            )
-            return mujoco.MjModel.from_xml_string(text)
-        return mujoco.MjModel.from_xml_path(str(path))
+            spec = mujoco.MjSpec.from_string(text)
+            spec.compiler.fusestatic = False
+            spec.compiler.discardvisual = True
+            spec.compiler.balanceinertia = False
+        else:
+            spec = mujoco.MjSpec.from_file(str(path))
+        _strip_files(spec, path)
+        if arm_joints is not None:
+            _weld_joints(spec, tuple(arm_joints), path)
+        return spec.compile()
     except ValueError as e:
+        if isinstance(e, RobotDescriptionError):
+            raise
         raise RobotDescriptionError(f"{path}: MuJoCo could not compile it: {e}") from e
 
 
@@ -280,16 +332,22 @@ def load_robot(
     *,
     ee_site: str | None = None,
     ee_body: str | None = None,
+    arm_joints: Sequence[str] | None = None,
     gravity=None,
     dtype=None,
 ) -> Robot:
-    """Loads a serial arm from an MJCF (``.xml``) or URDF (``.urdf``) file.
+    """Loads a serial arm from an MJCF (``.xml``) or URDF (``.urdf``) file; the mesh files
+    it names need not exist.
 
-    ``gravity`` (3,) overrides the file's (URDF has none; MuJoCo's default is [0, 0, -9.81]).
+    ``arm_joints`` names the arm's joints (default: every joint); any other joint (a
+    gripper's jaw) is welded at its zero and its link's inertia lumped into the arm link
+    carrying it. ``gravity`` (3,) overrides the file's (URDF has none; MuJoCo's default is
+    [0, 0, -9.81]).
     """
     path = Path(path)
     robot = from_mujoco(
-        compile_mujoco(path), ee_site=ee_site, ee_body=ee_body, name=path.stem, dtype=dtype
+        compile_mujoco(path, arm_joints=arm_joints), ee_site=ee_site, ee_body=ee_body,
+        name=path.stem, dtype=dtype
     )
     return robot if gravity is None else robot.with_gravity(gravity)
 

@@ -3,12 +3,15 @@ simulated servo (:mod:`jaxinertia.sim.servo`) and the real one
 (:mod:`jaxinertia.hardware.control_table`).
 
 Ticks, current LSBs and PWM registers exist only at that boundary; everything past it is
-SI. A second servo family gets a module like this one.
+SI. The values are :data:`jaxinertia.servos.XM430_W350`'s (the servo as data); other servo
+models are records there.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from jaxinertia.servos import XM430_W350
 
 __all__ = [
     "CURRENT_LSB_A",
@@ -18,9 +21,9 @@ __all__ = [
     "TICKS_PER_REV",
 ]
 
-TICKS_PER_REV = 4096
+TICKS_PER_REV = XM430_W350.ticks_per_rev  # 4096
 RAD_PER_TICK = 2.0 * np.pi / TICKS_PER_REV
-CURRENT_LSB_A = 2.69e-3  # Present Current unit [A]
+CURRENT_LSB_A = XM430_W350.sensed_lsb  # Present Current unit [A]: 2.69 mA
 #: Datasheet torque constant (4.1 N m / 2.3 A): what a current-based torque assumes.
-NOMINAL_TORQUE_CONSTANT = 4.1 / 2.3
-PWM_FULL_SCALE = 885.0  # PWM register value for 100 % duty
+NOMINAL_TORQUE_CONSTANT = XM430_W350.torque_constant
+PWM_FULL_SCALE = XM430_W350.pwm_full_scale  # PWM register value for 100 % duty: 885

@@ -36,6 +36,7 @@ from jaxinertia.app.pipeline import (
 from jaxinertia.app.plots import plot_calibration, plot_lbipe_estimates
 from jaxinertia.app.report import calibration_report, table1, table2, table3
 from jaxinertia.app.reproduce import reproduce
+from jaxinertia.arms import ARMS, DEFAULT_ARM, get_arm
 from jaxinertia.design import load_plan
 from jaxinertia.errors import UsageError
 from jaxinertia.fileio import check_output, write_json, write_text
@@ -109,8 +110,13 @@ def cmd_simulate(args) -> int:
             check_output(args.out / f"data_{split}_{name}.npz", overwrite=args.overwrite)
     else:
         check_outputs(args, "--out")
-    params = sim_params.default_sim_params(args.calibration)
+    arm = get_arm(args.arm)
+    params = sim_params.arm_sim_params(arm, args.calibration)
     if args.scenario == "continuous":
+        if arm.name != DEFAULT_ARM:
+            raise UsageError(f"--arm {args.arm}: the continuous run simulates the "
+                             f"{DEFAULT_ARM} only (so far); use --scenario random, "
+                             "planning or test")
         if args.plan is not None:
             raise UsageError("--plan: the continuous run walks nearby random goals; use "
                              "--scenario test (or random, planning) with a plan")
@@ -134,7 +140,7 @@ def cmd_simulate(args) -> int:
             raise UsageError(f"--plan {args.plan}: {plan[0].shape[1]} joints per pose; the "
                              f"simulated arm has {params.robot.n_joints}")
     results = sim_run.simulate_scenario(params, args.scenario, n=args.n, objects=args.objects,
-                                        seed=args.seed, plan=plan)
+                                        seed=args.seed, plan=plan, arm=arm)
     for name, (_, r) in results.items():
         bad = int(np.sum(~r["at_rest"]))
         if bad:
@@ -265,7 +271,7 @@ def register(sub) -> None:
 
     s = sub.add_parser(
         "simulate",
-        help="generate samples from the simulated OpenMANIPULATOR-X",
+        help="generate samples from a simulated arm (default: the OpenMANIPULATOR-X)",
         description="planning: the 10 deg grid x 16 direction patterns x training loads; "
         "random: N random goals per training load; test: N per test object; continuous: N "
         "consecutive nearby goals without stopping, the held object switching.",
@@ -287,8 +293,12 @@ def register(sub) -> None:
     s.add_argument("--switch-every", type=positive_int, default=512,
                    help="continuous: samples between object switches (default 512)")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--arm", default=DEFAULT_ARM, metavar="NAME|FILE",
+                   help=f"the arm: {', '.join(ARMS)}, or an arm file (.json/.toml) "
+                   "(default: %(default)s)")
     s.add_argument("--calibration", type=Path,
-                   help="simulator parameter file (default: the shipped calibration)")
+                   help="simulator parameter file (default: the arm's shipped calibration; "
+                   "an arm without one is simulated from its datasheet values)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     s.add_argument("--precision", choices=["float64", "float32"], default="float64",
                    help="arithmetic of the simulation (default: %(default)s). float32 runs "

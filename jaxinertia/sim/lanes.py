@@ -45,7 +45,8 @@ from jaxinertia.sim.simulator import SimParams, SimState, step, trapezoid
 __all__ = ["DELTA", "Carry", "Ended", "Lanes", "Table", "compact", "finish", "lane_step",
            "prepare", "refill", "steps"]
 
-#: Pre-position offset of the protocol [rad] (``simulate_samples``' default ``delta``).
+#: Pre-position offset of the protocol [rad]: the OpenMANIPULATOR-X's (the lanes read
+#: ``SimParams.pre_position``, which an arm record sets).
 DELTA = 3.0 * np.pi / 180.0
 
 
@@ -153,7 +154,7 @@ def refill(base: SimParams, table: Table, carry: Carry) -> Carry:
     n = q_d.shape[1]
     friction = jax.vmap(lambda kf: jitter_friction(base, kf, n).friction)(key_f)
     robot = jax.tree.map(lambda a: a[obj_id], table.loaded.robot)
-    pre = q_d - direction * DELTA
+    pre = q_d - direction * base.pre_position
     fresh = Lanes(
         state=jax.vmap(SimState.at_rest)(pre), robot=robot, friction=friction, pre=pre,
         q_d=q_d, direction=direction, obj_id=obj_id,

@@ -14,7 +14,9 @@ import os
 import jax.numpy as jnp
 import numpy as np
 
+from jaxinertia.arm import Arm
 from jaxinertia.errors import ConfigError
+from jaxinertia.open_manipulator_x import ARM as OMX_ARM
 from jaxinertia.open_manipulator_x import (
     CALIBRATION_FILE,
     DEFAULT_ARMATURE,
@@ -26,8 +28,8 @@ from jaxinertia.sim.friction import FrictionParams
 from jaxinertia.sim.servo import ServoParams
 from jaxinertia.sim.simulator import SimParams
 
-__all__ = ["apply_servo_friction", "datasheet_sim_params", "default_sim_params",
-           "params_to_dict"]
+__all__ = ["apply_servo_friction", "arm_sim_params", "datasheet_sim_params",
+           "default_sim_params", "params_to_dict"]
 
 
 def default_sim_params(calibration_file: str | os.PathLike | None = None) -> SimParams:
@@ -61,6 +63,41 @@ def datasheet_sim_params(robot: Robot | None = None) -> SimParams:
     n = robot.n_joints
     robot = robot.replace(armature=jnp.full(n, DEFAULT_ARMATURE, robot.mass.dtype))
     return SimParams(robot, ServoParams.xm430_w350(n), FrictionParams.create(n))
+
+
+def arm_sim_params(arm: Arm | None = None,
+                   calibration_file: str | os.PathLike | None = None) -> SimParams:
+    """The simulated ``arm`` (an :class:`jaxinertia.arm.Arm`; default the
+    OpenMANIPULATOR-X), its motion timing and pre-position from the record.
+
+    An arm with a calibration (``calibration_file``, else the record's shipped one) gets
+    :func:`default_sim_params` of it (the OpenMANIPULATOR-X: exactly what it always got);
+    one without is simulated from its description's links and its servos' datasheet
+    values (:meth:`ServoParams.from_model`, the record's gain overrides; each servo model's
+    friction, else the simulator's defaults)."""
+    arm = OMX_ARM if arm is None else arm
+    if calibration_file is not None or arm.calibration_file is not None:
+        params = default_sim_params(calibration_file)
+        if params.robot.name != arm.name:
+            raise ConfigError(calibration_file or arm.calibration_file, None,
+                              f"calibrates {params.robot.name!r}, not the arm {arm.name!r}")
+    else:
+        robot = arm.robot()
+        n = robot.n_joints
+        robot = robot.replace(armature=jnp.full(n, arm.armature, robot.mass.dtype))
+        models = arm.servo_models
+        gains = [g or m.gains for g, m in zip(arm.gains or (None,) * n, models)]
+        servo = ServoParams.from_model([m.replace_gains(g) for m, g in zip(models, gains)], n)
+        keys = sorted({k for m in models for k in m.friction})
+        base = FrictionParams.create(1)
+        friction = {k: [m.friction.get(k, float(getattr(base, k)[0])) for m in models]
+                    for k in keys}
+        params = SimParams(robot, servo, FrictionParams.create(n, **friction))
+    t = arm.timing
+    return params.replace(profile_velocity=t.profile_velocity,
+                          profile_acceleration=t.profile_acceleration,
+                          hold_time=t.settle_time, timeout=t.move_timeout,
+                          pre_position=arm.pre_position)
 
 
 def apply_servo_friction(params: SimParams, calibration: dict) -> SimParams:

@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxinertia.arm import Arm
 from jaxinertia.errors import SimulationError, UsageError
 from jaxinertia.objects import (
     TEST_OBJECTS,
@@ -110,17 +111,20 @@ def _check_plan(params: SimParams, q_d, direction, desc: str):
 def simulate_scenario(params: SimParams, scenario: str, *, n: int | None = None,
                       objects: list[str] | None = None, seed: int = 0,
                       lanes: int | None = None, plan: tuple | None = None,
-                      progress: bool = True) -> dict[str, tuple[HeldObject, dict]]:
+                      progress: bool = True, arm: Arm | None = None
+                      ) -> dict[str, tuple[HeldObject, dict]]:
     """Runs a scenario; returns ``{object name: (object, fields)}``.
 
     planning: the 10 deg grid x 16 direction patterns per training load (``n`` caps it);
     random: ``n`` (default 1000) random goals and directions per training load;
     test: ``n`` (default 1000) per test object (``objects``: default all four).
     ``plan``: the goals and directions every object visits instead (``n`` samples: the
-    plan repeated cyclically; default once).
+    plan repeated cyclically; default once). ``arm``: the arm record whose workspace,
+    planning grid and tag mount the scenario uses (default: the OpenMANIPULATOR-X's);
+    ``params`` must be that arm's (:func:`jaxinertia.sim.params.arm_sim_params`).
     """
     return simulate_scenarios(params, [ScenarioRequest(scenario, n, objects, seed, plan)],
-                              lanes=lanes, progress=progress)[0]
+                              lanes=lanes, progress=progress, arm=arm)[0]
 
 
 class ScenarioRequest(NamedTuple):
@@ -135,8 +139,8 @@ class ScenarioRequest(NamedTuple):
 
 def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
                        lanes: int | None = None, tail_lanes: int | None = None,
-                       batch_last: bool | None = None,
-                       progress: bool = True) -> list[dict[str, tuple[HeldObject, dict]]]:
+                       batch_last: bool | None = None, progress: bool = True,
+                       arm: Arm | None = None) -> list[dict[str, tuple[HeldObject, dict]]]:
     """Several scenarios in one stream of lanes (one compiled program, one tail); each
     result is what :func:`simulate_scenario` returns for its request."""
     for r in requests:  # bad requests fail before anything compiles
@@ -145,7 +149,8 @@ def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
     precompile(params, training_object(0.0), lanes=lanes, batch_last=batch_last)
     jobs, descs, plans = [], [], []
     for r in requests:
-        named = _scenario_jobs(r.scenario, r.n, r.objects, r.seed, r.plan)
+        named = _scenario_jobs(r.scenario, r.n, r.objects, r.seed, r.plan, arm=arm,
+                               robot=params.robot)
         with jax.default_device(jax.devices("cpu")[0]):  # tiny: no accelerator kernels
             key = jax.random.key(r.seed)
             keys = [jax.random.fold_in(key, i) for i in range(len(named))]
@@ -168,28 +173,35 @@ def _check_request(scenario: str, objects: list[str] | None) -> None:
 
 
 def _scenario_jobs(scenario: str, n: int | None, objects: list[str] | None, seed: int,
-                   given: tuple[np.ndarray, np.ndarray] | None = None):
+                   given: tuple[np.ndarray, np.ndarray] | None = None, *,
+                   arm: Arm | None = None, robot=None):
     """``[(object name, object, (q_d, direction))]`` of a scenario (``given``: one plan
-    for every object, repeated cyclically to ``n`` samples)."""
+    for every object, repeated cyclically to ``n`` samples; ``arm``: its workspace,
+    planning grid and tag mount, ``robot`` its bare robot; default the OpenMANIPULATOR-X)."""
     _check_request(scenario, objects)
+    tag, ws, grid_kw = {}, {}, {}
+    if arm is not None:
+        tag, ws = {"tag_in_ee": arm.tag_in_ee}, {"workspace": arm.workspace_deg}
+        grid_kw = dict(step_deg=arm.planning_step_deg, clearance=arm.mount_clearance_m,
+                       robot=robot if robot is not None else arm.robot(), **ws)
     if given is not None:
         q_d, d = (np.asarray(a, np.float64) for a in given)
         reps = np.arange(n or len(q_d)) % len(q_d)
         given = (q_d[reps], d[reps])
     if scenario == "test":
         names = objects or list(TEST_OBJECTS)
-        return [(o, test_object(o), given or random_plan(n or 1000, seed + i))
+        return [(o, test_object(o, **tag), given or random_plan(n or 1000, seed + i, **ws))
                 for i, o in enumerate(names)]
     jobs = []  # planning or random
-    grid = planning_plan() if scenario == "planning" else None
+    grid = planning_plan(**grid_kw) if scenario == "planning" else None
     for i, m in enumerate(TRAINING_LOADS_KG):
         if given is not None:
             plan = given
         elif scenario == "planning":
             plan = tuple(a[:n] for a in grid) if n else grid
         else:
-            plan = random_plan(n or 1000, seed + i)
-        jobs.append((load_name(m), training_object(m), plan))
+            plan = random_plan(n or 1000, seed + i, **ws)
+        jobs.append((load_name(m), training_object(m, **tag), plan))
     return jobs
 
 
@@ -211,6 +223,7 @@ def native_fields(results: dict[str, tuple[HeldObject, dict]], params: SimParams
     meta = {
         "version": version, "scenario": scenario, "seed": seed, "source": "simulator",
         "objects": names, "robot": params.robot.name,
+        "arm": params.robot.name,  # an arm's robot is named after it (jaxinertia.arms)
         "simulator": {"precision": str(jnp.dtype(jnp.result_type(float))), **simulator},
     }
     return fields, meta

@@ -105,9 +105,10 @@ def simulate_samples(
     direction: jnp.ndarray,
     key: jax.Array,
     *,
-    delta: float = 3.0 * jnp.pi / 180.0,
+    delta: float | None = None,
 ) -> Record:
-    """Simulates S samples (vmapped): goals ``q_d`` and directions (S, N).
+    """Simulates S samples (vmapped): goals ``q_d`` and directions (S, N); ``delta``: the
+    pre-position offset [rad] (default: ``params.pre_position``, the arm's).
 
     ``params.robot`` is the bare arm in the lbipe convention; the object is attached here.
 
@@ -120,6 +121,7 @@ def simulate_samples(
     tau_g, A) uses the convention, so ``tau - tau_g = A x`` holds as in the real data and
     the servo's holding torque equals ``+tau`` at rest.
     """
+    delta = params.pre_position if delta is None else delta
     bare = params.robot
     loaded = loaded_params(params, obj)
     # One key per sample (or a single key, split here): samples do not depend on batching.

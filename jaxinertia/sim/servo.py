@@ -20,10 +20,13 @@ the stiffness measured on the real arm (25-28 N mm/tick on joints 1-3).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxinertia.servos import XM430_W350, ServoModel
 from jaxinertia.xm430 import (
     CURRENT_LSB_A,
     NOMINAL_TORQUE_CONSTANT,
@@ -62,13 +65,33 @@ class ServoParams:
     def xm430_w350(cls, n_joints: int, **overrides) -> ServoParams:
         """Datasheet values for ``n_joints`` servos (``overrides``: per-joint or shared
         values): 12 V, stall 4.1 N m / 2.3 A, no load 46 rpm, gear 353.5."""
-        stall_torque, stall_current, v = 4.1, 2.3, 12.0
-        no_load_speed = 46.0 * 2.0 * np.pi / 60.0
-        base = dict(
-            p_gain=800.0, i_gain=0.0, d_gain=0.0, pwm_limit=885.0, supply_voltage=v,
-            torque_constant=stall_torque / stall_current, resistance=v / stall_current,
-            back_emf=v / no_load_speed, current_limit=3.2, current_noise=2 * CURRENT_LSB_A,
-        )
+        return cls.from_model(XM430_W350, n_joints, **overrides)
+
+    @classmethod
+    def from_model(cls, model: ServoModel | Sequence[ServoModel], n_joints: int,
+                   **overrides) -> ServoParams:
+        """Parameters of ``n_joints`` servos of ``model`` (one, or one per joint: a chain may
+        mix models) from their datasheet values, in the register scales that
+        :func:`servo_step` uses (the XM430's: KP = P/128, 885 = 100 % PWM); another loop's
+        gains are re-expressed so that it applies the same duty per tick of error."""
+        models = [model] * n_joints if isinstance(model, ServoModel) else list(model)
+        if len(models) != n_joints:
+            raise ValueError(f"{len(models)} servo models for {n_joints} joints")
+
+        def values(m: ServoModel) -> dict:
+            to_pwm = PWM_FULL_SCALE / m.pwm_full_scale
+            (kp, ki, kd), (p, i, d) = m.gain_scale, m.gains
+            v = m.supply_voltage
+            noise_lsb = m.sensed_lsb if m.has_current_sensor else m.sensed_lsb * m.stall_current
+            return dict(
+                p_gain=p * (kp * 128.0) * to_pwm, i_gain=i * (ki * 65536.0) * to_pwm,
+                d_gain=d * (kd * 16.0) * to_pwm, pwm_limit=m.pwm_limit * to_pwm,
+                supply_voltage=v, torque_constant=m.stall_torque / m.stall_current,
+                resistance=v / m.stall_current, back_emf=v / m.no_load_speed,
+                current_limit=m.current_limit, current_noise=2 * noise_lsb)
+
+        per_joint = [values(m) for m in models]
+        base = {k: np.array([pj[k] for pj in per_joint]) for k in per_joint[0]}
         base.update(overrides)
         return cls(**{k: jnp.asarray(np.broadcast_to(val, (n_joints,)), jnp.result_type(float))
                       for k, val in base.items()})

@@ -47,6 +47,8 @@ class SimParams:
     timeout: float = struct.field(pytree_node=False, default=6.0)  # per move [s]
     profile_velocity: float = struct.field(pytree_node=False, default=0.5)  # [rad/s]
     profile_acceleration: float = struct.field(pytree_node=False, default=2.0)  # [rad/s^2]
+    #: The protocol's pre-position offset: each sample starts at rest at q_d - s * this [rad].
+    pre_position: float = struct.field(pytree_node=False, default=3.0 * jnp.pi / 180.0)
     #: Projected Gauss-Seidel sweeps of the friction solve per step. Warm-started from
     #: the previous step's friction, 10 reproduce 30 cold sweeps (same encoder ticks on
     #: 256 random samples, states within 1e-9 rad).
