@@ -20,7 +20,7 @@ import numpy as np
 
 from jaxinertia.app.pipeline import load_real
 from jaxinertia.checkpoints import load_models
-from jaxinertia.evaluation import evaluate
+from jaxinertia.evaluation import METHODS, evaluate
 from jaxinertia.lbipe import default_lbipe_dir
 from jaxinertia.samples import load_samples
 from jaxinertia.session import SessionReference, adapt, servo_session
@@ -33,6 +33,9 @@ def main():
     ap.add_argument("--strengths", type=float, nargs="+", default=[0.0, 0.5, 1.0])
     ap.add_argument("--lbipe-dir", default=None)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--reference", choices=["training", "fit"], default="training",
+                    help="the folder's own training files' current gain, or the real file "
+                         "the fold was fitted on")
     a = ap.parse_args()
     real = load_real(a.lbipe_dir or default_lbipe_dir())
     names = [o.name for o in real.objects]
@@ -41,8 +44,10 @@ def main():
         fit_on = fold.name[4:]
         for models in sorted(p for p in fold.glob("models*") if (p / "config.json").is_file()):
             pair, baselines, fc, config = load_models(models)
-            train = [load_samples(d["file"])[0] for d in config["data"]]
-            ref = servo_session(train)
+            if a.reference == "fit":
+                ref = servo_session(real.objects[names.index(fit_on)])
+            else:
+                ref = servo_session([load_samples(d["file"])[0] for d in config["data"]])
             for held in (n for n in names if n != fit_on):
                 i = names.index(held)
                 obj = real.objects[i]
@@ -52,7 +57,7 @@ def main():
                                    fc=fc, l_max=[real.l_max[i]])["objects"][held]
                     key = f"{fit_on}->{held} {models.name} s={s}"
                     cols = ("mass_NMAE_pct", "com_NMAE_pct", "mass_MAE_g")
-                    out[key] = {m: {k: res[m][k] for k in cols} for m in ("Sensor", "PE", "T", "T-A")}
+                    out[key] = {m: {k: res[m][k] for k in cols} for m in res if m in METHODS}
                     out[key]["ratio"] = ratio.tolist()
                     r = res["T-A"]
                     rows.append(f"{fit_on:>5} -> {held:<5} {models.name:<22} s={s:<4} "

@@ -50,6 +50,7 @@ from jaxinertia.app.simdata import simulate_files
 from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import evaluate
 from jaxinertia.fileio import write_json
+from jaxinertia.session import ServoSession, servo_session
 from jaxinertia.sim.calibration import (
     baseline_statistics,
     calibrate_servo_friction,
@@ -101,6 +102,13 @@ class _Fold:
     scale: FoldScale
     seed: int
     progress: bool
+
+    @property
+    def session(self) -> ServoSession:
+        """The session of ``fit_on``'s real file: the servo state its simulator imitates,
+        the reference of every model the fold trains."""
+        return servo_session(self.real.objects[[o.name for o in self.real.objects]
+                                                .index(self.fit_on)])
 
     @property
     def held_index(self) -> list[int]:
@@ -166,7 +174,8 @@ def _run_fold(fold: _Fold) -> dict:
     files = simulate_files(params, wanted, progress=fold.progress)
     t.append(time.perf_counter())
     cfg = fold.scale.train.replace(seed=fold.seed)
-    train(files, fold.dir / "models", cfg, overwrite=True, progress=fold.progress)
+    train(files, fold.dir / "models", cfg, overwrite=True, progress=fold.progress,
+          session=fold.session)
     t.append(time.perf_counter())
     ours = fold.judge(fold.dir / "models")
     t.append(time.perf_counter())
@@ -236,7 +245,8 @@ def _randomized(fold: _Fold, params, files: list[Path]) -> dict:
          fold.scale.random_per_load, fold.seed)], spread=spread,
         draws=fold.scale.randomize_draws, progress=fold.progress)
     train(dr_files + files[1:], fold.dir / "models_randomized",
-          fold.scale.train.replace(seed=fold.seed), overwrite=True, progress=fold.progress)
+          fold.scale.train.replace(seed=fold.seed), overwrite=True, progress=fold.progress,
+          session=fold.session)
     res = fold.judge(fold.dir / "models_randomized")
     return {**res, "spread": spread.to_dict(), "draws": fold.scale.randomize_draws}
 
@@ -248,7 +258,7 @@ def _finetuned(fold: _Fold, files: list[Path]) -> tuple[dict | None, dict]:
         return None, {}
     start = fold.dir / "models_physical"
     train(files, start, fold.scale.train.replace(seed=fold.seed, torque_model="physical"),
-          overwrite=True, progress=fold.progress)
+          overwrite=True, progress=fold.progress, session=fold.session)
     physical = fold.judge(start)
     fine = {}
     for n in fold.scale.finetune_samples:

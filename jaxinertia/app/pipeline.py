@@ -37,7 +37,7 @@ from jaxinertia.lbipe import (
 )
 from jaxinertia.networks import torque_model_kind
 from jaxinertia.samples import Samples, load_samples
-from jaxinertia.session import SessionReference, adapt, servo_session
+from jaxinertia.session import ServoSession, SessionReference, adapt, servo_session
 from jaxinertia.training import (
     TrainConfig,
     feature_config_from,
@@ -65,7 +65,8 @@ __all__ = ["RealData", "adapt_objects", "copy_models", "estimate", "evaluate_mod
 def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg: TrainConfig,
           *, progress: bool = True, overwrite: bool = False,
           init: str | os.PathLike | None = None,
-          samples_per_object: int | None = None) -> dict:
+          samples_per_object: int | None = None,
+          session: ServoSession | None = None) -> dict:
     """Trains K model pairs and fits the baselines; writes the model folder ``out``
     (atomically; an existing one only with ``overwrite``).
 
@@ -75,6 +76,12 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
     normalisation is kept and its model count wins over ``cfg.n_models``; the baselines are
     fitted on the new data. ``samples_per_object``: use only that many samples of each
     object (seeded random choice; all when it has fewer), to measure how many are needed.
+
+    ``session``: the models' reference session (:mod:`jaxinertia.session`): the real
+    files a simulator was calibrated on, whose servo state the simulated data imitate;
+    default: the init folder's, else the training data's own (pooled). Every real training
+    file is read in it (simulated files in the simulator's own); the folder records it, and
+    evaluation and estimation read every file in it.
     """
     check_output(out, overwrite=overwrite)
     parts, metas = [], []
@@ -94,16 +101,22 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
         cfg = cfg.replace(n_models=pair0.n_models,
                           torque_model=torque_model_kind(pair0.torque_model))
         start = (pair0, fc0, config0)
-    # Each file is one recording session: read as if recorded in the reference session
-    # (the init folder's, else the training data's own pooled current gain), as strongly as
-    # cfg.session_strength says.
-    reference = None if start is None else session_reference(start[2], cfg.session_strength)
+    # Each file is one recording session, read in the reference session as strongly as
+    # cfg.session_strength says: a real file in the models' reference (``session``, else
+    # the init folder's, else the data's own), a simulated one in the simulator's own (the
+    # pooled simulated files: the calibration that made them stands for the reference).
+    strength = float(cfg.session_strength)
+    simulated = [m.get("source") == "simulator" for m in metas]
+    sim_ref = (SessionReference(servo_session([p for p, s in zip(parts, simulated) if s])
+                                .current_gain, strength) if any(simulated) else None)
+    reference = None if start is None else session_reference(start[2], strength)
+    if session is not None:
+        reference = SessionReference(session.current_gain, strength)
     if reference is None:
-        reference = SessionReference(servo_session(parts).current_gain,
-                                     strength=float(cfg.session_strength))
+        reference = sim_ref or SessionReference(servo_session(parts).current_gain, strength)
     ratios = []
-    for i, p in enumerate(parts):
-        parts[i], ratio = adapt(p, reference)
+    for i, (p, sim) in enumerate(zip(parts, simulated)):
+        parts[i], ratio = adapt(p, sim_ref if sim else reference)
         ratios.append(ratio.tolist())
     data = Samples.concatenate(parts)
     if samples_per_object is not None:

@@ -41,7 +41,9 @@ from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import choose_sets, continuous_force
 from jaxinertia.fileio import replacing, write_json, write_text
 from jaxinertia.lbipe import default_lbipe_dir
+from jaxinertia.open_manipulator_x import load_calibration
 from jaxinertia.samples import load_samples
+from jaxinertia.session import ServoSession, servo_session
 from jaxinertia.sim.continuous import simulate_continuous_run
 from jaxinertia.sim.params import default_sim_params
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
@@ -148,8 +150,18 @@ DEFAULT_RECIPE = {"candidate": "physical, servo part fine-tuned", "session_stren
                   "finetune_samples": None, "chosen_by": "default (no held-out folds)"}
 
 
+def calibration_session(real: RealData | None) -> ServoSession | None:
+    """The session of the real files the shipped simulator calibration was fitted on (its
+    ``link_gravity.source``), pooled, when the folder has them: the servo state that the
+    simulated data imitate, the reference of models trained on them."""
+    names = set(load_calibration()["link_gravity"].get("source", ()))
+    used = [o for o in (real.objects if real else ()) if o.name in names]
+    return servo_session(used) if used else None
+
+
 def _models_real(out: Path, train_files: list[Path], real: RealData, scale: Scale,
-                 recipe: dict, seed: int, progress: bool) -> dict:
+                 recipe: dict, seed: int, progress: bool,
+                 session: ServoSession | None) -> dict:
     """``out/models_real``, the models for a new real object, made as ``recipe`` says (the
     held-out folds' choice): the run's simulator-trained paper models, the physical model
     trained on the simulated files, or that model's servo part fine-tuned on every real
@@ -165,9 +177,11 @@ def _models_real(out: Path, train_files: list[Path], real: RealData, scale: Scal
         physical_cfg = scale.train.replace(seed=seed, torque_model="physical",
                                            session_strength=strength)
         if "fine-tuned" not in recipe["candidate"]:
-            train(train_files, dst, physical_cfg, overwrite=True, progress=progress)
+            train(train_files, dst, physical_cfg, overwrite=True, progress=progress,
+                  session=session)
         else:
-            train(train_files, start, physical_cfg, overwrite=True, progress=progress)
+            train(train_files, start, physical_cfg, overwrite=True, progress=progress,
+                  session=session)
             n = recipe.get("finetune_samples") or scale.real_finetune_samples
             info = train(list(real.layout.test_files.values()), dst,
                          TrainConfig(**FINETUNE_DEFAULTS, seed=seed, trainable="servo",
@@ -248,9 +262,10 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
         test_file, *train_files = simulate_files(params, wanted, progress=progress)
     with stage("simulate continuous"):
         cont_file = _continuous(params, data_dir / "continuous.npz", scale, seed)
+    session = calibration_session(real)
     with stage("train"):
         info = train(train_files, out / "models", scale.train.replace(seed=seed), overwrite=True,
-                     progress=progress)
+                     progress=progress, session=session)
     with stage("evaluate"):
         sim = evaluate_samples(out / "models", test_file, n_sets=scale.n_sets, seed=seed)
     with stage("uncertainty"):
@@ -273,7 +288,8 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
         recipe = ({**folds["recipe"], "chosen_by": "held-out folds"} if folds
                   else DEFAULT_RECIPE)
         with stage("models for a new real object"):
-            real_ft = _models_real(out, train_files, real, scale, recipe, seed, progress)
+            real_ft = _models_real(out, train_files, real, scale, recipe, seed, progress,
+                                   session)
     results = {
         "machine": _machine(), "scale": dataclasses.asdict(scale), "timings_s": stage.total(),
         "training": {k: info[k] for k in ("samples", "best_epoch", "wall_time_s", "data")},
