@@ -201,13 +201,15 @@ def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
 
 
 def evaluate_samples(models: str | os.PathLike, sample_file: str | os.PathLike, *,
-                     n_sets: int = 1000, set_size: int = 64, seed: int = 0) -> dict:
-    """A model folder on every object of a sample file (random sets, seed + i)."""
+                     n_sets: int = 1000, set_size: int = 64, seed: int = 0,
+                     l_max: dict[str, float] | None = None) -> dict:
+    """A model folder on every object of a sample file (random sets, seed + i); ``l_max``
+    gives the bounding-box diagonal of objects without a built-in one."""
     data, meta = load_samples(sample_file)
     objects = data.by_object()
+    diag = l_max_of(objects, l_max, path=sample_file)
     sets, _ = choose_sets(objects, n_sets=n_sets, set_size=set_size, seed=seed)
-    return evaluate_models(models, objects, sets, l_max=l_max_of(objects, path=sample_file),
-                           robot=meta.get("robot"))
+    return evaluate_models(models, objects, sets, l_max=diag, robot=meta.get("robot"))
 
 
 def sim_to_real(models: str | os.PathLike, lbipe_dir: str | os.PathLike, *, seed: int = 0,
