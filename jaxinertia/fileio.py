@@ -10,12 +10,11 @@ then), and a folder that cannot be created is reported then, not after minutes o
 computing.
 
 **Locks.** :func:`check_output` takes a lock file beside the output (``.<name>.lock``) and
-this process holds it until the output is renamed into place (or :func:`release_locks`,
-which the command line calls when a command ends; the operating system drops it when the
-process ends). A second writer of the same output, in this process or another, is refused
-at once with one line instead of both writing and one result being lost. A write without
-a prior check takes the lock for its own duration. The lock file is removed when the lock
-is released.
+this process holds it until the output is renamed into place (or the command ends:
+:func:`command_locks`; the operating system drops it when the process ends). A second
+writer of the same output, in this process or another, is refused at once with one line
+instead of both writing and one result being lost. A write without a prior check takes
+the lock for its own duration. The lock file is removed when the lock is released.
 
 **Permissions.** Outputs honour the umask like any file the user creates: files
 ``0o666 & ~umask``, folders ``0o777 & ~umask`` (the temporary files they are written as
@@ -35,11 +34,13 @@ from pathlib import Path
 
 from jaxinertia.errors import JaxinertiaError, UsageError
 
-__all__ = ["OutputError", "OutputLockedError", "check_output", "release_locks", "replacing",
-           "replacing_dir", "write_json", "write_text"]
+__all__ = ["OutputError", "OutputLockedError", "check_output", "command_locks",
+           "release_locks", "replacing", "replacing_dir", "write_json", "write_text"]
 
 #: Locks this process holds, by the output's absolute path (see the module's docstring).
 _HELD: dict[Path, object] = {}
+#: Those of them that belong to the caller of the running command (:func:`command_locks`).
+_OTHERS: frozenset[Path] = frozenset()
 
 #: Errors of a write that the user fixes (space, quota, a read-only disk): one line.
 _USER_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG, errno.EACCES}
@@ -72,13 +73,15 @@ def _lock_path(path: Path) -> Path:
 
 
 def _acquire(path: Path, option: str) -> None:
-    """Takes the lock of ``path`` (absolute) for this process, or refuses at once."""
-    if path in _HELD:
+    """Takes the lock of ``path`` (absolute) for this command, or refuses at once."""
+    if path in _HELD and path not in _OTHERS:
         return
     from filelock import FileLock, Timeout  # light, but only writers need it
 
     lock = FileLock(str(_lock_path(path)), timeout=0)
     try:
+        if path in _OTHERS:
+            raise Timeout(str(_lock_path(path)))
         lock.acquire()
     except Timeout:
         raise OutputLockedError(f"{option} {path} is being written by another command (lock "
@@ -97,10 +100,26 @@ def _release(path: Path) -> None:
         lock.release()
 
 
-def release_locks() -> None:
-    """Releases every output lock this process holds (the end of a command)."""
+def release_locks(keep: frozenset[Path] = frozenset()) -> None:
+    """Releases the output locks this process holds, but ``keep``."""
     for path in list(_HELD):
-        _release(path)
+        if path not in keep:
+            _release(path)
+
+
+@contextlib.contextmanager
+def command_locks() -> Iterator[None]:
+    """One command's outputs (the command line runs each command in one): the locks this
+    process held before it (an in-process caller's, another command's) refuse the command
+    as another process's would, and those it takes are released when it ends."""
+    global _OTHERS
+    before, outer = frozenset(_HELD), _OTHERS
+    _OTHERS = before
+    try:
+        yield
+    finally:
+        _OTHERS = outer
+        release_locks(keep=before)
 
 
 def check_output(path: str | os.PathLike, *, overwrite: bool = False, option: str = "--out",

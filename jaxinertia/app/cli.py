@@ -24,7 +24,7 @@ from pathlib import Path
 
 from jaxinertia.app.options import Parser
 from jaxinertia.errors import JaxinertiaError
-from jaxinertia.fileio import release_locks
+from jaxinertia.fileio import command_locks
 
 __all__ = ["COMMANDS", "build_parser", "main"]
 
@@ -116,6 +116,16 @@ def _not_utf8(argv: list[str]) -> str | None:
     return None
 
 
+def _quiet_closed_loops(unraisable) -> None:
+    """``sys.unraisablehook`` without orbax's "Event loop is closed": its asyncio objects,
+    collected at exit after a command's error, report their closed loop as an unraisable
+    exception, noise after the one-line message. Everything else goes to the default."""
+    exc = unraisable.exc_value
+    if isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed":
+        return
+    sys.__unraisablehook__(unraisable)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     command = _command_of(argv)
@@ -133,16 +143,16 @@ def main(argv: list[str] | None = None) -> int:
     progress.configure(sys.stderr)
     try:
         _compilation_cache()
-        return int(args.func(args) or 0)
+        with command_locks():
+            return int(args.func(args) or 0)
     except JaxinertiaError as e:
         print(f"jaxinertia {args.command}: error: {e}", file=sys.stderr, flush=True)
+        sys.unraisablehook = _quiet_closed_loops
         return e.exit_code
     except KeyboardInterrupt:
         print(f"jaxinertia {args.command}: interrupted (Ctrl-C); no output was left "
               "half-written", file=sys.stderr, flush=True)
         return EXIT_INTERRUPTED
-    finally:
-        release_locks()
 
 
 if __name__ == "__main__":

@@ -223,7 +223,8 @@ def cmd_collect(args) -> int:
     header = {"kind": "header", "plan": args.plan, "seed": args.seed, "n_samples": len(q_d),
               "object": args.object, "plan_digest": plan_digest(q_d, direction),
               "port": args.port, "servo_ids": list(args.ids), "delta": DELTA}
-    journal = Journal.open(journal_path(out), header, resume=args.resume)
+    journal = Journal.open(journal_path(out), header, resume=args.resume,
+                           plan=(q_d, direction))
     done = len(journal.records)
     if done:
         print(f"resuming: {done} of {len(q_d)} samples already in {journal.path}",
