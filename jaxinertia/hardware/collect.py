@@ -189,6 +189,7 @@ class Journal:
         is cut off."""
         path = Path(path)
         records: dict[int, dict] = {}
+        numbers: dict[int, int] = {}  # each record's line
         if path.exists() and path.stat().st_size:
             if not resume:
                 raise JournalExists(f"{path} exists: pass --resume to continue it, or "
@@ -210,11 +211,14 @@ class Journal:
             for number, line in enumerate(complete[1:], start=2):
                 rec = _parse_line(path, number, line)
                 index = _check_record(path, number, rec, int(old["n_samples"]))
-                _check_values(path, number, rec, len(old.get("servo_ids")
-                                                     or header["servo_ids"]), plan)
                 if index in records:
                     raise JournalMismatch(f"{path}: sample {index} recorded twice")
                 records[index] = rec
+                numbers[index] = number
+            # Then the values, once every line is known to be a record.
+            n_joints = len(old.get("servo_ids") or header["servo_ids"])
+            for index, rec in records.items():
+                _check_values(path, numbers[index], rec, n_joints, plan)
             if tail:
                 with open(path, "r+b") as f:
                     f.truncate(path.stat().st_size - len(tail))
