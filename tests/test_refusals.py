@@ -71,6 +71,15 @@ def test_duplicate_object_names_are_refused_when_read(command, tmp_path, capsys)
     assert (tmp_path / "dup.npz").read_bytes() == before
 
 
+def test_the_evaluator_refuses_objects_of_one_name():
+    from jaxinertia.errors import UsageError
+    from jaxinertia.evaluation import evaluate
+
+    a = _samples(seed=2).replace(names=("unknown",))
+    with pytest.raises(UsageError, match="repeat a name"):
+        evaluate([a, a], [np.zeros((1, 4), int)] * 2, l_max=[0.1, 0.1])
+
+
 def test_duplicate_object_names_are_refused_when_written(tmp_path):
     a = _samples(seed=2).replace(names=("unknown",))
     b = _samples(seed=3).replace(names=("unknown",))
@@ -99,11 +108,17 @@ def test_calibrate_needs_out_and_leaves_the_shipped_file_alone(tmp_path, capsys,
 # ---- 3. outputs locked from the check to the rename, with the user's permissions --------
 
 
-def test_a_second_writer_is_refused_at_once(tmp_path, capsys):
+WRITERS = {"simulate": ["simulate", "--scenario", "test", "--n", "4"],
+           "collect": ["collect", "--port", "/dev/null", "--plan", "random", "--n", "3",
+                       "--object", "cube"]}
+
+
+@pytest.mark.parametrize("command", WRITERS)
+def test_a_second_writer_is_refused_at_once(command, tmp_path, capsys):
     out = tmp_path / "x.npz"
     check_output(out)  # this process is the first writer
     try:
-        assert main(["simulate", "--scenario", "test", "--n", "4", "--out", str(out)]) == 2
+        assert main([*WRITERS[command], "--out", str(out)]) == 2
         _one_line(capsys, "being written", str(out))
         other = subprocess.run(  # another process: the same answer
             [sys.executable, "-c", "import sys; from jaxinertia.fileio import check_output; "
@@ -114,6 +129,20 @@ def test_a_second_writer_is_refused_at_once(tmp_path, capsys):
         release_locks()
     write_text(out, "mine")  # released: a writer goes ahead, and leaves no lock behind
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.npz"]
+
+
+def test_a_full_disk_is_one_line_and_keeps_the_old_output(tmp_path):
+    import errno
+
+    from jaxinertia.fileio import OutputError, replacing
+
+    out = tmp_path / "x.json"
+    out.write_text("old")
+    with pytest.raises(OutputError) as e, replacing(out) as tmp:
+        tmp.write_text("half")
+        raise OSError(errno.ENOSPC, "No space left on device")
+    assert e.value.exit_code == 2 and "No space left" in str(e.value)
+    assert out.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["x.json"]
 
 
 def test_the_lock_is_held_until_the_rename(tmp_path):
@@ -313,6 +342,8 @@ def test_evaluate_names_only_its_own_options(tmp_path, capsys):
      ["--n 200000000", "JAXINERTIA_MAX_MEMORY_GB"]),
     (["plan-poses", "--step-deg", "0.05", "--out", "p.json"],
      ["--step-deg 0.05", "JAXINERTIA_MAX_MEMORY_GB"]),
+    (["collect", "--port", "/dev/null", "--plan", "random", "--n", "1000000000", "--object",
+      "cube", "--out", "x.npz"], ["--n 1000000000", "JAXINERTIA_MAX_MEMORY_GB"]),
     (["simulate", "--scenario", "test", "--calibration", "FIVE", "--out", "x.npz"],
      ["FIVE", "got int"]),
     (["simulate", "--scenario", "test", "--calibration", "LATIN1", "--out", "x.npz"],
@@ -321,7 +352,7 @@ def test_evaluate_names_only_its_own_options(tmp_path, capsys):
      ["LATIN1", "not JSON"]),
     (["tag-pose", "--image", "caf\udce9.png", "--intrinsics", "i.json"], ["not valid UTF-8"]),
 ], ids=["--data f f", "--data f copy", "--init paper --torque-model physical",
-        "plan-poses --n 1", "simulate --n 2e8", "plan-poses --step-deg 0.05",
+        "plan-poses --n 1", "simulate --n 2e8", "plan-poses --step-deg 0.05", "collect --n 1e9",
         "calibration 5", "calibration latin-1", "plan latin-1", "non-UTF-8 path"])
 def test_requests_refused_before_the_work(argv, words, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)

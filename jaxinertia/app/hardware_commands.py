@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 
 from jaxinertia.app import defaults
 from jaxinertia.app.options import (
+    check_memory,
     finite_float,
     nonnegative_float,
     positive_float,
@@ -36,6 +37,10 @@ __all__ = ["register"]
 
 #: Exit status of ``collect`` after Ctrl-C (journal kept, ``--resume`` continues).
 EXIT_INTERRUPTED = 130
+
+#: What one goal of a plan takes while it is drawn and checked (its pre-position, forward
+#: kinematics of both against the safety limits) [bytes], generous.
+PLAN_BYTES_PER_POSE = 4096
 
 #: ``collect --object unknown``: no ground truth (the file has no tau and no x).
 UNKNOWN = "unknown"
@@ -166,7 +171,9 @@ def _collect_plan(args) -> tuple[np.ndarray, np.ndarray]:
     if args.plan == "planning":
         q_d, direction = plans.planning_plan()
     elif args.plan == "random":
-        return plans.random_plan(1000 if args.n is None else args.n, args.seed)
+        n = 1000 if args.n is None else args.n
+        check_memory(n * PLAN_BYTES_PER_POSE, f"--n {n} (random goals, each checked)")
+        return plans.random_plan(n, args.seed)
     else:
         q_d, direction = load_plan(args.plan)
     if args.n is not None:
