@@ -182,6 +182,13 @@ def test_outputs_are_checked_before_the_work(argv, words, tmp_path, capsys, monk
     assert sorted(p.name for p in tmp_path.iterdir()) == ["DIR", "FILE"]
 
 
+def test_a_model_folder_may_be_overwritten(tmp_path, capsys):
+    (tmp_path / "m").mkdir()  # passes both checks (the command's, train's): to the data
+    assert main(["train", "--data", str(tmp_path / "none.npz"), "--overwrite", "--out",
+                 str(tmp_path / "m")]) == 2
+    _one_line(capsys, "none.npz", "no such file")
+
+
 # ---- 4. journal records and model folders checked ---------------------------------------
 
 

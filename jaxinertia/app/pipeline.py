@@ -74,7 +74,7 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
     fitted on the new data. ``samples_per_object``: use only that many samples of each
     object (seeded random choice; all when it has fewer), to measure how many are needed.
     """
-    check_output(out, overwrite=overwrite)
+    check_output(out, overwrite=overwrite, folder=True)
     parts, metas = [], []
     for f in sample_files:
         d, meta = load_samples(f)
