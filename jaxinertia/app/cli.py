@@ -131,8 +131,9 @@ def main(argv: list[str] | None = None) -> int:
     command = _command_of(argv)
     bad = _not_utf8(argv)
     if bad is not None:
-        print(f"jaxinertia {command or ''}: error: the argument {ascii(bad)} is not valid "
-              "UTF-8: rename the file (or folder)".replace("  ", " "), file=sys.stderr)
+        prog = "jaxinertia" + (f" {command}" if command in COMMANDS else "")
+        print(f"{prog}: error: the argument {ascii(bad)} is not valid UTF-8: rename the file "
+              "(or folder)", file=sys.stderr)
         return 2
     try:
         args = build_parser(command).parse_args(argv)
@@ -140,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(e.code or 0)
     from jaxinertia.app import progress  # (light) bars on a terminal, lines in a log
 
-    progress.configure(sys.stderr)
+    progress.configure()  # each bar looks at its own stream
     try:
         _compilation_cache()
         with command_locks():

@@ -21,7 +21,7 @@ def _is_terminal(fp) -> bool:
         return False
 
 
-def configure(stream=None) -> None:  # noqa: ARG001 (each bar looks at its own stream)
+def configure() -> None:
     """Bars that write to a terminal stay bars; the others end in one line. Idempotent."""
     global _installed
     if _installed:
