@@ -435,7 +435,9 @@ def lbipe_arrays(samples: Samples) -> dict[str, np.ndarray]:
 
 
 def save_lbipe(directory: str | os.PathLike, split: str, samples: Samples) -> list[Path]:
-    """One ``data_<split>_<object>.npz`` per object of ``samples``."""
+    """One ``data_<split>_<object>.npz`` per object of ``samples`` (names distinct: a
+    repeated one would replace the other's file)."""
+    _check_names(samples.names, directory)
     out = []
     for part in samples.by_object():
         path = Path(directory) / f"data_{split}_{part.name}.npz"

@@ -25,7 +25,7 @@ from jaxinertia.checkpoints import load_models, save_models
 from jaxinertia.errors import FileFormatError, ModelFolderError
 from jaxinertia.fileio import check_output, release_locks, replacing_dir, write_text
 from jaxinertia.robot import data_path
-from jaxinertia.samples import Samples, save_native
+from jaxinertia.samples import Samples, save_lbipe, save_native
 
 ROBOT = {"robot": "open_manipulator_x"}
 
@@ -87,6 +87,8 @@ def test_duplicate_object_names_are_refused_when_written(tmp_path):
     out.write_bytes(b"precious")
     with pytest.raises(FileFormatError, match="'unknown' names objects"):
         save_native(out, Samples.concatenate([a, b]), ROBOT)
+    with pytest.raises(FileFormatError, match="'unknown' names objects"):
+        save_lbipe(tmp_path, "test", Samples.concatenate([a, b]))
     assert out.read_bytes() == b"precious"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["joined.npz"]
 
