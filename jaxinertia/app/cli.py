@@ -118,8 +118,9 @@ def _not_utf8(argv: list[str]) -> str | None:
 
 def _quiet_closed_loops(unraisable) -> None:
     """``sys.unraisablehook`` without orbax's "Event loop is closed": its asyncio objects,
-    collected at exit after a command's error, report their closed loop as an unraisable
-    exception, noise after the one-line message. Everything else goes to the default."""
+    collected at exit after a command's error or Ctrl-C, report their closed loop as an
+    unraisable exception, noise after the one-line message. Everything else goes to the
+    default hook."""
     exc = unraisable.exc_value
     if isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed":
         return
@@ -153,6 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"jaxinertia {args.command}: interrupted (Ctrl-C); no output was left "
               "half-written", file=sys.stderr, flush=True)
+        sys.unraisablehook = _quiet_closed_loops
         return EXIT_INTERRUPTED
 
 
