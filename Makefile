@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 RUNS := runs
 
-.PHONY: all venv test demo lbipe-benchmark export-lbipe lint bench bench-sim bench-train clean
+.PHONY: all venv test demo lbipe-benchmark export-lbipe lint bench bench-sim bench-train bench-help clean
 
 all: test
 
@@ -76,6 +76,10 @@ bench-sim: $(STAMP)
 
 bench-train: $(STAMP)
 	$(BIN)/python experiments/bench_train.py
+
+# `jaxinertia --help` and every command's, best of 5 fresh processes (target 0.5 s each).
+bench-help: $(STAMP)
+	$(BIN)/python experiments/bench_help.py
 
 clean:
 	rm -rf $(VENV) $(RUNS) .pytest_cache .ruff_cache

@@ -4,51 +4,48 @@ The library's main names (see docs/architecture.md for the data flow and each mo
 job)::
 
     from jaxinertia import Samples, load_samples, load_regressor, solve_sets, evaluate
+
+They are imported when first used (PEP 562), not with the package: ``import jaxinertia``
+(and the command line's ``--help``) does not start JAX, flax or optax.
 """
+
+import importlib
 
 from jaxinertia import _xla_workarounds
 
 _xla_workarounds.apply()  # before JAX creates its CPU backend
 
-# ruff: noqa: E402  (the XLA:CPU settings above must come first)
-from jaxinertia.errors import JaxinertiaError
-from jaxinertia.estimation import ModelPair, estimate_sets
-from jaxinertia.evaluation import evaluate
-from jaxinertia.identification import WLSResult, mass_and_com, solve_sets, wls
-from jaxinertia.kinematics import (
-    ee_jacobian,
-    ee_pose,
-    forward_kinematics,
-    gravity_torques,
-    point_jacobian,
-)
-from jaxinertia.objects import HeldObject
-from jaxinertia.robot import Robot, load_robot, open_manipulator_x
-from jaxinertia.samples import Samples, load_samples
-from jaxinertia.statics import load_regressor, tag_pose
-
 __version__ = "0.1.0"
 
-__all__ = [
-    "HeldObject",
-    "JaxinertiaError",
-    "ModelPair",
-    "Robot",
-    "Samples",
-    "WLSResult",
-    "ee_jacobian",
-    "ee_pose",
-    "estimate_sets",
-    "evaluate",
-    "forward_kinematics",
-    "gravity_torques",
-    "load_regressor",
-    "load_robot",
-    "load_samples",
-    "mass_and_com",
-    "open_manipulator_x",
-    "point_jacobian",
-    "solve_sets",
-    "tag_pose",
-    "wls",
-]
+#: Each public name and the module it comes from.
+_NAMES = {
+    "JaxinertiaError": "errors",
+    "ModelPair": "estimation", "estimate_sets": "estimation",
+    "evaluate": "evaluation",
+    "WLSResult": "identification", "mass_and_com": "identification",
+    "solve_sets": "identification", "wls": "identification",
+    "ee_jacobian": "kinematics", "ee_pose": "kinematics",
+    "forward_kinematics": "kinematics", "gravity_torques": "kinematics",
+    "point_jacobian": "kinematics",
+    "HeldObject": "objects",
+    "Robot": "robot", "load_robot": "robot", "open_manipulator_x": "robot",
+    "Samples": "samples", "load_samples": "samples",
+    "load_regressor": "statics", "tag_pose": "statics",
+}
+
+__all__ = sorted(_NAMES)
+
+
+def __getattr__(name: str):
+    if name in _NAMES:
+        value = getattr(importlib.import_module(f"jaxinertia.{_NAMES[name]}"), name)
+        globals()[name] = value  # once
+        return value
+    try:  # a submodule used as an attribute (``jaxinertia.samples``) before its import
+        return importlib.import_module(f"jaxinertia.{name}")
+    except ModuleNotFoundError:
+        raise AttributeError(f"module 'jaxinertia' has no attribute {name!r}") from None
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_NAMES))

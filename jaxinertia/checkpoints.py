@@ -4,6 +4,13 @@ A model folder holds ``checkpoint/`` (orbax: the K stacked torque and attention 
 parameters) and ``config.json`` (architecture, feature normalisation, baselines, training
 hyperparameters, seeds, the robot, the simulator calibration and the training data's
 SHA-256). Everything needed to use the models is in the folder.
+
+``config.json`` records the SHA-256 of every file of ``checkpoint/`` (``checksums``);
+:func:`load_models` verifies them before restoring, so a flipped bit, a truncated or a
+swapped shard is a one-line :class:`ModelFolderError` naming the file, never weights that
+load silently wrong. Folders written before the checksums (none recorded) still load,
+unverified, with a note on stderr saying so; ``jaxinertia train --init OLD --out NEW``
+(or retraining) writes a verified one.
 """
 
 from __future__ import annotations
@@ -11,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import sys
 from pathlib import Path
 
 import jax
@@ -63,13 +71,46 @@ def save_models(directory: str | os.PathLike, pair: ModelPair, baselines: Baseli
         "baselines": baselines.to_dict(),
         **(extra or {}),
     }
-    text = json.dumps(config, indent=2, allow_nan=False) + "\n"  # no bare NaN in the config
+    json.dumps(config, allow_nan=False)  # no bare NaN in the config (checked before writing)
     # Checkpoint and config appear together (a folder renamed into place) or not at all.
     with replacing_dir(directory) as tmp:
         with ocp.StandardCheckpointer() as saver:
             saver.save(tmp / "checkpoint", state, force=True)
+        config["checksums"] = _checksums(tmp / "checkpoint")
+        text = json.dumps(config, indent=2, allow_nan=False) + "\n"
         (tmp / CONFIG).write_text(text)
     return Path(directory).absolute()
+
+
+def _checksums(checkpoint: Path) -> dict[str, str]:
+    """SHA-256 of every file under ``checkpoint``, by its path relative to the folder."""
+    return {p.relative_to(checkpoint).as_posix(): file_sha256(p)
+            for p in sorted(checkpoint.rglob("*")) if p.is_file()}
+
+
+def _verify(directory: Path, config: dict) -> None:
+    """Every file of ``checkpoint/`` as ``config.json`` recorded it (none missing, none
+    added, none changed); a folder without checksums is loaded with a note."""
+    recorded = config.get("checksums")
+    checkpoint = directory / "checkpoint"
+    if recorded is None:
+        print(f"note: {directory} has no checksums (written before jaxinertia recorded "
+              "them): its files are not verified", file=sys.stderr)
+        return
+    if not isinstance(recorded, dict) or not all(
+            isinstance(k, str) and isinstance(v, str) for k, v in recorded.items()):
+        raise ModelFolderError(f"{directory / CONFIG}: checksums must map file names to "
+                               "SHA-256 digests")
+    found = _checksums(checkpoint) if checkpoint.is_dir() else {}
+    for name in sorted(set(recorded) | set(found)):
+        if name not in found:
+            raise ModelFolderError(f"{checkpoint / name}: missing (config.json records it)")
+        if name not in recorded:
+            raise ModelFolderError(f"{checkpoint / name}: not recorded in config.json's "
+                                   "checksums (a file added to the folder)")
+        if found[name] != recorded[name]:
+            raise ModelFolderError(f"{checkpoint / name}: checksum mismatch (the file changed "
+                                   "after it was written: corrupt or edited)")
 
 
 def load_models(directory: str | os.PathLike, *, robot: str | None = None):
@@ -86,8 +127,11 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None):
                               "(make one with `jaxinertia train`)")
     try:
         config = json.loads(cfg_path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise ModelFolderError(f"{cfg_path}: unreadable ({e})") from e
+    except (OSError, ValueError) as e:  # ValueError: not UTF-8, not JSON
+        raise ModelFolderError(f"{cfg_path}: unreadable ({e})") from None
+    if not isinstance(config, dict):
+        raise ModelFolderError(f"{cfg_path}: not a jaxinertia model config (a JSON object "
+                               f"expected, got {type(config).__name__})")
     if config.get("format") != FORMAT:
         raise ModelFolderError(f"{cfg_path}: not a jaxinertia model config")
     if config.get("format_version") != FORMAT_VERSION:
@@ -116,6 +160,7 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None):
         raise ModelFolderError(f"{cfg_path}: malformed ({type(e).__name__}: {e})") from None
     if K < 1:
         raise ModelFolderError(f"{cfg_path}: n_models {K} must be at least 1")
+    _verify(directory, config)
     example = jnp.zeros((1, tm.n_joints, 4), jnp.float32)
 
     def abstract(model):
@@ -129,13 +174,20 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None):
             state = loader.restore(directory / "checkpoint", target)
     except Exception as e:  # orbax raises many types for missing or mismatched files
         raise ModelFolderError(f"{directory / 'checkpoint'}: cannot restore the models "
-                              f"({type(e).__name__}: {str(e).splitlines()[0][:200]})") from e
+                              f"({type(e).__name__}: {_first_line(e)})") from e
     for name, tree in state.items():  # orbax restores what is on disk, whatever the target
+        want = {jax.tree_util.keystr(p): s.shape
+                for p, s in jax.tree_util.tree_leaves_with_path(target[name])}
         for path, leaf in jax.tree_util.tree_leaves_with_path(tree):
             if np.shape(leaf)[:1] != (K,):
                 raise ModelFolderError(
                     f"{directory}: {name} parameters {jax.tree_util.keystr(path)} have shape "
                     f"{np.shape(leaf)}: not the {K} models config.json's n_models says")
+            if want.get(jax.tree_util.keystr(path), np.shape(leaf)) != np.shape(leaf):
+                raise ModelFolderError(
+                    f"{directory}: {name} parameters {jax.tree_util.keystr(path)} have shape "
+                    f"{np.shape(leaf)}, the architecture in config.json needs "
+                    f"{want[jax.tree_util.keystr(path)]}")
     pair = ModelPair(torque_vars=state["torque"], attention_vars=state["attention"],
                      tau_scale=jnp.asarray(np.asarray(features.tau_scale), jnp.float32),
                      torque_model=tm, attention_model=am)
@@ -144,6 +196,12 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None):
         if not np.all(np.isfinite(np.asarray(v, np.float64))):
             raise ModelFolderError(f"{cfg_path}: {k} holds non-finite values")
     return pair, baselines, features, config
+
+
+def _first_line(e: Exception) -> str:
+    """The first line of an orbax error, without its listing of every key."""
+    text = (str(e).splitlines() or [""])[0]
+    return text.split(" Metadata keys:")[0][:300]
 
 
 def _check_finite(pair: ModelPair, directory) -> None:

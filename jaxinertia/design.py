@@ -293,7 +293,7 @@ def load_plan(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         doc = json.loads(path.read_text())
     except OSError as e:
         raise FileFormatError(path, None, f"unreadable ({e.strerror or e})") from None
-    except json.JSONDecodeError as e:
+    except ValueError as e:  # not UTF-8 or not JSON
         raise FileFormatError(path, None, f"not JSON ({e})") from None
     if not isinstance(doc, dict) or doc.get("format") != PLAN_FORMAT:
         raise FileFormatError(path, "format", f"not a {PLAN_FORMAT} file")

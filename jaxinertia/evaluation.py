@@ -175,8 +175,10 @@ def evaluate(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
     """
     if pair is not None and fc is None:
         raise UsageError("evaluating models needs their feature configuration")
-    l_max = list(l_max) if l_max is not None else l_max_of(objects)
     names = [o.name for o in objects]
+    if len(set(names)) != len(names):  # results are keyed by name: one would be lost
+        raise UsageError(f"objects {names} repeat a name: each object needs its own")
+    l_max = list(l_max) if l_max is not None else l_max_of(objects)
     batch = stack(objects, sets, fc)
     # The sets (O, B, M) split along B over every local device (jaxinertia.sharding).
     batch = batch._replace(sets=shard(batch.sets, axis=1))

@@ -13,6 +13,8 @@ released weights and the golden outputs. See shared/lbipe/README.md.
 from __future__ import annotations
 
 import os
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -105,7 +107,7 @@ def load_released_models(weights_dir: str | os.PathLike, *, prefer: str = "npz",
                          n_models: int = N_RELEASED,
                          features: FeatureConfig = LBIPE_FEATURES) -> ModelPair:
     """The authors' released model pairs (``weights/*.npz`` or ``dicts/*.pt``), stacked."""
-    pairs = [load_released_pair(weights_dir, k, prefer=prefer) for k in range(1, n_models + 1)]
+    pairs = [_released_pair(weights_dir, k, prefer) for k in range(1, n_models + 1)]
     tm, am = pairs[0][0], pairs[0][2]
     for k, p in enumerate(pairs, start=1):
         if p[0] != tm or p[2] != am:
@@ -117,6 +119,17 @@ def load_released_models(weights_dir: str | os.PathLike, *, prefer: str = "npz",
         torque_model=tm,
         attention_model=am,
     )
+
+
+def _released_pair(weights_dir, k: int, prefer: str):
+    """Pair ``k``; a torn weight file (a zip cut short or corrupted: numpy's reader lets
+    zipfile's and zlib's errors through) is a :class:`WeightsError` naming the pair."""
+    try:
+        return load_released_pair(weights_dir, k, prefer=prefer)
+    except (zipfile.BadZipFile, EOFError, zlib.error) as e:
+        raise WeightsError(f"{weights_dir}: model pair {k} (dict_torque_{k}, dict_attn_{k}): "
+                           f"unreadable weights, torn or corrupt ({type(e).__name__}: "
+                           f"{e})") from None
 
 
 def load_golden(path: str | os.PathLike, n_samples: int | None = None) -> dict[str, np.ndarray]:

@@ -97,8 +97,14 @@ def load_calibration(path: str | os.PathLike | None = None) -> dict:
         cal = json.loads(path.read_text())
     except (OSError, ValueError) as e:
         raise ConfigError(path, None, f"not a readable calibration file ({e})") from e
-    if "link_gravity" not in cal:
+    if not isinstance(cal, dict):
+        raise ConfigError(path, None, "not a calibration file (a JSON object expected, got "
+                          f"{type(cal).__name__})")
+    g = cal.get("link_gravity")
+    if g is None:
         raise ConfigError(path, "link_gravity", "missing")
+    if not isinstance(g, dict) or not {"link_mass", "link_com"} <= set(g):
+        raise ConfigError(path, "link_gravity", "must hold link_mass and link_com")
     return cal
 
 

@@ -235,6 +235,7 @@ class Samples:
             raise FileFormatError(path, "metadata", f"names {list(names)} do not match the "
                                   f"objects (ids 0..{n_obj - 1}, x for "
                                   f"{None if x is None else len(x)})")
+        _check_names(names, path)
         tau = fields.pop("tau", None)
         known = (tau is not None and x is not None and np.all(np.isfinite(tau))
                  and np.all(np.isfinite(x)))
@@ -242,6 +243,14 @@ class Samples:
             bad = "x" if x is None or not np.all(np.isfinite(x)) else "tau"
             raise FileFormatError(path, bad, "holds non-finite values (unknown objects cannot "
                                   "be used for training or evaluation)")
+        # A mass of 0 is the empty gripper (as in the authors' data_train_0g.npz), no COM.
+        bad_mass = (x[:, 0] < 0) | ((x[:, 0] == 0) & np.any(x[:, 1:] != 0, axis=1)) if known \
+            else np.zeros(0, bool)
+        if np.any(bad_mass):
+            o = int(np.flatnonzero(bad_mass)[0])
+            raise FileFormatError(path, "x", f"object {names[o]!r}: mass {x[o, 0]} kg must be "
+                                  "positive (or 0 with x[1:] = 0: the empty gripper), got x = "
+                                  f"{x[o].tolist()}")
 
         def f64(k):
             a = fields.pop(k, None)
@@ -288,10 +297,21 @@ def read_npz(path: str | os.PathLike, *, missing_hint: str = "") -> dict[str, np
         raise FileFormatError(path, None, f"not a readable .npz file ({e})") from e
 
 
+def _check_names(names: Sequence[str], path) -> None:
+    """A sample's object is its id; its name must say which one: names are distinct."""
+    dup = sorted({n for n in names if list(names).count(n) > 1})
+    if dup:
+        ids = [i for i, n in enumerate(names) if n == dup[0]]
+        raise FileFormatError(path, "metadata", f"object name {dup[0]!r} names objects "
+                              f"{ids} (of {list(names)}): each object needs its own name "
+                              "(e.g. unknown-1, unknown-2)")
+
+
 def save_native(path: str | os.PathLike, samples: Samples, metadata: dict) -> Path:
     """Writes a native sample file atomically (a temporary file, then a rename); the
-    object names go into ``metadata["objects"]``."""
+    object names go into ``metadata["objects"]`` and must be distinct."""
     path = Path(path)
+    _check_names(samples.names, path)
     meta = {"format": "jaxinertia-samples", "format_version": FORMAT_VERSION, **metadata,
             "objects": list(samples.names)}
     fields = {k: (v.astype(np.float64) if np.issubdtype(v.dtype, np.floating) else v)
@@ -415,7 +435,9 @@ def lbipe_arrays(samples: Samples) -> dict[str, np.ndarray]:
 
 
 def save_lbipe(directory: str | os.PathLike, split: str, samples: Samples) -> list[Path]:
-    """One ``data_<split>_<object>.npz`` per object of ``samples``."""
+    """One ``data_<split>_<object>.npz`` per object of ``samples`` (names distinct: a
+    repeated one would replace the other's file)."""
+    _check_names(samples.names, directory)
     out = []
     for part in samples.by_object():
         path = Path(directory) / f"data_{split}_{part.name}.npz"

@@ -212,6 +212,13 @@ def record(index: int) -> dict:
     return rec
 
 
+def planned(index: int, **change) -> dict:
+    """A record at the plan's goal and direction, with ``change``."""
+    q_d, d = random_plan(N, 4)
+    return {**record(index), "q_d": q_d[index].tolist(), "direction": d[index].tolist(),
+            **change}
+
+
 @pytest.mark.parametrize(("content", "words"), [
     (lambda h: "\n".join([json.dumps(h), json.dumps(record(0)), '{"index": 1, "q_d": [0.',
                           json.dumps(record(2))]) + "\n", ["[line 3]", "corrupt record"]),
@@ -220,6 +227,13 @@ def record(index: int) -> dict:
      ["[line 2]", "record without"]),
     (lambda h: "\n".join([json.dumps(h), json.dumps(record(N + 3))]) + "\n",
      ["[line 2]", "not a sample of the plan"]),
+    # Records checked as sample files are, before the arm moves (issue 32).
+    (lambda h: "\n".join([json.dumps(h), json.dumps({**record(0), "direction": [1.0] * 4})])
+     + "\n", ["[line 2 q_d]", "not the plan's"]),
+    (lambda h: "\n".join([json.dumps(h), json.dumps(planned(0, q=[100.0, 0, 0, 0]))]) + "\n",
+     ["[line 2 q]", "beyond one turn"]),
+    (lambda h: "\n".join([json.dumps(h), json.dumps(planned(0, R_base_tag=[[0.0] * 3] * 3))])
+     + "\n", ["[line 2 R_base_tag]", "not a rotation"]),
 ])
 def test_a_damaged_journal_is_one_line_and_exit_2(tmp_path, capsys, content, words):
     out = tmp_path / "j.npz"

@@ -1,6 +1,6 @@
-"""The paper's commands: ``lbipe-benchmark``, ``simulate``, ``calibrate``, ``train``,
-``evaluate`` and ``reproduce`` (``estimate`` and ``plan-poses`` are in
-:mod:`jaxinertia.app.estimate_commands`).
+"""The paper's commands: ``lbipe-benchmark``, ``train``, ``evaluate`` and ``reproduce``
+(``simulate`` and ``calibrate`` are in :mod:`jaxinertia.app.sim_commands`, ``estimate``
+and ``plan-poses`` in :mod:`jaxinertia.app.estimate_commands`).
 
 Each is a short function over :mod:`jaxinertia.app.pipeline` that checks its options and
 outputs before any work and raises :class:`jaxinertia.errors.JaxinertiaError` subclasses
@@ -9,49 +9,21 @@ for what the user can fix; :func:`jaxinertia.app.cli.main` prints them.
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
-import jax
-import numpy as np
-
-from jaxinertia import __version__
+from jaxinertia.app import defaults
 from jaxinertia.app.options import (
     check_outputs,
-    distinct,
     enable_x64,
     fraction,
     nonnegative_float,
     positive_float,
     positive_int,
-    unit_fraction,
+    seed_int,
     write_json_option,
 )
-from jaxinertia.app.pipeline import (
-    evaluate_samples,
-    released_benchmark,
-    sim_to_real,
-    train,
-)
-from jaxinertia.app.plots import plot_calibration, plot_lbipe_estimates
-from jaxinertia.app.report import calibration_report, table1, table2, table3
-from jaxinertia.app.reproduce import reproduce
-from jaxinertia.arms import ARMS, DEFAULT_ARM, get_arm
-from jaxinertia.design import load_plan
 from jaxinertia.errors import UsageError
-from jaxinertia.fileio import check_output, write_json, write_text
-from jaxinertia.lbipe import default_lbipe_dir
-from jaxinertia.objects import TEST_OBJECTS, TRAINING_LOADS_KG, load_name
-from jaxinertia.open_manipulator_x import (
-    CALIBRATION_FILE,
-)
-from jaxinertia.robot import data_path
-from jaxinertia.samples import Samples, save_lbipe, save_native
-from jaxinertia.sim import params as sim_params
-from jaxinertia.sim import run as sim_run
-from jaxinertia.sim.calibration import calibrate_servo_friction, fit_link_gravity
-from jaxinertia.sim.continuous import simulate_continuous_run
-from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
+from jaxinertia.fileio import check_output
 
 __all__ = ["register"]
 
@@ -70,15 +42,44 @@ def _parse_l_max(items: list[str]) -> dict[str, float]:
     return out
 
 
+LBIPE_DIR_HELP = ("shared/lbipe layout or a checkout of ChirikjianLab/lbipe (default: "
+                  "$JAXINERTIA_LBIPE_DIR, else ../shared/lbipe beside the repository)")
+
+#: What ``--plot`` can write (matplotlib's formats), checked before the work.
+PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".svgz", ".jpg", ".jpeg", ".eps", ".ps", ".tif",
+                 ".tiff", ".webp", ".pgf")
+
+
+def lbipe_dir_of(args) -> Path:
+    """``--lbipe-dir``, else the library's default (``lbipe.default_lbipe_dir``)."""
+    if args.lbipe_dir is not None:
+        return args.lbipe_dir
+    from jaxinertia.lbipe import default_lbipe_dir  # the work's modules (JAX), not for --help
+
+    return default_lbipe_dir()
+
+
+def _check_plot(args) -> None:
+    if args.plot is not None and args.plot.suffix.lower() not in PLOT_SUFFIXES:
+        raise UsageError(f"--plot {args.plot}: unknown figure format "
+                         f"{args.plot.suffix or '(no extension)'}; use one of "
+                         + ", ".join(PLOT_SUFFIXES))
+
+
 def cmd_lbipe_benchmark(args) -> int:
-    enable_x64()
+    _check_plot(args)
     check_outputs(args, "--json", "--plot")
-    res = released_benchmark(args.lbipe_dir, seed=args.seed, l_max=_parse_l_max(args.l_max))
+    l_max = _parse_l_max(args.l_max)
+    enable_x64()
+    # The work's modules (JAX, matplotlib): imported when the command runs, not for --help.
+    from jaxinertia.app import pipeline, plots, report
+
+    res = pipeline.released_benchmark(lbipe_dir_of(args), seed=args.seed, l_max=l_max)
     objects = res["objects"]
-    print(table1(objects, "Table I: mass and COM error of the released models (10 pairs x "
-                 "sets)", style="text", methods=("T", "T-A")))
+    print(report.table1(objects, "Table I: mass and COM error of the released models (10 "
+                        "pairs x sets)", style="text", methods=("T", "T-A")))
     print()
-    print(table3(objects, "Table III: mean attention weight per joint", style="text"))
+    print(report.table3(objects, "Table III: mean attention weight per joint", style="text"))
     print()
     for name, src in res["set_source"].items():
         flags = ", ".join(
@@ -91,127 +92,65 @@ def cmd_lbipe_benchmark(args) -> int:
           f"{t['evaluate_incl_compile']:.2f} s")
     write_json_option(args, objects)
     if args.plot:
-        plot_lbipe_estimates(res["real"].objects, res["estimates"], args.plot)
+        plots.plot_lbipe_estimates(res["real"].objects, res["estimates"], args.plot)
         print(f"wrote {args.plot}")
     return 0
 
 
-def cmd_simulate(args) -> int:
-    if args.precision == "float32":
-        jax.config.update("jax_enable_x64", False)
-    else:
-        enable_x64()
-    distinct(args.objects, "--objects")
-    if args.format == "lbipe":
-        split = "test" if args.scenario == "test" else "train"
-        names = (args.objects or list(TEST_OBJECTS) if args.scenario == "test" else
-                 [load_name(m) for m in TRAINING_LOADS_KG])
-        for name in names:
-            check_output(args.out / f"data_{split}_{name}.npz", overwrite=args.overwrite)
-    else:
-        check_outputs(args, "--out")
-    arm = get_arm(args.arm)
-    params = sim_params.arm_sim_params(arm, args.calibration)
-    if args.scenario == "continuous":
-        if arm.name != DEFAULT_ARM:
-            raise UsageError(f"--arm {args.arm}: the continuous run simulates the "
-                             f"{DEFAULT_ARM} only (so far); use --scenario random, "
-                             "planning or test")
-        if args.plan is not None:
-            raise UsageError("--plan: the continuous run walks nearby random goals; use "
-                             "--scenario test (or random, planning) with a plan")
-        if args.format != "native":
-            raise UsageError("the continuous run is one trajectory with switching objects: "
-                             "use --format native")
-        fields, meta = simulate_continuous_run(
-            params, n=args.n or 2048, objects=args.objects or ["empty", "cube", "white",
-                                                               "black"],
-            switch_every=args.switch_every, seed=args.seed)
-        meta["version"] = __version__
-        samples = Samples.from_fields(fields, meta["objects"], need_truth=True)
-        path = save_native(args.out, samples, meta)
-        print(f"wrote {path} ({samples.n_samples} samples, object switching every "
-              f"{args.switch_every})")
-        return 0
-    plan = None
-    if args.plan is not None:
-        plan = load_plan(args.plan)
-        if plan[0].shape[1] != params.robot.n_joints:
-            raise UsageError(f"--plan {args.plan}: {plan[0].shape[1]} joints per pose; the "
-                             f"simulated arm has {params.robot.n_joints}")
-    results = sim_run.simulate_scenario(params, args.scenario, n=args.n, objects=args.objects,
-                                        seed=args.seed, plan=plan, arm=arm)
-    for name, (_, r) in results.items():
-        bad = int(np.sum(~r["at_rest"]))
-        if bad:
-            print(f"{name}: {bad} of {len(r['q'])} samples timed out (flagged: at_rest = False)")
-    fields, meta = sim_run.native_fields(results, params, scenario=args.scenario,
-                                         seed=args.seed, version=__version__)
-    if args.plan is not None:
-        meta["plan"] = str(args.plan.resolve())
-    samples = Samples.from_fields(fields, meta["objects"], need_truth=True)
-    if args.format == "lbipe":
-        kept = samples.at_rest_only()
-        for path, part in zip(save_lbipe(args.out, split, kept), kept.by_object()):
-            print(f"wrote {path} ({part.n_samples} samples)")
-        return 0
-    path = save_native(args.out, samples, meta)
-    print(f"wrote {path} ({samples.n_samples} samples)")
-    return 0
+def _check_train_data(args) -> None:
+    """``--data`` names each file once (by path or by content: a copy of a training file
+    would land in the validation split) and ``--torque-model`` agrees with ``--init``."""
+    seen: dict[tuple, Path] = {}
+    for f in args.data:
+        try:
+            st = f.stat()
+        except OSError:
+            continue  # the loader names a missing file
+        for key in ((st.st_dev, st.st_ino), ("size", st.st_size, _digest(f))):
+            if key in seen:
+                raise UsageError(f"--data: {f} is the same file as {seen[key]}; give each "
+                                 "file once (a repeated file would put copies of training "
+                                 "samples into the validation split)")
+            seen[key] = f
+    if args.init is not None and args.torque_model is not None:
+        import json  # (light) the folder's config only, before any loading
+
+        try:
+            config = json.loads((args.init / "config.json").read_text())
+            kind = config["torque_model"].get("kind", "paper")
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            return  # loading the folder names what is wrong with it
+        if kind != args.torque_model:
+            raise UsageError(f"--torque-model {args.torque_model}: --init {args.init} holds "
+                             f"{kind!r} torque models; fine-tuning keeps the models' kind "
+                             f"(leave out --torque-model, or train from scratch)")
 
 
-def cmd_calibrate(args) -> int:
-    enable_x64()
-    out = args.out or data_path(CALIBRATION_FILE)
-    if args.out is not None:
-        check_outputs(args, "--out")
-    for name in ("report.md", "calibration.png"):
-        check_output(args.report / name, overwrite=args.overwrite, option="--report")
-    distinct(args.real_objects, "--real-objects")
-    if args.real_objects and args.start is None:
-        # Held out: start from the datasheet, not from the shipped fit (it saw every file).
-        params = sim_params.datasheet_sim_params()
-    else:
-        params = sim_params.default_sim_params(args.start)
-    robot, gravity_info = fit_link_gravity(params.robot, args.lbipe_dir, args.real_objects)
-    params = params.replace(robot=robot)
-    params, info = calibrate_servo_friction(params, args.lbipe_dir, iterations=args.iterations,
-                                            seed=args.seed, kinetic_ratio=args.kinetic_ratio,
-                                            fit_offset=args.fit_offset, progress=True,
-                                            objects=args.real_objects)
-    payload = {"robot": "open_manipulator_x", "link_gravity": gravity_info,
-               "servo_friction": sim_params.params_to_dict(params),
-               "fit": {"iterations": args.iterations, "seed": args.seed,
-                       "fit_offset": args.fit_offset,
-                       "real_objects": sorted(p[0] for p in info["plans"]),
-                       "start": str(args.start) if args.start else (
-                           "datasheet" if args.real_objects else "shipped"),
-                       "real": info["real"],
-                       "final_sim": info["history"][-1]["sim"]}}
-    write_json(out, payload)
-    print(f"wrote {out}")
-    report = args.report
-    real = {k: np.concatenate([getattr(d, k) for _, _, d in info["plans"]])
-            for k in ("q_d", "q", "direction", "tau", "current_tau")}
-    sim = {k: v[info["sim_samples"]["at_rest"]] for k, v in info["sim_samples"].items()}
-    png = plot_calibration(real, sim, report / "calibration.png")
-    text = calibration_report(real, sim, source=args.lbipe_dir, iterations=args.iterations,
-                              parameters=out, figure=png.name)
-    write_text(report / "report.md", text)
-    print(f"wrote {report / 'report.md'} and {png}")
-    return 0
+def _digest(path: Path) -> str:
+    import hashlib  # (light) only for --data files of equal size
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def cmd_train(args) -> int:
+    check_output(args.out, overwrite=args.overwrite, folder=True)
+    _check_train_data(args)
     enable_x64()
-    check_outputs(args, "--out")
+    # The work's modules (JAX, flax, optax): imported when the command runs, not for --help.
+    from jaxinertia.app import pipeline
+    from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig  # (as above)
+
     overrides = {k: v for k, v in vars(args).items()
                  if k in TrainConfig.__dataclass_fields__ and v is not None}
     if args.init is not None:
         overrides = {**FINETUNE_DEFAULTS, **overrides}
     cfg = TrainConfig(**overrides)
-    info = train(args.data, args.out, cfg, overwrite=args.overwrite, init=args.init,
-                 samples_per_object=args.samples_per_object)
+    info = pipeline.train(args.data, args.out, cfg, overwrite=args.overwrite, init=args.init,
+                          samples_per_object=args.samples_per_object)
     what = "fine-tuned" if args.init is not None else "trained"
     print(f"{what} {info['training']['n_models']} model pairs on {info['samples']['train']} "
           f"samples ({info['samples']['validation']} validation) in "
@@ -220,32 +159,42 @@ def cmd_train(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    enable_x64()
     check_outputs(args, "--json")
+    l_max = _parse_l_max(args.l_max)
+    enable_x64()
+    # The work's modules (JAX): imported when the command runs, not for --help.
+    from jaxinertia.app import pipeline, report
+
     released = None
     if args.samples:
-        res = evaluate_samples(args.models, args.samples, n_sets=args.sets, seed=args.seed)
+        res = pipeline.evaluate_samples(args.models, args.samples, n_sets=args.sets,
+                                        seed=args.seed, l_max=l_max)
         objects, torque = res["objects"], res["torque"]
     else:
-        real = sim_to_real(args.models, args.lbipe_dir, seed=args.seed, n_sets=args.sets)
+        lbipe_dir = lbipe_dir_of(args)
+        real = pipeline.sim_to_real(args.models, lbipe_dir, seed=args.seed, n_sets=args.sets,
+                                    l_max=l_max)
         if real is None:
-            raise UsageError(f"no real data at {args.lbipe_dir}: pass --lbipe-dir or --samples")
+            raise UsageError(f"no real data at {lbipe_dir}: pass --lbipe-dir or --samples")
         objects, torque = real["ours"]["objects"], real["ours"]["torque"]
         released = real.get("released")
-    print(table1(objects, f"Table I: models {args.models}"))
+    print(report.table1(objects, f"Table I: models {args.models}"))
     if released:
         print()
-        print(table1(released, "The authors' released models, same files and sets"))
+        print(report.table1(released, "The authors' released models, same files and sets"))
     print()
-    print(table2(torque, "Table II: joint torque"))
+    print(report.table2(torque, "Table II: joint torque"))
     print()
-    print(table3(objects, "Table III: mean attention weights"))
+    print(report.table3(objects, "Table III: mean attention weights"))
     return write_json_option(args, objects)
 
 
 def cmd_reproduce(args) -> int:
     enable_x64()
-    reproduce(args.out, full=args.full, seed=args.seed, lbipe_dir=args.lbipe_dir)
+    # The work's modules (JAX, flax, optax): imported when the command runs, not for --help.
+    from jaxinertia.app.reproduce import reproduce
+
+    reproduce(args.out, full=args.full, seed=args.seed, lbipe_dir=lbipe_dir_of(args))
     return 0
 
 
@@ -257,82 +206,16 @@ def register(sub) -> None:
         description="Evaluates every data/data_test_<name>.npz in DIR with the ten released "
         "model pairs (weights/*.npz|.pt or dicts/*.pt) in one batched call.",
     )
-    b.add_argument("--lbipe-dir", type=Path, default=default_lbipe_dir(),
-                   help="shared/lbipe layout or a checkout of ChirikjianLab/lbipe "
-                   "(default: %(default)s)")
+    b.add_argument("--lbipe-dir", type=Path, help=LBIPE_DIR_HELP)
     b.add_argument("--json", type=Path, help="write the metrics here (reference_metrics schema)")
-    b.add_argument("--seed", type=int, default=0,
+    b.add_argument("--seed", type=seed_int, default=0,
                    help="seed of the 1000 random 64-sample sets when no golden sets exist")
     b.add_argument("--l-max", action="append", metavar="NAME=METRES",
                    help="bounding-box diagonal of an object without a built-in one")
-    b.add_argument("--plot", type=Path, help="write a PNG of the per-set estimates here")
+    b.add_argument("--plot", type=Path, help="write a figure of the per-set estimates here "
+                   "(.png, .pdf, .svg, ...)")
     b.add_argument("--overwrite", action="store_true", help="replace an existing --json/--plot")
     b.set_defaults(func=cmd_lbipe_benchmark)
-
-    s = sub.add_parser(
-        "simulate",
-        help="generate samples from a simulated arm (default: the OpenMANIPULATOR-X)",
-        description="planning: the 10 deg grid x 16 direction patterns x training loads; "
-        "random: N random goals per training load; test: N per test object; continuous: N "
-        "consecutive nearby goals without stopping, the held object switching.",
-    )
-    s.add_argument("--scenario", required=True,
-                   choices=["planning", "random", "test", "continuous"])
-    s.add_argument("--out", required=True, type=Path,
-                   help="native: an .npz file; lbipe: a directory for data_<split>_<obj>.npz")
-    s.add_argument("--format", choices=["native", "lbipe"], default="native")
-    s.add_argument("--n", type=positive_int,
-                   help="samples per object (random/test; caps planning)")
-    s.add_argument("--plan", type=Path, metavar="PLAN.json",
-                   help="the goals and approach directions every object visits (from "
-                   "`jaxinertia plan-poses`) instead of the scenario's own; --n repeats the "
-                   "plan cyclically to N samples per object (default: once)")
-    s.add_argument("--objects", nargs="+",
-                   help="test objects (default: all four); continuous: the switching order, "
-                   "'empty' or test objects or training loads like 100g")
-    s.add_argument("--switch-every", type=positive_int, default=512,
-                   help="continuous: samples between object switches (default 512)")
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--arm", default=DEFAULT_ARM, metavar="NAME|FILE",
-                   help=f"the arm: {', '.join(ARMS)}, or an arm file (.json/.toml) "
-                   "(default: %(default)s)")
-    s.add_argument("--calibration", type=Path,
-                   help="simulator parameter file (default: the arm's shipped calibration; "
-                   "an arm without one is simulated from its datasheet values)")
-    s.add_argument("--overwrite", action="store_true", help="replace an existing --out")
-    s.add_argument("--precision", choices=["float64", "float32"], default="float64",
-                   help="arithmetic of the simulation (default: %(default)s). float32 runs "
-                   "~1.8x faster on a CPU; its random friction jitter differs, so its samples "
-                   "are another draw of the same distribution (docs/benchmarks.md); the file "
-                   "stores float64 either way")
-    s.set_defaults(func=cmd_simulate)
-
-    c = sub.add_parser(
-        "calibrate",
-        help="fit the simulator's link gravity, servo and friction to real samples",
-        description="Fits link gravity to the real tau_g, then servo gain, torque constant "
-        "and friction so that the simulated real plan reproduces the real baseline fits.",
-    )
-    c.add_argument("--lbipe-dir", type=Path, default=default_lbipe_dir())
-    c.add_argument("--iterations", type=positive_int, default=6)
-    c.add_argument("--seed", type=int, default=0)
-    c.add_argument("--out", type=Path,
-                   help="parameter file (default: the package's data/open_manipulator_x_sim.json)")
-    c.add_argument("--report", type=Path, default=Path("runs/calibration"))
-    c.add_argument("--start", type=Path, help="parameter file to start from (default: shipped)")
-    c.add_argument("--overwrite", action="store_true",
-                   help="replace an existing --out parameter file or --report folder")
-    c.add_argument("--real-objects", nargs="+", metavar="NAME",
-                   help="fit on these real objects only (held-out protocol: judge on the "
-                   "others); starts from the datasheet unless --start is given "
-                   "(default: every real file, starting from the shipped calibration)")
-    c.add_argument("--kinetic-ratio", type=unit_fraction, default=0.6,
-                   help="Coulomb (sliding) friction as a fraction of breakaway (default 0.6)")
-    c.add_argument("--fit-offset", action=argparse.BooleanOptionalAction, default=True,
-                   help="after the servo and friction, fit a constant torque per joint "
-                   "(unmodelled loads such as cables) to the real torque intercept at the "
-                   "real PE gain (default: on)")
-    c.set_defaults(func=cmd_calibrate)
 
     t = sub.add_parser(
         "train", help="train torque and attention models (K seeds) and fit the baselines",
@@ -347,7 +230,7 @@ def register(sub) -> None:
                    "samples of known objects) instead of training from scratch; its feature "
                    "scaling and model count are kept, the defaults become "
                    + ", ".join(f"--{k.replace('_', '-')} {v}"
-                               for k, v in FINETUNE_DEFAULTS.items()))
+                               for k, v in defaults.FINETUNE.items()))
     t.add_argument("--samples-per-object", type=positive_int, metavar="N",
                    help="use at most N samples of each object (seeded random choice)")
     t.add_argument("--trainable", choices=["all", "head", "servo"], default=None,
@@ -358,7 +241,8 @@ def register(sub) -> None:
                    help="the paper's network (default) or a physics-structured one: per "
                    "joint stiffness, offset, direction and load friction plus the paper's "
                    "network as a residual")
-    for name, typ in (("n_models", positive_int), ("seed", int), ("torque_epochs", positive_int),
+    for name, typ in (("n_models", positive_int), ("seed", seed_int),
+                      ("torque_epochs", positive_int),
                       ("torque_batch", positive_int), ("torque_lr", positive_float),
                       ("attention_epochs", positive_int), ("attention_batch", positive_int),
                       ("attention_lr", positive_float), ("set_size", positive_int),
@@ -366,7 +250,7 @@ def register(sub) -> None:
                       ("w_mass", nonnegative_float), ("w_com", nonnegative_float),
                       ("val_fraction", fraction)):
         t.add_argument("--" + name.replace("_", "-"), dest=name, type=typ,
-                       help=f"(default {getattr(TrainConfig(), name)})")
+                       help=f"(default {defaults.TRAIN[name]})")
     t.set_defaults(func=cmd_train)
 
     e = sub.add_parser(
@@ -374,14 +258,16 @@ def register(sub) -> None:
         description="Evaluates a model folder on every data/data_test_<name>.npz in the lbipe "
         "folder (beside the released models on the same sets), or on a native sample file.")
     e.add_argument("--models", required=True, type=Path)
-    e.add_argument("--lbipe-dir", type=Path, default=default_lbipe_dir())
+    e.add_argument("--lbipe-dir", type=Path, help=LBIPE_DIR_HELP)
     e.add_argument("--samples", type=Path,
                    help="a sample file of known objects instead (native or the authors' layout)")
     e.add_argument("--json", type=Path, help="write Table I/III (lbipe-benchmark schema)")
     e.add_argument("--sets", type=positive_int, default=1000,
                    help="random sets per object (no golden)")
     e.add_argument("--overwrite", action="store_true", help="replace an existing --json")
-    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--seed", type=seed_int, default=0)
+    e.add_argument("--l-max", action="append", metavar="NAME=METRES",
+                   help="bounding-box diagonal of an object without a built-in one")
     e.set_defaults(func=cmd_evaluate)
 
 
@@ -391,6 +277,6 @@ def register(sub) -> None:
         "Default: a quick run (minutes on a laptop CPU); --full: the paper's scale.")
     r.add_argument("--out", type=Path, default=Path("runs/reproduce"))
     r.add_argument("--full", action="store_true")
-    r.add_argument("--seed", type=int, default=0)
-    r.add_argument("--lbipe-dir", type=Path, default=default_lbipe_dir())
+    r.add_argument("--seed", type=seed_int, default=0)
+    r.add_argument("--lbipe-dir", type=Path, help=LBIPE_DIR_HELP)
     r.set_defaults(func=cmd_reproduce)

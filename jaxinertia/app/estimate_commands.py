@@ -5,25 +5,27 @@ informative poses to visit)."""
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
-import numpy as np
-
+from jaxinertia.app import defaults
 from jaxinertia.app.options import (
+    check_memory,
     check_outputs,
     enable_x64,
     nonnegative_float,
     positive_float,
     positive_int,
+    seed_int,
     write_json_option,
 )
-from jaxinertia.app.pipeline import estimate
-from jaxinertia.design import DEFAULT_MARGIN_DEG, plan_poses, save_plan
 from jaxinertia.errors import UsageError
-from jaxinertia.open_manipulator_x import MOUNT_CLEARANCE_M, TAG_IN_EE, WORKSPACE_DEG
-from jaxinertia.robot import load_robot, open_manipulator_x
 
 __all__ = ["register"]
+
+#: What one configuration of the planning grid takes while the plan is chosen (its 2^N
+#: direction copies, collision test, regressor and information matrix) [bytes], generous.
+PLAN_BYTES_PER_CONFIGURATION = 4096
 
 
 def _pm(value: float, se: float) -> str:
@@ -31,8 +33,13 @@ def _pm(value: float, se: float) -> str:
 
 
 def cmd_estimate(args) -> int:
-    enable_x64()
     check_outputs(args, "--json")
+    enable_x64()
+    # The work's modules (JAX): imported when the command runs, not for --help.
+    import numpy as np
+
+    from jaxinertia.app.pipeline import estimate  # (as above)
+
     res = estimate(args.models, args.samples, set_size=args.set_size, max_mass=args.max_mass,
                    max_com=args.max_com, max_com_se=args.max_com_se)
     floor = res["torque_error_floor"]
@@ -66,16 +73,32 @@ def cmd_estimate(args) -> int:
     return write_json_option(args, res)
 
 
+def _grid_size(workspace, margin_deg: float, step_deg: float) -> float:
+    """Configurations of the planning grid over ``workspace`` less ``margin_deg`` (as
+    ``plans.planning_plan`` lays it out), before building it."""
+    return math.prod(max(0.0, (hi - lo - 2 * margin_deg)) // step_deg + 1 for lo, hi in workspace)
+
+
 def cmd_plan_poses(args) -> int:
-    enable_x64()
     check_outputs(args, "--out")
+    if args.robot is not None and args.workspace is None:
+        raise UsageError("--robot needs --workspace LO:HI,... (degrees, one per joint)")
+    enable_x64()
+    # The work's modules (JAX): imported when the command runs, not for --help.
+    import numpy as np
+
+    from jaxinertia.design import plan_poses, save_plan  # (as above)
+    from jaxinertia.open_manipulator_x import TAG_IN_EE, WORKSPACE_DEG  # (as above)
+    from jaxinertia.robot import load_robot, open_manipulator_x  # (as above)
+
+    workspace = WORKSPACE_DEG if args.workspace is None else tuple(args.workspace)
+    n_grid = _grid_size(workspace, args.margin_deg, args.step_deg)
+    check_memory(n_grid * PLAN_BYTES_PER_CONFIGURATION,
+                 f"--step-deg {args.step_deg:g} (a planning grid of {n_grid:.3g} configurations)")
     if args.robot is not None:
         robot = load_robot(args.robot)
-        if args.workspace is None:
-            raise UsageError("--robot needs --workspace LO:HI,... (degrees, one per joint)")
     else:
         robot = open_manipulator_x()
-    workspace = WORKSPACE_DEG if args.workspace is None else tuple(args.workspace)
     if args.joint_weights is not None and len(args.joint_weights) != robot.n_joints:
         raise UsageError(f"--joint-weights: {len(args.joint_weights)} values for "
                          f"{robot.n_joints} joints")
@@ -83,6 +106,9 @@ def cmd_plan_poses(args) -> int:
     plan = plan_poses(args.n, robot=robot, step_deg=args.step_deg, workspace=workspace,
                       margin_deg=args.margin_deg, clearance=args.clearance,
                       joint_weights=args.joint_weights, tag=tag, seed=args.seed)
+    if not np.isfinite(plan.logdet):
+        raise UsageError(f"--n {args.n}: the best {args.n} poses of the grid do not determine "
+                         "mass and COM (singular information matrix): ask for more poses")
     gain = plan.logdet - np.median(plan.random_logdet)
     print(f"{args.n} poses chosen from {plan.n_candidates} collision-free grid configurations "
           f"({args.step_deg:g} deg; greedy + {plan.exchanges} exchange(s))")
@@ -103,6 +129,16 @@ def cmd_plan_poses(args) -> int:
     return 0
 
 
+def _poses(text: str) -> int:
+    """``--n`` of plan-poses: one pose's gravity wrench spans only 3 of the 4 parameters
+    (no moment about the vertical), so a plan needs at least 2."""
+    n = positive_int(text)
+    if n < 2:
+        raise argparse.ArgumentTypeError(f"must be at least 2 (one pose cannot determine mass "
+                                         f"and COM), got {text!r}")
+    return n
+
+
 def _ranges_deg(text: str) -> tuple[tuple[float, float], ...]:
     """``LO:HI,LO:HI,...`` [deg], one range per joint (one argument: a leading minus sign
     would read as an option)."""
@@ -113,7 +149,7 @@ def _ranges_deg(text: str) -> tuple[tuple[float, float], ...]:
             lo_f, hi_f = float(lo), float(hi)
         except ValueError:
             lo_f = hi_f = float("nan")
-        if not sep or not np.isfinite(lo_f) or not np.isfinite(hi_f) or not lo_f < hi_f:
+        if not sep or not math.isfinite(lo_f) or not math.isfinite(hi_f) or not lo_f < hi_f:
             raise argparse.ArgumentTypeError(
                 f"must be LO:HI,LO:HI,... degrees with LO < HI per joint, got {text!r}")
         out.append((lo_f, hi_f))
@@ -149,14 +185,16 @@ def register(sub) -> None:
         "maximise log det of the load regressor's information sum_s A_s^T W A_s (greedy, "
         "then exchanges), and approach directions that cancel a friction-like error; "
         "writes a JSON plan (q_d [rad], direction +1/-1 per pose).")
-    pp.add_argument("--n", type=positive_int, default=16, help="poses (default 16)")
+    pp.add_argument("--n", type=_poses, default=16,
+                    help="poses (default 16; at least 2: one pose cannot determine mass and "
+                    "COM)")
     pp.add_argument("--out", required=True, type=Path, help="plan file to write (JSON)")
     pp.add_argument("--step-deg", type=positive_float, default=10.0,
                     help="grid step over the workspace (default 10)")
-    pp.add_argument("--margin-deg", type=nonnegative_float, default=DEFAULT_MARGIN_DEG,
+    pp.add_argument("--margin-deg", type=nonnegative_float, default=defaults.MARGIN_DEG,
                     help="keep the poses this far inside every joint range: the torque models "
                     "are least accurate at the limits (default %(default)s)")
-    pp.add_argument("--clearance", type=positive_float, default=MOUNT_CLEARANCE_M,
+    pp.add_argument("--clearance", type=positive_float, default=defaults.MOUNT_CLEARANCE_M,
                     help="minimum end-effector height over the mounting surface [m] "
                     "(default %(default)s)")
     pp.add_argument("--joint-weights", type=positive_float, nargs="+",
@@ -167,6 +205,7 @@ def register(sub) -> None:
     pp.add_argument("--workspace", type=_ranges_deg, metavar="LO:HI,...",
                     help="joint ranges in degrees, one per joint, e.g. "
                     "--workspace=-30:30,-50:-10,10:50,-20:20 (default: the paper's)")
-    pp.add_argument("--seed", type=int, default=0, help="seed of the random reference plans")
+    pp.add_argument("--seed", type=seed_int, default=0,
+                    help="seed of the random reference plans")
     pp.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     pp.set_defaults(func=cmd_plan_poses)

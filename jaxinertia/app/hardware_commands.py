@@ -14,46 +14,33 @@ collection is not an error: the command says where the journal is and returns 13
 from __future__ import annotations
 
 import argparse
-import gc
-import signal
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import jax
-import numpy as np
-
-from jaxinertia import __version__, objects, plans
+from jaxinertia.app import defaults
 from jaxinertia.app.options import (
+    check_memory,
     finite_float,
     nonnegative_float,
     positive_float,
     positive_int,
+    seed_int,
 )
-from jaxinertia.design import load_plan
 from jaxinertia.errors import HardwareError, UsageError
 from jaxinertia.fileio import check_output
-from jaxinertia.hardware.collect import (
-    DELTA,
-    Journal,
-    KinematicTagPose,
-    collect,
-    journal_path,
-    plan_digest,
-    samples_from_records,
-)
-from jaxinertia.hardware.driver import ArmConfig, DynamixelArm, PortError
-from jaxinertia.hardware.safety import SafetyError, SafetyLimits
-from jaxinertia.hardware.transport import LockedPortHandler
-from jaxinertia.open_manipulator_x import GRIPPER_ID, JOINT_IDS, TAG_IN_EE, calibrated_robot
-from jaxinertia.samples import save_native
-from jaxinertia.sim.params import default_sim_params
-from jaxinertia.virtual.bus import Faults
-from jaxinertia.virtual.robot import VirtualServoBus
+
+if TYPE_CHECKING:
+    import numpy as np
 
 __all__ = ["register"]
 
 #: Exit status of ``collect`` after Ctrl-C (journal kept, ``--resume`` continues).
 EXIT_INTERRUPTED = 130
+
+#: What one goal of a plan takes while it is drawn and checked (its pre-position, forward
+#: kinematics of both against the safety limits) [bytes], generous.
+PLAN_BYTES_PER_POSE = 4096
 
 #: ``collect --object unknown``: no ground truth (the file has no tau and no x).
 UNKNOWN = "unknown"
@@ -117,6 +104,18 @@ def _check_ids(args, n_joints: int) -> None:
 
 
 def cmd_virtual_robot(args) -> int:
+    # The work's modules (JAX, the simulator): imported when the command runs, not for --help.
+    import gc
+    import signal  # (as above)
+
+    import jax  # (as above)
+    import numpy as np  # (as above)
+
+    from jaxinertia import objects  # (as above)
+    from jaxinertia.sim.params import default_sim_params  # (as above)
+    from jaxinertia.virtual.bus import Faults  # (as above)
+    from jaxinertia.virtual.robot import VirtualServoBus  # (as above)
+
     jax.config.update("jax_enable_x64", True)
     obj = objects.resolve(args.object)
     params = default_sim_params(args.calibration)
@@ -153,6 +152,8 @@ def cmd_virtual_robot(args) -> int:
 
 
 def _check_collect_options(args) -> None:
+    from jaxinertia.hardware.transport import LockedPortHandler  # dynamixel-sdk: at run time
+
     if LockedPortHandler(args.port).getCFlagBaud(args.baudrate) <= 0:
         raise UsageError(f"--baudrate {args.baudrate} is not a rate dynamixel-sdk supports")
     if args.timeout <= args.settle_time:
@@ -163,10 +164,16 @@ def _check_collect_options(args) -> None:
 def _collect_plan(args) -> tuple[np.ndarray, np.ndarray]:
     """The goals and approach directions of ``--plan`` (planning, random or a plan file of
     ``jaxinertia plan-poses``; ``--n`` cuts the planning grid or a file's plan)."""
+    # The work's modules (JAX): imported when the command runs, not for --help.
+    from jaxinertia import plans
+    from jaxinertia.design import load_plan  # (as above)
+
     if args.plan == "planning":
         q_d, direction = plans.planning_plan()
     elif args.plan == "random":
-        return plans.random_plan(1000 if args.n is None else args.n, args.seed)
+        n = 1000 if args.n is None else args.n
+        check_memory(n * PLAN_BYTES_PER_POSE, f"--n {n} (random goals, each checked)")
+        return plans.random_plan(n, args.seed)
     else:
         q_d, direction = load_plan(args.plan)
     if args.n is not None:
@@ -175,6 +182,25 @@ def _collect_plan(args) -> tuple[np.ndarray, np.ndarray]:
 
 
 def cmd_collect(args) -> int:
+    # The work's modules (JAX, dynamixel-sdk): imported when the command runs, not for --help.
+    import jax
+    import numpy as np  # (as above)
+
+    from jaxinertia import __version__, objects  # (as above)
+    from jaxinertia.hardware.collect import (  # (as above)
+        DELTA,
+        Journal,
+        KinematicTagPose,
+        collect,
+        journal_path,
+        plan_digest,
+        samples_from_records,
+    )
+    from jaxinertia.hardware.driver import ArmConfig, DynamixelArm, PortError  # (as above)
+    from jaxinertia.hardware.safety import SafetyError, SafetyLimits  # (as above)
+    from jaxinertia.open_manipulator_x import TAG_IN_EE, calibrated_robot  # (as above)
+    from jaxinertia.samples import save_native  # (as above)
+
     jax.config.update("jax_enable_x64", True)
     # Everything that can be refused is refused before the port is opened (exit code 2).
     _check_collect_options(args)
@@ -204,7 +230,8 @@ def cmd_collect(args) -> int:
     header = {"kind": "header", "plan": args.plan, "seed": args.seed, "n_samples": len(q_d),
               "object": args.object, "plan_digest": plan_digest(q_d, direction),
               "port": args.port, "servo_ids": list(args.ids), "delta": DELTA}
-    journal = Journal.open(journal_path(out), header, resume=args.resume)
+    journal = Journal.open(journal_path(out), header, resume=args.resume,
+                           plan=(q_d, direction))
     done = len(journal.records)
     if done:
         print(f"resuming: {done} of {len(q_d)} samples already in {journal.path}",
@@ -260,7 +287,7 @@ def cmd_collect(args) -> int:
 
 def register(sub) -> None:
     """Adds this module's subcommands to the ``jaxinertia`` argparse subparsers."""
-    names = ", ".join(objects.known_names())
+    names = ", ".join(defaults.OBJECT_NAMES)
     v = sub.add_parser(
         "virtual-robot",
         help="a simulated chain of XM430-W350-T servos on a pseudo-terminal",
@@ -272,11 +299,12 @@ def register(sub) -> None:
                    help=f"held object: {names} (none: the empty gripper)")
     v.add_argument("--speed", type=positive_float, default=1.0,
                    help="simulated seconds per second")
-    v.add_argument("--ids", type=_ids, default=JOINT_IDS, help="joint servo IDs")
-    v.add_argument("--gripper-id", type=_gripper, default=GRIPPER_ID, help="gripper ID or none")
+    v.add_argument("--ids", type=_ids, default=defaults.JOINT_IDS, help="joint servo IDs")
+    v.add_argument("--gripper-id", type=_gripper, default=defaults.GRIPPER_ID,
+                   help="gripper ID or none")
     v.add_argument("--q0", type=finite_float, nargs=4, default=(0.0, -30.0, 30.0, 0.0),
                    metavar="DEG", help="initial joint angles [deg]")
-    v.add_argument("--seed", type=int, default=0, help="friction draws and current noise")
+    v.add_argument("--seed", type=seed_int, default=0, help="friction draws and current noise")
     v.add_argument("--calibration", type=Path, help="simulator parameter file")
     g = v.add_argument_group("fault injection")
     g.add_argument("--drop-rate", type=_probability, default=0.0,
@@ -289,7 +317,7 @@ def register(sub) -> None:
     g.add_argument("--overload-id", type=int, help="servo that raises an overload error")
     g.add_argument("--overload-after", type=_count, default=0,
                    help="... after this many Goal Position writes to it")
-    g.add_argument("--fault-seed", type=int, default=0)
+    g.add_argument("--fault-seed", type=seed_int, default=0)
     v.set_defaults(func=cmd_virtual_robot)
 
     c = sub.add_parser(
@@ -312,10 +340,10 @@ def register(sub) -> None:
     c.add_argument("--resume", action="store_true", help="continue OUT.journal.jsonl")
     c.add_argument("--n", type=positive_int,
                    help="samples (random: default 1000; planning: the first N)")
-    c.add_argument("--seed", type=int, default=0, help="seed of the random plan")
+    c.add_argument("--seed", type=seed_int, default=0, help="seed of the random plan")
     c.add_argument("--baudrate", type=int, default=1_000_000)
-    c.add_argument("--ids", type=_ids, default=JOINT_IDS, help="joint servo IDs")
-    c.add_argument("--gripper-id", type=_gripper, default=GRIPPER_ID,
+    c.add_argument("--ids", type=_ids, default=defaults.JOINT_IDS, help="joint servo IDs")
+    c.add_argument("--gripper-id", type=_gripper, default=defaults.GRIPPER_ID,
                    help="gripper ID (pinged) or none")
     c.add_argument("--p-gain", type=_register(16383), default=800,
                    help="Position P Gain register")
@@ -328,7 +356,7 @@ def register(sub) -> None:
                    help="no tick may change for this long to count as at rest [s, servo clock]")
     c.add_argument("--timeout", type=positive_float, default=6.0,
                    help="per move [s, servo clock]")
-    c.add_argument("--retries", type=_count, default=ArmConfig.retries,
+    c.add_argument("--retries", type=_count, default=defaults.BUS_RETRIES,
                    help="per bus transaction (each after the bus has gone quiet, about 70 ms "
                    "a try: a dead bus is reported within a second)")
     c.add_argument("--on-stop", choices=["hold", "torque_off"], default="hold",

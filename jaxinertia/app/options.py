@@ -1,22 +1,30 @@
 """What the command modules share: option types that check every number when it is
 parsed (``must be a positive integer, got '0'``), a :class:`Parser` that prints argparse's
 errors as one line with exit code 2, and the checks every command runs before its work
-(outputs, repeated names) and its ``--json`` writer.
+(outputs, repeated names, the memory a request needs) and its ``--json`` writer.
+
+Light on purpose: the parsers (and ``--help``) need only this module, never JAX.
 """
 
 from __future__ import annotations
 
 import argparse
-
-import jax
-import numpy as np
+import math
+import os
 
 from jaxinertia.errors import UsageError
 from jaxinertia.fileio import check_output, write_json
 
-__all__ = ["Parser", "check_outputs", "distinct", "enable_x64", "finite_float", "fraction",
-           "nonnegative_float", "positive_float", "positive_int", "unit_fraction",
-           "write_json_option"]
+__all__ = ["MEMORY_ENV", "Parser", "check_memory", "check_outputs", "distinct", "enable_x64",
+           "finite_float", "fraction", "memory_limit_bytes", "nonnegative_float",
+           "positive_float", "positive_int", "seed_int", "unit_fraction", "write_json_option"]
+
+#: Environment variable: the memory [GB] a request may need before it is refused
+#: (default: half the machine's memory).
+MEMORY_ENV = "JAXINERTIA_MAX_MEMORY_GB"
+
+#: Seeds: what numpy and JAX both take (``--seed -1`` or ``1e23`` are refused when parsed).
+SEED_MAX = 2**32 - 1
 
 
 class Parser(argparse.ArgumentParser):
@@ -32,7 +40,7 @@ def _number(kind, test, what):
             v = kind(text)
         except ValueError:
             v = None
-        if v is None or not np.isfinite(v) or not test(v):
+        if v is None or not math.isfinite(v) or not test(v):
             raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
         return v
     parse.__name__ = what  # argparse names the type in its messages
@@ -45,11 +53,41 @@ nonnegative_float = _number(float, lambda v: v >= 0, "a number >= 0")
 fraction = _number(float, lambda v: 0 < v < 1, "a number in (0, 1)")
 unit_fraction = _number(float, lambda v: 0 < v <= 1, "a number in (0, 1]")
 finite_float = _number(float, lambda v: True, "a finite number")
+seed_int = _number(int, lambda v: 0 <= v <= SEED_MAX, f"an integer in 0..{SEED_MAX}")
 
 
 def enable_x64() -> None:
     """Identification is float64 (see jaxinertia.identification); networks stay float32."""
+    import jax  # when the work starts: the parsers never load JAX
+
     jax.config.update("jax_enable_x64", True)
+
+
+def memory_limit_bytes() -> float:
+    """What one request may need: ``$JAXINERTIA_MAX_MEMORY_GB`` gigabytes, else half the
+    machine's memory."""
+    env = os.environ.get(MEMORY_ENV)
+    if env:
+        try:
+            gb = float(env)
+        except ValueError:
+            gb = float("nan")
+        if not (math.isfinite(gb) and gb > 0):
+            raise UsageError(f"{MEMORY_ENV}={env!r} must be a positive number of gigabytes")
+        return gb * 1e9
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2
+    except (ValueError, OSError, AttributeError):
+        return 8e9
+
+
+def check_memory(needed_bytes: float, what: str) -> None:
+    """Refuses, before allocating, a request estimated to need more than the limit."""
+    limit = memory_limit_bytes()
+    if needed_bytes > limit:
+        raise UsageError(f"{what} needs about {needed_bytes / 1e9:.3g} GB, above the limit "
+                         f"{limit / 1e9:.3g} GB: ask for less, or raise the limit with "
+                         f"{MEMORY_ENV}=<GB>")
 
 
 def distinct(names: list[str] | None, option: str) -> None:

@@ -83,7 +83,7 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
     file is read in it (simulated files in the simulator's own); the folder records it, and
     evaluation and estimation read every file in it.
     """
-    check_output(out, overwrite=overwrite)
+    check_output(out, overwrite=overwrite, folder=True)
     parts, metas = [], []
     for f in sample_files:
         d, meta = load_samples(f)
@@ -261,13 +261,37 @@ def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
 
 
 def evaluate_samples(models: str | os.PathLike, sample_file: str | os.PathLike, *,
-                     n_sets: int = 1000, set_size: int = 64, seed: int = 0) -> dict:
-    """A model folder on every object of a sample file (random sets, seed + i)."""
-    data, meta = load_samples(sample_file)
-    objects = data.by_object()
+                     n_sets: int = 1000, set_size: int = 64, seed: int = 0,
+                     l_max: dict[str, float] | None = None) -> dict:
+    """A model folder on every object of a sample file (random sets, seed + i); ``l_max``
+    gives the bounding-box diagonal of objects without a built-in one."""
+    objects, meta = _objects_at_rest(sample_file, need_truth=True)
+    massless = [o.name for o in objects if not o.mass > 0]
+    if massless:
+        raise UsageError(f"{sample_file} [{massless[0]}]: mass 0 (the empty gripper): mass and "
+                         "COM errors need a held object; leave it out of the file")
+    diag = l_max_of(objects, l_max, path=sample_file)
     sets, _ = choose_sets(objects, n_sets=n_sets, set_size=set_size, seed=seed)
-    return evaluate_models(models, objects, sets, l_max=l_max_of(objects, path=sample_file),
-                           robot=meta.get("robot"))
+    return evaluate_models(models, objects, sets, l_max=diag, robot=meta.get("robot"))
+
+
+def _objects_at_rest(sample_file, *, need_truth: bool) -> tuple[list[Samples], dict]:
+    """Each object of a sample file with its samples at rest, and the metadata; a file with
+    no such sample, or an object that has none, is an error (an object is never dropped
+    from an answer silently)."""
+    data, meta = load_samples(sample_file, need_truth=need_truth, only_at_rest=False)
+    kept = data.at_rest_only()
+    if kept.n_samples == 0:
+        raise UsageError(f"{sample_file}: no sample to use: " + (
+            "the file holds none" if data.n_samples == 0 else
+            f"all {data.n_samples} timed out before rest (at_rest = False)"))
+    present = set(np.unique(kept.object_id).tolist())
+    for o, name in enumerate(data.names):
+        n_all = int(np.sum(data.object_id == o))
+        if o not in present and n_all:
+            raise UsageError(f"{sample_file} [{name}]: all {n_all} samples of this object "
+                             "timed out before rest (at_rest = False): nothing to answer from")
+    return kept.by_object(), meta
 
 
 def sim_to_real(models: str | os.PathLike, lbipe_dir: str | os.PathLike, *, seed: int = 0,
@@ -362,12 +386,13 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
     estimated mass, for the floor's torque error level, else
     :data:`~jaxinertia.uncertainty.DEFAULT_TORQUE_NOISE_NM`).
     """
-    data, meta = load_samples(sample_file, need_truth=False)
+    objects, meta = _objects_at_rest(sample_file, need_truth=False)
+    objects = [o.without_truth() for o in objects]
     pair, baselines, fc, config = load_models(models, robot=meta.get("robot"))
-    objects, ratios = adapt_objects(data.without_truth().by_object(),
-                                    session_reference(config, session_strength))
+    objects, ratios = adapt_objects(objects, session_reference(config, session_strength))
     floor, floor_source = training_validation_error(pair, fc, config)
-    noise = floor if floor is not None else np.full(data.n_joints, DEFAULT_TORQUE_NOISE_NM)
+    noise = floor if floor is not None else np.full(objects[0].n_joints,
+                                                    DEFAULT_TORQUE_NOISE_NM)
     noise_source = ("torque models' validation error" if floor is not None else
                     f"nominal {DEFAULT_TORQUE_NOISE_NM * 1e3:.0f} N mm per joint")
     for obj in objects:  # every refusal before any estimate

@@ -120,6 +120,51 @@ def _check_record(path: Path, number: int, rec: dict, n_samples: int) -> int:
     return index
 
 
+#: A joint angle beyond one turn either way is no reading of an XM430 (0..4095 ticks).
+MAX_ABS_Q = 2 * np.pi
+
+
+def _check_values(path: Path, number: int, rec: dict, n_joints: int,
+                  plan: tuple[np.ndarray, np.ndarray] | None) -> None:
+    """A record's values as a sample file's are checked (shapes, finite, directions +-1, a
+    rotation, angles a servo can read), and its goal the plan's: before anything moves, a
+    damaged record is an error naming the line and the field, never a sample."""
+    def bad(field, why):
+        return JournalError(path, f"line {number} {field}", why)
+
+    shapes = {"q_d": (n_joints,), "q": (n_joints,), "current_tau": (n_joints,),
+              "direction": (n_joints,), "R_base_tag": (3, 3), "p_base_tag": (3,),
+              "temperature": (n_joints,), "voltage": (n_joints,), "settle_time": (),
+              "timestamp": ()}
+    values = {}
+    for field, shape in shapes.items():
+        try:
+            a = np.asarray(rec[field], np.float64)
+        except (TypeError, ValueError):
+            raise bad(field, f"not numbers: {rec[field]!r}"[:200]) from None
+        if a.shape != shape:
+            raise bad(field, f"shape {a.shape}, expected {shape}")
+        if not np.all(np.isfinite(a)):
+            raise bad(field, "holds non-finite values")
+        values[field] = a
+    if not isinstance(rec["at_rest"], bool):
+        raise bad("at_rest", f"must be true or false, got {rec['at_rest']!r}")
+    if not np.all(np.isin(values["direction"], (-1.0, 1.0))):
+        raise bad("direction", f"must be +1 or -1, got {values['direction'].tolist()}")
+    for field in ("q_d", "q"):
+        if np.any(np.abs(values[field]) > MAX_ABS_Q):
+            raise bad(field, f"{values[field].tolist()} rad: beyond one turn, no servo reading")
+    R = values["R_base_tag"]
+    if np.max(np.abs(R.T @ R - np.eye(3))) > 1e-6 or np.linalg.det(R) < 0:
+        raise bad("R_base_tag", "not a rotation (R^T R != I or det R < 0)")
+    if plan is not None:
+        q_d, direction = plan
+        i = rec["index"]
+        if not (np.allclose(values["q_d"], q_d[i], rtol=0, atol=1e-9)
+                and np.array_equal(values["direction"], direction[i])):
+            raise bad("q_d", f"sample {i}'s goal or direction is not the plan's")
+
+
 class Journal:
     """Append-only JSON lines: a header, then one record per sample (fsynced each). The
     file is created (with its header) by the first :meth:`append`."""
@@ -131,16 +176,20 @@ class Journal:
         self._file = None  # opened by the first append
 
     @classmethod
-    def open(cls, path: str | os.PathLike, header: dict, *, resume: bool) -> Journal:
+    def open(cls, path: str | os.PathLike, header: dict, *, resume: bool,
+             plan: tuple[np.ndarray, np.ndarray] | None = None) -> Journal:
         """A new journal, or (``resume``) the existing one after checking its header.
 
         Raises :class:`JournalExists` (a FileExistsError) when a journal exists and
         ``resume`` is False (nothing is overwritten), :class:`JournalMismatch` when the
         header's identity differs, :class:`JournalError` when it is damaged elsewhere
-        than in its last line. A new journal is not written here (the first
-        :meth:`append` does); a torn last line of an existing one is cut off."""
+        than in its last line or a record's values are not a sample's (``plan``, the
+        goals and directions: each record's must be its index's). A new journal is not
+        written here (the first :meth:`append` does); a torn last line of an existing one
+        is cut off."""
         path = Path(path)
         records: dict[int, dict] = {}
+        numbers: dict[int, int] = {}  # each record's line
         if path.exists() and path.stat().st_size:
             if not resume:
                 raise JournalExists(f"{path} exists: pass --resume to continue it, or "
@@ -165,6 +214,11 @@ class Journal:
                 if index in records:
                     raise JournalMismatch(f"{path}: sample {index} recorded twice")
                 records[index] = rec
+                numbers[index] = number
+            # Then the values, once every line is known to be a record.
+            n_joints = len(old.get("servo_ids") or header["servo_ids"])
+            for index, rec in records.items():
+                _check_values(path, numbers[index], rec, n_joints, plan)
             if tail:
                 with open(path, "r+b") as f:
                     f.truncate(path.stat().st_size - len(tail))
