@@ -67,11 +67,14 @@ class PortError(CommError):
 class HardwareError(errors.HardwareError):
     """A servo reported a hardware error (Hardware Error Status, alert bit; exit code 3)."""
 
-    def __init__(self, errors: dict[int, int]) -> None:
-        self.errors = errors
-        names = {ct.HW_ERROR_VOLTAGE: "input voltage", ct.HW_ERROR_OVERHEATING: "overheating",
+    #: The error register's bits (Hardware Error Status, address 70).
+    bit_names = {ct.HW_ERROR_VOLTAGE: "input voltage", ct.HW_ERROR_OVERHEATING: "overheating",
                  ct.HW_ERROR_ENCODER: "encoder", ct.HW_ERROR_ELECTRICAL_SHOCK: "electrical shock",
                  ct.HW_ERROR_OVERLOAD: "overload"}
+
+    def __init__(self, errors: dict[int, int]) -> None:
+        self.errors = errors
+        names = self.bit_names
         text = "; ".join(f"ID {i}: " + ", ".join(n for b, n in names.items() if e & b)
                          for i, e in errors.items())
         super().__init__(f"hardware error: {text} (power-cycle or reboot the servo)")
@@ -123,6 +126,14 @@ class DynamixelArm:
     """The joint servos of one arm. Use as a context manager: ``connect`` and ``configure``
     on entry; on exit (also on an exception or Ctrl-C) :meth:`stop`, then the port closes."""
 
+    #: What differs in another servo family's driver (:class:`hardware.feetech.FeetechArm`):
+    #: its SDK's sync read, the status error bits that refuse an instruction (Protocol
+    #: 2.0's error number), the register and error class of a servo's hardware errors.
+    sync_read_class = GroupSyncRead
+    refused_bits = 0x7F
+    error_register = "hardware_error_status"
+    hardware_error = HardwareError
+
     def __init__(self, config: ArmConfig, *, robot: Robot | None = None,
                  safety: SafetyLimits | None = None) -> None:
         self.config = config
@@ -171,7 +182,7 @@ class DynamixelArm:
                 self._failed()
             else:
                 self.most_attempts = max(self.most_attempts, attempt)
-                if error & 0x7F:
+                if error & self.refused_bits:
                     raise CommError(f"{what}: {self.packet.getRxPacketError(error)}")
                 return value, error
         raise CommError(f"{what}: {self.packet.getTxRxResult(result)} "
@@ -200,7 +211,7 @@ class DynamixelArm:
             self._write(dxl_id, name, int(v))
 
     def _sync_read(self, address: int, length: int) -> dict[int, bytes]:
-        group = GroupSyncRead(self.port, self.packet, address, length)
+        group = self.sync_read_class(self.port, self.packet, address, length)
         for dxl_id in self.config.joint_ids:
             group.addParam(dxl_id)
         self._retry(f"sync read {address}+{length}", lambda: (None, group.txRxPacket(), 0))
@@ -330,11 +341,11 @@ class DynamixelArm:
         self._drain()
         confirmed = {}
         for dxl_id in sorted(ids):
-            value = self._read(dxl_id, "hardware_error_status")
+            value = self._read(dxl_id, self.error_register)
             if value:
                 confirmed[dxl_id] = value
         if confirmed:
-            raise HardwareError(confirmed)
+            raise self.hardware_error(confirmed)
         self.unconfirmed_alarms += 1
 
     def read_state(self) -> ArmState:

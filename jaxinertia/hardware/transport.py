@@ -48,8 +48,8 @@ from dynamixel_sdk.robotis_def import (
     INST_WRITE,
 )
 
-__all__ = ["STATUS_TIMEOUT_S", "LockedPortHandler", "MatchingPacketHandler", "PortInUse",
-           "drain"]
+__all__ = ["STATUS_TIMEOUT_S", "LockedPort", "LockedPortHandler", "MatchingPacketHandler",
+           "PortInUse", "drain"]
 
 # Raw packet offsets (Protocol 2.0): FF FF FD 00 ID LEN_L LEN_H INST [ERR] PARAMS.. CRC_L CRC_H
 _ID, _LEN_L, _LEN_H, _INST, _ERR, _PARAM = 4, 5, 6, 7, 8, 8
@@ -63,10 +63,11 @@ class PortInUse(serial.SerialException):
     """The device is locked by another program (another ``collect``)."""
 
 
-class LockedPortHandler(PortHandler):
-    """dynamixel-sdk's ``PortHandler`` that holds an exclusive lock on the device while
-    open. Raises :class:`PortInUse` when another holder has it, and pyserial's
-    ``SerialException`` (an ``OSError``) when the device cannot be opened."""
+class LockedPort:
+    """A vendor SDK's ``PortHandler`` (dynamixel-sdk's, scservo_sdk's: the same class)
+    that holds an exclusive lock on the device while open. Raises :class:`PortInUse` when
+    another holder has it, and pyserial's ``SerialException`` (an ``OSError``) when the
+    device cannot be opened. A mixin: put it before the SDK's class."""
 
     def setupPort(self, cflag_baud):  # noqa: N802 (the SDK's name)
         if self.is_open:
@@ -98,6 +99,10 @@ class LockedPortHandler(PortHandler):
             if left_ms > 0:
                 select.select([self.ser.fileno()], [], [], left_ms / 1000.0)
         return self.ser.read(length)
+
+
+class LockedPortHandler(LockedPort, PortHandler):
+    """dynamixel-sdk's ``PortHandler``, locked (:class:`LockedPort`)."""
 
 
 def _word(lo: int, hi: int) -> int:
