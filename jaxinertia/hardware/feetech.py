@@ -103,13 +103,15 @@ class FeetechArm(DynamixelArm):
 
     # ---- bus primitives ----------------------------------------------------------------
 
-    def _write(self, dxl_id: int, name: str, value: int) -> None:
+    def _write(self, dxl_id: int, name: str, value: int, *, alarm: bool = True) -> None:
+        """Writes one item; an error bit in the answer is confirmed (``alarm``) or, while
+        clearing it, expected."""
         item = ft.ITEMS[name]
         fn = {1: self.packet.write1ByteTxRx, 2: self.packet.write2ByteTxRx}[item.size]
         raw = ft.encode(item, value)
         _, error = self._retry(f"write {name} = {value} to ID {dxl_id}",
                                lambda: (None, *fn(self.port, dxl_id, item.address, raw)))
-        if error:  # a hardware alarm in the status byte: confirmed (or not) by Status
+        if error and alarm:  # a hardware alarm in the status byte: confirmed (or not) by Status
             self._confirm_hardware_errors({*self.config.joint_ids, dxl_id})
 
     def _read(self, dxl_id: int, name: str) -> int:
@@ -167,7 +169,7 @@ class FeetechArm(DynamixelArm):
     def reboot(self, dxl_id: int, wait: float = 2.0) -> None:  # noqa: ARG002 (no reboot)
         """Ends a protection stop of one servo: torque off, on (holding where it is), off."""
         for value in (0, 1, 0):
-            self._write(dxl_id, "torque_enable", value)
+            self._write(dxl_id, "torque_enable", value, alarm=False)
 
     def configure(self) -> None:
         """Torque off; position mode, position limits and P/D/I Coefficient in EEPROM
