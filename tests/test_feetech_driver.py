@@ -15,6 +15,7 @@ from jaxinertia.arms import SO101
 from jaxinertia.hardware import feetech_table as ft
 from jaxinertia.hardware.driver import CommError, PortError
 from jaxinertia.hardware.feetech import FeetechArm, StsHardwareError, feetech_config
+from jaxinertia.hardware.feetech_transport import LockedScsPortHandler
 from jaxinertia.hardware.safety import SafetyError
 from jaxinertia.virtual.bus import Faults
 from jaxinertia.virtual.sts_bus import StsServoBus
@@ -25,6 +26,20 @@ pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
 LOADS = (0.0, 0.12, -0.08, 0.03, 0.0)
 RETRIES = 400  # as the DYNAMIXEL hardware tests (support.hardware.RETRIES)
 GOALS = np.radians([[10.0, -15.0, 20.0, 5.0, -10.0], [-5.0, 10.0, -10.0, 0.0, 8.0]])
+
+
+class PatientPort(LockedScsPortHandler):
+    """The driver's port, waiting up to 2 s for a status packet (tests/test_feetech_bus.py
+    says why): a clean bus must then show no failed transaction."""
+
+    def setPacketTimeout(self, packet_length):  # noqa: N802 (the SDK's name)
+        super().setPacketTimeout(packet_length)
+        self.packet_timeout = max(self.packet_timeout, 2000.0)
+
+
+def patient(arm: FeetechArm) -> FeetechArm:
+    arm.port = PatientPort(arm.config.port)
+    return arm
 
 
 def config(path: str, **kw):
@@ -43,7 +58,7 @@ def check_at_rest(bus, arm, goal, state, at_rest):
 
 
 def test_connect_configure_and_move():
-    with StsServoBus(loads=LOADS) as bus, FeetechArm(config(bus.path)) as arm:
+    with StsServoBus(loads=LOADS) as bus, patient(FeetechArm(config(bus.path))) as arm:
         for i in SO101.bus_ids:
             mem = bus.servos[i]
             assert (mem.get("p_coefficient"), mem.get("i_coefficient"),
