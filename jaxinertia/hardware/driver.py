@@ -127,8 +127,9 @@ class DynamixelArm:
     on entry; on exit (also on an exception or Ctrl-C) :meth:`stop`, then the port closes."""
 
     #: What differs in another servo family's driver (:class:`hardware.feetech.FeetechArm`):
-    #: its SDK's sync read, the status error bits that refuse an instruction (Protocol
+    #: its model, its SDK's sync read, the status error bits that refuse an instruction (Protocol
     #: 2.0's error number), the register and error class of a servo's hardware errors.
+    model = (ct.XM430_W350_MODEL, "XM430-W350")  # what a ping must return, its name
     sync_read_class = GroupSyncRead
     refused_bits = 0x7F
     error_register = "hardware_error_status"
@@ -249,9 +250,9 @@ class DynamixelArm:
         for dxl_id in ids:
             model, _ = self._retry(f"ping ID {dxl_id}",
                                    lambda i=dxl_id: self.packet.ping(self.port, i))
-            if model != ct.XM430_W350_MODEL:
-                raise CommError(f"ID {dxl_id} is model {model}, expected XM430-W350 "
-                                f"({ct.XM430_W350_MODEL})")
+            if model != self.model[0]:
+                raise CommError(f"ID {dxl_id} is model {model}, expected {self.model[1]} "
+                                f"({self.model[0]})")
         try:
             self.check_hardware_errors()
         except HardwareError as e:

@@ -90,6 +90,7 @@ class FeetechArm(DynamixelArm):
     :class:`DynamixelArm` is (``connect`` and ``configure`` on entry, :meth:`stop` and
     close on exit)."""
 
+    model = (ft.STS3215_MODEL, "STS3215")
     sync_read_class = GroupSyncRead
     refused_bits = 0  # the STS status byte has hardware-error bits only
     error_register = "status"
@@ -146,28 +147,9 @@ class FeetechArm(DynamixelArm):
 
     # ---- lifecycle ---------------------------------------------------------------------
 
-    def connect(self) -> None:
-        """Opens the port, pings every servo and checks its model number (777)."""
-        self.open()
-        ids = [*self.config.joint_ids, *(() if self.config.gripper_id is None
-                                         else (self.config.gripper_id,))]
-        for scs_id in ids:
-            model, _ = self._retry(f"ping ID {scs_id}",
-                                   lambda i=scs_id: self.packet.ping(self.port, i))
-            if model != ft.STS3215_MODEL:
-                raise CommError(f"ID {scs_id} is model {model}, expected STS3215 "
-                                f"({ft.STS3215_MODEL})")
-        try:
-            self.check_hardware_errors()
-        except StsHardwareError as e:
-            if not self.config.reboot_on_error:
-                raise
-            for scs_id in e.errors:
-                self.reboot(scs_id)
-            self.check_hardware_errors()
-
     def reboot(self, dxl_id: int, wait: float = 2.0) -> None:  # noqa: ARG002 (no reboot)
-        """Ends a protection stop of one servo: torque off, on (holding where it is), off."""
+        """Ends a protection stop of one servo (``connect`` with ``reboot_on_error``):
+        torque off, on (holding where it is), off."""
         for value in (0, 1, 0):
             self._write(dxl_id, "torque_enable", value, alarm=False)
 

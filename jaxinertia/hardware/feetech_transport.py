@@ -24,7 +24,7 @@ failed transaction (:func:`jaxinertia.hardware.transport.drain`).
 
 from __future__ import annotations
 
-from scservo_sdk import COMM_SUCCESS, PortHandler, protocol_packet_handler
+from scservo_sdk import PortHandler, protocol_packet_handler
 from scservo_sdk.scservo_def import (
     BROADCAST_ID,
     INST_ACTION,
@@ -36,7 +36,7 @@ from scservo_sdk.scservo_def import (
     SCS_SETEND,
 )
 
-from jaxinertia.hardware.transport import LockedPort
+from jaxinertia.hardware.transport import LockedPort, Matching
 
 __all__ = ["LockedScsPortHandler", "StsMatchingPacketHandler", "expected_answers"]
 
@@ -66,30 +66,16 @@ def expected_answers(txpacket) -> dict[int, int] | None:
     return None
 
 
-class StsMatchingPacketHandler(protocol_packet_handler):
+class StsMatchingPacketHandler(Matching, protocol_packet_handler):
     """STS packet handler (little-endian registers) that accepts only the status packets
-    its last request is answered with (module docstring). ``stale_packets`` counts the
-    others."""
+    its last request is answered with (module docstring; :class:`Matching`)."""
+
+    expected_answers = staticmethod(expected_answers)
+    id_offset = _ID
 
     def __init__(self) -> None:
         SCS_SETEND(0)  # what PacketHandler(0) does: STS byte order (a global of the SDK)
-        self._expected: dict[int, int] | None = None
-        self.stale_packets = 0
+        super().__init__()
 
-    def txPacket(self, port, txpacket):  # noqa: N802 (the SDK's name)
-        self._expected = expected_answers(txpacket)
-        return super().txPacket(port, txpacket)
-
-    def _matches(self, rxpacket) -> bool:
-        expected = self._expected
-        if expected is None:
-            return True
-        want = expected.get(rxpacket[_ID])
-        return want is not None and rxpacket[_LEN] - 2 == want
-
-    def rxPacket(self, port):  # noqa: N802
-        while True:
-            rxpacket, result = super().rxPacket(port)
-            if result != COMM_SUCCESS or self._matches(rxpacket):
-                return rxpacket, result
-            self.stale_packets += 1  # a late answer to an earlier request: keep reading
+    def _answers(self, rxpacket, n_params: int) -> bool:
+        return rxpacket[_LEN] - 2 == n_params
