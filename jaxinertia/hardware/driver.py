@@ -74,8 +74,7 @@ class HardwareError(errors.HardwareError):
 
     def __init__(self, errors: dict[int, int]) -> None:
         self.errors = errors
-        names = self.bit_names
-        text = "; ".join(f"ID {i}: " + ", ".join(n for b, n in names.items() if e & b)
+        text = "; ".join(f"ID {i}: " + ", ".join(n for b, n in self.bit_names.items() if e & b)
                          for i, e in errors.items())
         super().__init__(f"hardware error: {text} (power-cycle or reboot the servo)")
 
@@ -126,9 +125,7 @@ class DynamixelArm:
     """The joint servos of one arm. Use as a context manager: ``connect`` and ``configure``
     on entry; on exit (also on an exception or Ctrl-C) :meth:`stop`, then the port closes."""
 
-    #: What differs in another servo family's driver (:class:`hardware.feetech.FeetechArm`):
-    #: its model, its SDK's sync read, the status error bits that refuse an instruction (Protocol
-    #: 2.0's error number), the register and error class of a servo's hardware errors.
+    #: What another servo family's driver (hardware.feetech) changes.
     model = (ct.XM430_W350_MODEL, "XM430-W350")  # what a ping must return, its name
     sync_read_class = GroupSyncRead
     refused_bits = 0x7F
@@ -378,15 +375,22 @@ class DynamixelArm:
     def command(self, q_goal: np.ndarray) -> None:
         """Checks, then writes Goal Position of every joint in one GroupSyncWrite."""
         self.check_goal(q_goal)
+        self._write_goals(ct.rad_to_ticks(q_goal))
+
+    def _goal_group(self, ticks) -> GroupSyncWrite:
         item = ct.ITEMS["goal_position"]
         group = GroupSyncWrite(self.port, self.packet, item.address, item.size)
-        for dxl_id, t in zip(self.config.joint_ids, ct.rad_to_ticks(q_goal)):
+        for dxl_id, t in zip(self.config.joint_ids, ticks):
             group.addParam(dxl_id, ct.to_unsigned(int(t), 4).to_bytes(4, "little"))
+        return group
+
+    def _write_goals(self, ticks) -> None:
+        """Goal Position ``ticks`` (N,): one sync write (no reply; only a tx failure shows)."""
         try:
-            result = group.txPacket()
+            result = self._goal_group(ticks).txPacket()
         except BUS_ERRORS as e:
             raise CommError(f"sync write goal: {e}") from e
-        if result != COMM_SUCCESS:  # a sync write has no reply: only a tx failure shows
+        if result != COMM_SUCCESS:
             raise CommError(f"sync write goal: {self.packet.getTxRxResult(result)}")
 
     def wait_until_settled(self) -> tuple[ArmState, bool, float]:
@@ -442,8 +446,4 @@ class DynamixelArm:
                 pass
 
     def _hold(self, state: ArmState) -> None:
-        item = ct.ITEMS["goal_position"]
-        group = GroupSyncWrite(self.port, self.packet, item.address, item.size)
-        for dxl_id, t in zip(self.config.joint_ids, state.ticks):
-            group.addParam(dxl_id, ct.to_unsigned(int(t), 4).to_bytes(4, "little"))
-        group.txPacket()
+        self._write_goals(state.ticks)  # (a failure: stop() turns the torque off)

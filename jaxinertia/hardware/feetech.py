@@ -31,12 +31,11 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scservo_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite
+from scservo_sdk import GroupSyncRead, GroupSyncWrite
 
 from jaxinertia.arm import Arm, MotionTiming
 from jaxinertia.hardware import feetech_table as ft
 from jaxinertia.hardware.driver import (
-    BUS_ERRORS,
     ArmConfig,
     ArmState,
     CommError,
@@ -133,17 +132,12 @@ class FeetechArm(DynamixelArm):
                 raise CommError(f"ID {dxl_id}: {name} reads {got} after writing {int(v)} "
                                 "(EEPROM locked?)")
 
-    def _write_goals(self, ticks) -> None:
+    def _goal_group(self, ticks) -> GroupSyncWrite:
         item = ft.ITEMS["goal_position"]
         group = GroupSyncWrite(self.port, self.packet, item.address, item.size)
         for dxl_id, t in zip(self.config.joint_ids, ticks):
             group.addParam(dxl_id, list(ft.encode(item, int(t)).to_bytes(2, "little")))
-        try:
-            result = group.txPacket()
-        except BUS_ERRORS as e:
-            raise CommError(f"sync write goal: {e}") from e
-        if result != COMM_SUCCESS:  # a sync write has no reply: only a tx failure shows
-            raise CommError(f"sync write goal: {self.packet.getTxRxResult(result)}")
+        return group
 
     # ---- lifecycle ---------------------------------------------------------------------
 
@@ -206,11 +200,3 @@ class FeetechArm(DynamixelArm):
             voltage=field_of("present_voltage") * ft.VOLTAGE_LSB,
             ticks=ticks, servo_clock=int(time.monotonic() * 1000.0) % 32768, timestamp=t,
             load=field_of("present_load") * ft.LOAD_LSB)
-
-    def command(self, q_goal: np.ndarray) -> None:
-        """Checks, then writes Goal Position of every joint in one sync write."""
-        self.check_goal(q_goal)
-        self._write_goals(ft.rad_to_ticks(q_goal))
-
-    def _hold(self, state: ArmState) -> None:
-        self._write_goals(state.ticks)

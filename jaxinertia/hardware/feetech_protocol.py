@@ -20,6 +20,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
+from jaxinertia.hardware.protocol import PacketParser
+
 __all__ = ["BROADCAST_ID", "Instruction", "Packet", "StsPacketParser", "checksum",
            "encode_packet"]
 
@@ -57,34 +59,20 @@ class Packet:
     checksum_ok: bool
 
 
-class StsPacketParser:
-    """Incremental parser of a byte stream into instruction packets (a servo's receiver).
+class StsPacketParser(PacketParser):
+    """Incremental parser of a byte stream into instruction packets (a servo's receiver;
+    :class:`jaxinertia.hardware.protocol.PacketParser` with this framing).
 
     Bytes before a header are discarded; a packet whose checksum fails is returned with
     ``checksum_ok=False`` (a servo then stays silent); an impossible ID or length drops one
     byte and resynchronises."""
 
-    def __init__(self) -> None:
-        self._buf = bytearray()
+    header = b"\xff\xff"
+    head_size = 4
 
-    def feed(self, data: bytes) -> list[Packet]:
-        self._buf.extend(data)
-        packets = []
-        while True:
-            start = self._buf.find(b"\xff\xff")
-            if start < 0:
-                del self._buf[: max(0, len(self._buf) - 1)]  # a possible first FF
-                return packets
-            del self._buf[:start]
-            if len(self._buf) < 4:
-                return packets
-            scs_id, length = self._buf[2], self._buf[3]
-            if scs_id == 0xFF or length < 2 or length > MAX_LENGTH:
-                del self._buf[:1]
-                continue
-            total = 4 + length
-            if len(self._buf) < total:
-                return packets
-            raw = bytes(self._buf[:total])
-            del self._buf[:total]
-            packets.append(Packet(scs_id, raw[4], raw[5:-1], checksum(raw[2:-1]) == raw[-1]))
+    def _total(self, buf: bytearray) -> int | None:
+        scs_id, length = buf[2], buf[3]
+        return None if scs_id == 0xFF or length < 2 or length > MAX_LENGTH else 4 + length
+
+    def _packet(self, raw: bytes) -> Packet:
+        return Packet(raw[2], raw[4], raw[5:-1], checksum(raw[2:-1]) == raw[-1])
