@@ -26,7 +26,7 @@ from jaxinertia.virtual.testing import VirtualRobotProcess
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
                                 reason="the virtual servo bus needs a Linux pseudo-terminal")
 
-N = 5
+N = 4
 FAULTS = ["--drop-rate", "0.003", "--corrupt-rate", "0.003", "--delay-rate", "0.003",
           "--delay-ms", "50", "--fault-seed", "2"]
 

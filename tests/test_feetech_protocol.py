@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scservo_sdk import protocol_packet_handler as sdk_handler
+from scservo_sdk import scservo_def as sdk
 from scservo_sdk.scservo_def import SCS_TOHOST, SCS_TOSCS
 
 from jaxinertia.hardware import feetech_table as ft
@@ -106,6 +107,10 @@ def _sdk_bytes(send) -> bytes:
 
 
 def test_framing_matches_the_sdk_and_the_parser_resynchronises():
+    assert [Instruction.PING, Instruction.READ, Instruction.WRITE, Instruction.REG_WRITE,
+            Instruction.ACTION, Instruction.SYNC_READ, Instruction.SYNC_WRITE] == [
+        sdk.INST_PING, sdk.INST_READ, sdk.INST_WRITE, sdk.INST_REG_WRITE, sdk.INST_ACTION,
+        sdk.INST_SYNC_READ, sdk.INST_SYNC_WRITE]
     ping = _sdk_bytes(lambda h, p: h.txPacket(p, [0, 0, 3, 2, Instruction.PING, 0]))
     assert ping == encode_packet(3, Instruction.PING)
     write = _sdk_bytes(lambda h, p: h.writeTxOnly(p, 1, 42, 2, [0x00, 0x08]))

@@ -18,26 +18,16 @@ does with the bytes::
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import IntEnum
 
-from jaxinertia.hardware.protocol import PacketParser
+# The instruction codes and the broadcast ID are DYNAMIXEL's (Protocol 1.0, which the SCS
+# protocol follows); STS uses PING, READ, WRITE, REG_WRITE, ACTION, SYNC_READ, SYNC_WRITE.
+from jaxinertia.hardware.protocol import BROADCAST_ID, Instruction, PacketParser
 
 __all__ = ["BROADCAST_ID", "Instruction", "Packet", "StsPacketParser", "checksum",
            "encode_packet"]
 
-BROADCAST_ID = 0xFE
 #: Largest LEN scservo_sdk sends or accepts (its buffers hold 250 bytes).
 MAX_LENGTH = 250
-
-
-class Instruction(IntEnum):
-    PING = 0x01
-    READ = 0x02
-    WRITE = 0x03
-    REG_WRITE = 0x04
-    ACTION = 0x05
-    SYNC_READ = 0x82
-    SYNC_WRITE = 0x83
 
 
 def checksum(body: bytes) -> int:
