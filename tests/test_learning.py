@@ -15,7 +15,7 @@ from support.synthetic import feature_config as _fc
 from support.synthetic import synthetic_samples as _synthetic
 from support.synthetic import tiny_pair as _tiny_pair
 
-from jaxinertia.app.pipeline import estimate
+from jaxinertia.app.estimate import estimate
 from jaxinertia.app.reproduce import Scale, reproduce
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import load_models, save_models

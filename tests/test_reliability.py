@@ -15,7 +15,7 @@ from support.synthetic import feature_config, synthetic_samples, tiny_pair
 
 from jaxinertia import checkpoints
 from jaxinertia.app.cli import main
-from jaxinertia.app.pipeline import estimate
+from jaxinertia.app.estimate import estimate
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import load_models, save_models
 from jaxinertia.errors import FileFormatError, JaxinertiaError, ModelFolderError, UsageError

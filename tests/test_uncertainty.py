@@ -12,7 +12,7 @@ from support.compiles import compile_counter
 from support.synthetic import feature_config, synthetic_samples, tiny_pair
 
 from jaxinertia.app.cli import main
-from jaxinertia.app.pipeline import estimate
+from jaxinertia.app.estimate import estimate
 from jaxinertia.app.report import coverage_table
 from jaxinertia.app.reproduce import plot_interval_width
 from jaxinertia.baselines import fit_baselines

@@ -38,7 +38,7 @@ def cmd_estimate(args) -> int:
     # The work's modules (JAX): imported when the command runs, not for --help.
     import numpy as np
 
-    from jaxinertia.app.pipeline import estimate  # (as above)
+    from jaxinertia.app.estimate import estimate  # (as above)
 
     res = estimate(args.models, args.samples, set_size=args.set_size, max_mass=args.max_mass,
                    max_com=args.max_com, max_com_se=args.max_com_se)

@@ -14,11 +14,14 @@ collection is not an error: the command says where the journal is and returns 13
 from __future__ import annotations
 
 import argparse
+import gc
+import signal
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from jaxinertia.app import defaults
+from jaxinertia.app.defaults import ARM_NAMES, DEFAULT_ARM
 from jaxinertia.app.options import (
     check_memory,
     finite_float,
@@ -105,30 +108,43 @@ def _check_ids(args, n_joints: int) -> None:
 
 def cmd_virtual_robot(args) -> int:
     # The work's modules (JAX, the simulator): imported when the command runs, not for --help.
-    import gc
-    import signal  # (as above)
 
     import jax  # (as above)
     import numpy as np  # (as above)
 
     from jaxinertia import objects  # (as above)
+    from jaxinertia.app.feetech_commands import is_feetech, virtual_sts_robot  # (as above)
+    from jaxinertia.arms import get_arm  # (as above)
     from jaxinertia.sim.params import default_sim_params  # (as above)
     from jaxinertia.virtual.bus import Faults  # (as above)
     from jaxinertia.virtual.robot import VirtualServoBus  # (as above)
 
     jax.config.update("jax_enable_x64", True)
-    obj = objects.resolve(args.object)
-    params = default_sim_params(args.calibration)
-    _check_ids(args, params.robot.n_joints)
     faults = Faults(drop_rate=args.drop_rate, corrupt_rate=args.corrupt_rate,
                     delay_rate=args.delay_rate, delay_s=args.delay_ms / 1000.0,
                     overload_id=args.overload_id, overload_after=args.overload_after,
                     seed=args.fault_seed)
+    arm = get_arm(args.arm)
+    if is_feetech(arm):  # the arm record names the servo family
+        return virtual_sts_robot(args, arm, faults, _serve)
+    if arm.name != DEFAULT_ARM:
+        raise UsageError(f"--arm {args.arm}: the virtual DYNAMIXEL robot simulates the "
+                         f"{DEFAULT_ARM} only so far")
+    obj = objects.resolve(args.object)
+    params = default_sim_params(args.calibration)
+    _check_ids(args, params.robot.n_joints)
     bus = VirtualServoBus(params, obj, ids=args.ids,
                           extra_ids=() if args.gripper_id is None else (args.gripper_id,),
                           q0=np.radians(args.q0), speed=args.speed, faults=faults,
                           seed=args.seed)
     bus.compile()  # every physics path, so that no reply waits on a compilation
+    return _serve(bus, f"virtual XM430-W350 servos {list(bus.servos)} on {bus.path}, object "
+                       f"{args.object}, {args.speed:g}x real time")
+
+
+def _serve(bus, what: str) -> int:
+    """Starts ``bus``, prints its device path as the first line of stdout and ``what`` on
+    stderr, and serves until SIGTERM or Ctrl-C."""
     # What is alive now lives as long as the process: out of the garbage collector's way,
     # so that a full collection (100-200 ms over all the imported modules) never stalls a
     # reply past the master's ~35 ms timeout.
@@ -136,8 +152,7 @@ def cmd_virtual_robot(args) -> int:
     bus.start()
     # The device path is the first line of stdout: callers wait for it.
     print(bus.path, flush=True)
-    print(f"virtual XM430-W350 servos {list(bus.servos)} on {bus.path}, object "
-          f"{args.object}, {args.speed:g}x real time", file=sys.stderr, flush=True)
+    print(what, file=sys.stderr, flush=True)
 
     def shutdown(signum, frame):  # noqa: ARG001
         bus.stop()
@@ -295,6 +310,9 @@ def register(sub) -> None:
         "and answers there as DYNAMIXEL servos (Protocol 2.0) whose joints are the "
         "simulated OpenMANIPULATOR-X. Runs until SIGTERM or Ctrl-C.",
     )
+    v.add_argument("--arm", default=DEFAULT_ARM, metavar="NAME|FILE",
+                   help=f"the arm: {', '.join(ARM_NAMES)}, or an arm file; Feetech servos "
+                   "(so101) are served by the STS bus model")
     v.add_argument("--object", default="none",
                    help=f"held object: {names} (none: the empty gripper)")
     v.add_argument("--speed", type=positive_float, default=1.0,

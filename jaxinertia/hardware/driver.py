@@ -67,12 +67,14 @@ class PortError(CommError):
 class HardwareError(errors.HardwareError):
     """A servo reported a hardware error (Hardware Error Status, alert bit; exit code 3)."""
 
-    def __init__(self, errors: dict[int, int]) -> None:
-        self.errors = errors
-        names = {ct.HW_ERROR_VOLTAGE: "input voltage", ct.HW_ERROR_OVERHEATING: "overheating",
+    #: The error register's bits (Hardware Error Status, address 70).
+    bit_names = {ct.HW_ERROR_VOLTAGE: "input voltage", ct.HW_ERROR_OVERHEATING: "overheating",
                  ct.HW_ERROR_ENCODER: "encoder", ct.HW_ERROR_ELECTRICAL_SHOCK: "electrical shock",
                  ct.HW_ERROR_OVERLOAD: "overload"}
-        text = "; ".join(f"ID {i}: " + ", ".join(n for b, n in names.items() if e & b)
+
+    def __init__(self, errors: dict[int, int]) -> None:
+        self.errors = errors
+        text = "; ".join(f"ID {i}: " + ", ".join(n for b, n in self.bit_names.items() if e & b)
                          for i, e in errors.items())
         super().__init__(f"hardware error: {text} (power-cycle or reboot the servo)")
 
@@ -123,6 +125,13 @@ class DynamixelArm:
     """The joint servos of one arm. Use as a context manager: ``connect`` and ``configure``
     on entry; on exit (also on an exception or Ctrl-C) :meth:`stop`, then the port closes."""
 
+    #: What another servo family's driver (hardware.feetech) changes.
+    model = (ct.XM430_W350_MODEL, "XM430-W350")  # what a ping must return, its name
+    sync_read_class = GroupSyncRead
+    refused_bits = 0x7F
+    error_register = "hardware_error_status"
+    hardware_error = HardwareError
+
     def __init__(self, config: ArmConfig, *, robot: Robot | None = None,
                  safety: SafetyLimits | None = None) -> None:
         self.config = config
@@ -171,7 +180,7 @@ class DynamixelArm:
                 self._failed()
             else:
                 self.most_attempts = max(self.most_attempts, attempt)
-                if error & 0x7F:
+                if error & self.refused_bits:
                     raise CommError(f"{what}: {self.packet.getRxPacketError(error)}")
                 return value, error
         raise CommError(f"{what}: {self.packet.getTxRxResult(result)} "
@@ -200,7 +209,7 @@ class DynamixelArm:
             self._write(dxl_id, name, int(v))
 
     def _sync_read(self, address: int, length: int) -> dict[int, bytes]:
-        group = GroupSyncRead(self.port, self.packet, address, length)
+        group = self.sync_read_class(self.port, self.packet, address, length)
         for dxl_id in self.config.joint_ids:
             group.addParam(dxl_id)
         self._retry(f"sync read {address}+{length}", lambda: (None, group.txRxPacket(), 0))
@@ -238,9 +247,9 @@ class DynamixelArm:
         for dxl_id in ids:
             model, _ = self._retry(f"ping ID {dxl_id}",
                                    lambda i=dxl_id: self.packet.ping(self.port, i))
-            if model != ct.XM430_W350_MODEL:
-                raise CommError(f"ID {dxl_id} is model {model}, expected XM430-W350 "
-                                f"({ct.XM430_W350_MODEL})")
+            if model != self.model[0]:
+                raise CommError(f"ID {dxl_id} is model {model}, expected {self.model[1]} "
+                                f"({self.model[0]})")
         try:
             self.check_hardware_errors()
         except HardwareError as e:
@@ -330,11 +339,11 @@ class DynamixelArm:
         self._drain()
         confirmed = {}
         for dxl_id in sorted(ids):
-            value = self._read(dxl_id, "hardware_error_status")
+            value = self._read(dxl_id, self.error_register)
             if value:
                 confirmed[dxl_id] = value
         if confirmed:
-            raise HardwareError(confirmed)
+            raise self.hardware_error(confirmed)
         self.unconfirmed_alarms += 1
 
     def read_state(self) -> ArmState:
@@ -366,15 +375,22 @@ class DynamixelArm:
     def command(self, q_goal: np.ndarray) -> None:
         """Checks, then writes Goal Position of every joint in one GroupSyncWrite."""
         self.check_goal(q_goal)
+        self._write_goals(ct.rad_to_ticks(q_goal))
+
+    def _goal_group(self, ticks) -> GroupSyncWrite:
         item = ct.ITEMS["goal_position"]
         group = GroupSyncWrite(self.port, self.packet, item.address, item.size)
-        for dxl_id, t in zip(self.config.joint_ids, ct.rad_to_ticks(q_goal)):
+        for dxl_id, t in zip(self.config.joint_ids, ticks):
             group.addParam(dxl_id, ct.to_unsigned(int(t), 4).to_bytes(4, "little"))
+        return group
+
+    def _write_goals(self, ticks) -> None:
+        """Goal Position ``ticks`` (N,): one sync write (no reply; only a tx failure shows)."""
         try:
-            result = group.txPacket()
+            result = self._goal_group(ticks).txPacket()
         except BUS_ERRORS as e:
             raise CommError(f"sync write goal: {e}") from e
-        if result != COMM_SUCCESS:  # a sync write has no reply: only a tx failure shows
+        if result != COMM_SUCCESS:
             raise CommError(f"sync write goal: {self.packet.getTxRxResult(result)}")
 
     def wait_until_settled(self) -> tuple[ArmState, bool, float]:
@@ -430,8 +446,4 @@ class DynamixelArm:
                 pass
 
     def _hold(self, state: ArmState) -> None:
-        item = ct.ITEMS["goal_position"]
-        group = GroupSyncWrite(self.port, self.packet, item.address, item.size)
-        for dxl_id, t in zip(self.config.joint_ids, state.ticks):
-            group.addParam(dxl_id, ct.to_unsigned(int(t), 4).to_bytes(4, "little"))
-        group.txPacket()
+        self._write_goals(state.ticks)  # (a failure: stop() turns the torque off)

@@ -146,30 +146,42 @@ class PacketParser:
     dropped by resynchronising on the next header.
     """
 
+    #: What a subclass for another framing changes: the header, the bytes that must be
+    #: in hand to know a packet's size (``_total``) and what a packet is (``_packet``).
+    header = HEADER
+    head_size = 7
+
     def __init__(self) -> None:
         self._buf = bytearray()
+
+    def _total(self, buf: bytearray) -> int | None:
+        """The size of the packet starting ``buf``, or None when it is not a real header."""
+        length = buf[5] | (buf[6] << 8)
+        return None if length < 3 or length > MAX_LENGTH else 7 + length
+
+    def _packet(self, raw: bytes) -> Packet:
+        crc_ok = crc16(raw[:-2]) == (raw[-2] | (raw[-1] << 8))
+        body = remove_stuffing(raw[7:-2])
+        return Packet(raw[4], body[0] if body else -1, body[1:], crc_ok)
 
     def feed(self, data: bytes) -> list[Packet]:
         self._buf.extend(data)
         packets = []
         while True:
-            start = self._buf.find(HEADER)
+            start = self._buf.find(self.header)
             if start < 0:
                 # Keep a possible partial header at the end.
-                del self._buf[: max(0, len(self._buf) - 3)]
+                del self._buf[: max(0, len(self._buf) - (len(self.header) - 1))]
                 return packets
             del self._buf[:start]
-            if len(self._buf) < 7:
+            if len(self._buf) < self.head_size:
                 return packets
-            length = self._buf[5] | (self._buf[6] << 8)
-            if length < 3 or length > MAX_LENGTH:
+            total = self._total(self._buf)
+            if total is None:
                 del self._buf[:1]  # not a real header: resynchronise
                 continue
-            total = 7 + length
             if len(self._buf) < total:
                 return packets
             raw = bytes(self._buf[:total])
             del self._buf[:total]
-            crc_ok = crc16(raw[:-2]) == (raw[-2] | (raw[-1] << 8))
-            body = remove_stuffing(raw[7:-2])
-            packets.append(Packet(raw[4], body[0] if body else -1, body[1:], crc_ok))
+            packets.append(self._packet(raw))

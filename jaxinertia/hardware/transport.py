@@ -48,8 +48,8 @@ from dynamixel_sdk.robotis_def import (
     INST_WRITE,
 )
 
-__all__ = ["STATUS_TIMEOUT_S", "LockedPortHandler", "MatchingPacketHandler", "PortInUse",
-           "drain"]
+__all__ = ["STATUS_TIMEOUT_S", "LockedPort", "LockedPortHandler", "Matching",
+           "MatchingPacketHandler", "PortInUse", "drain"]
 
 # Raw packet offsets (Protocol 2.0): FF FF FD 00 ID LEN_L LEN_H INST [ERR] PARAMS.. CRC_L CRC_H
 _ID, _LEN_L, _LEN_H, _INST, _ERR, _PARAM = 4, 5, 6, 7, 8, 8
@@ -63,10 +63,11 @@ class PortInUse(serial.SerialException):
     """The device is locked by another program (another ``collect``)."""
 
 
-class LockedPortHandler(PortHandler):
-    """dynamixel-sdk's ``PortHandler`` that holds an exclusive lock on the device while
-    open. Raises :class:`PortInUse` when another holder has it, and pyserial's
-    ``SerialException`` (an ``OSError``) when the device cannot be opened."""
+class LockedPort:
+    """A vendor SDK's ``PortHandler`` (dynamixel-sdk's, scservo_sdk's: the same class)
+    that holds an exclusive lock on the device while open. Raises :class:`PortInUse` when
+    another holder has it, and pyserial's ``SerialException`` (an ``OSError``) when the
+    device cannot be opened. A mixin: put it before the SDK's class."""
 
     def setupPort(self, cflag_baud):  # noqa: N802 (the SDK's name)
         if self.is_open:
@@ -100,6 +101,10 @@ class LockedPortHandler(PortHandler):
         return self.ser.read(length)
 
 
+class LockedPortHandler(LockedPort, PortHandler):
+    """dynamixel-sdk's ``PortHandler``, locked (:class:`LockedPort`)."""
+
+
 def _word(lo: int, hi: int) -> int:
     return lo | (hi << 8)
 
@@ -128,9 +133,15 @@ def expected_answers(txpacket) -> dict[int, int] | None:
     return None
 
 
-class MatchingPacketHandler(Protocol2PacketHandler):
-    """Protocol 2.0 packet handler that accepts only the status packets its last request
-    is answered with (see the module docstring). ``stale_packets`` counts the others."""
+class Matching:
+    """A vendor SDK's packet handler (dynamixel-sdk's, scservo_sdk's) that accepts only the
+    status packets its last request is answered with (see the module docstring);
+    ``stale_packets`` counts the others. A mixin: put it before the SDK's class; a
+    subclass says which answers a request gets (``expected_answers``, a static method)
+    and which packet is one (``_answers``)."""
+
+    expected_answers = staticmethod(lambda txpacket: None)  # None: any packet is taken
+    id_offset = _ID  # of the servo ID in a raw packet
 
     def __init__(self) -> None:
         self._expected: dict[int, int] | None = None
@@ -138,26 +149,38 @@ class MatchingPacketHandler(Protocol2PacketHandler):
 
     def txPacket(self, port, txpacket):  # noqa: N802 (the SDK's name)
         # Before the SDK stuffs the packet in place.
-        self._expected = expected_answers(txpacket)
+        self._expected = self.expected_answers(txpacket)
         return super().txPacket(port, txpacket)
+
+    def _answers(self, rxpacket, n_params: int) -> bool:
+        """Whether ``rxpacket`` is a status packet with ``n_params`` parameters."""
+        raise NotImplementedError
 
     def _matches(self, rxpacket) -> bool:
         expected = self._expected
         if expected is None:
             return True
-        want = expected.get(rxpacket[_ID])
-        if want is None:
-            return False
-        n = _word(rxpacket[_LEN_L], rxpacket[_LEN_H]) - 4  # INST, ERR, CRC
-        # A servo that refuses an instruction (error number set) may answer without data.
-        return n == want or (rxpacket[_ERR] & 0x7F != 0 and n == 0)
+        want = expected.get(rxpacket[self.id_offset])
+        return want is not None and self._answers(rxpacket, want)
 
-    def rxPacket(self, port, fast_option):  # noqa: N802
+    def rxPacket(self, port, *fast_option):  # noqa: N802 (dynamixel-sdk's takes one more)
         while True:
-            rxpacket, result = super().rxPacket(port, fast_option)
-            if result != COMM_SUCCESS or fast_option or self._matches(rxpacket):
+            rxpacket, result = super().rxPacket(port, *fast_option)
+            if result != COMM_SUCCESS or any(fast_option) or self._matches(rxpacket):
                 return rxpacket, result
             self.stale_packets += 1  # a late answer to an earlier request: keep reading
+
+
+class MatchingPacketHandler(Matching, Protocol2PacketHandler):
+    """Protocol 2.0 packet handler that accepts only the status packets its last request
+    is answered with (:class:`Matching`)."""
+
+    expected_answers = staticmethod(expected_answers)
+
+    def _answers(self, rxpacket, n_params: int) -> bool:
+        n = _word(rxpacket[_LEN_L], rxpacket[_LEN_H]) - 4  # INST, ERR, CRC
+        # A servo that refuses an instruction (error number set) may answer without data.
+        return n == n_params or (rxpacket[_ERR] & 0x7F != 0 and n == 0)
 
 
 def drain(port: PortHandler, quiet_s: float = STATUS_TIMEOUT_S, max_s: float = 0.5) -> int:

@@ -137,7 +137,11 @@ class ServoBus:
     answers; the joint servos' motion is a subclass's (:meth:`_goal_changed`,
     :meth:`_held`, :meth:`_loops`). Servo state is shared under ``_lock``; ``tables`` (a
     writable byte buffer of ``TABLE_SIZE`` per servo, in this order) and ``lock`` let
-    another process share them."""
+    another process share them. A subclass may speak another protocol: its servos'
+    memory (``memory_class``), its receiver (``parser_class``) and :meth:`handle`."""
+
+    memory_class = ServoMemory
+    parser_class = PacketParser
 
     def __init__(
         self,
@@ -153,19 +157,22 @@ class ServoBus:
         self.joint_ids = tuple(joint_ids)
         ids = (*joint_ids, *extra_ids)
         views = [None] * len(ids) if tables is None else table_views(tables, len(ids))
-        self.servos = {i: ServoMemory(i, v) for i, v in zip(ids, views, strict=True)}
+        self.servos = {i: self.memory_class(i, v) for i, v in zip(ids, views, strict=True)}
         self.faults = faults
         self._fault_rng = np.random.default_rng(faults.seed)
         self._goal_writes = {i: 0 for i in self.servos}
         self.goal_position_writes = 0  # for tests: Goal Position writes accepted, all servos
-        for mem in self.servos.values():
-            mem.set("present_temperature", temperature)
-            mem.set("present_input_voltage", round(input_voltage / ct.VOLTAGE_LSB))
+        self._set_ambient(temperature, input_voltage)
         self._lock = threading.Lock() if lock is None else lock
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self.master, self._slave, self.path = open_pty()
         self.error: BaseException | None = None
+
+    def _set_ambient(self, temperature: int, input_voltage: float) -> None:
+        for mem in self.servos.values():
+            mem.set("present_temperature", temperature)
+            mem.set("present_input_voltage", round(input_voltage / ct.VOLTAGE_LSB))
 
     # ---- what the joints do (a subclass moves them) -----------------------------------
 
@@ -231,7 +238,7 @@ class ServoBus:
     # ---- bus ---------------------------------------------------------------------------
 
     def _bus_loop(self) -> None:
-        parser = PacketParser()
+        parser = self.parser_class()
         while not self._stop.is_set():
             ready, _, _ = select.select([self.master], [], [], 0.1)
             if not ready:

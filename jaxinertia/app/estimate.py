@@ -1,0 +1,174 @@
+"""``jaxinertia estimate``'s work: the mass and COM of each object in a sample file, by every
+method, with standard errors, intervals and covariance; what no method can answer is
+refused with the reason, never printed as a number."""
+
+from __future__ import annotations
+
+import os
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxinertia.app.pipeline import adapt_objects, objects_at_rest, session_reference
+from jaxinertia.checkpoints import load_models
+from jaxinertia.errors import UsageError
+from jaxinertia.evaluation import choose_sets, evaluate
+from jaxinertia.samples import Samples
+from jaxinertia.uncertainty import (
+    DEFAULT_TORQUE_NOISE_NM,
+    LEVELS,
+    identifiability,
+    intervals,
+    mass_com_covariance,
+    standard_errors,
+    training_validation_error,
+    uncertainty_of,
+)
+
+__all__ = ["estimate"]
+
+
+def _gate(x: np.ndarray, *, max_mass: float, max_com: float) -> str | None:
+    """Why the estimate ``x`` (4,) is no answer, or None when it is physically possible."""
+    if not np.all(np.isfinite(x)):
+        return ("singular least squares: the samples do not determine mass and COM (add "
+                "configurations that vary all joints)")
+    if x[0] <= 0:
+        return f"non-physical mass {x[0] * 1e3:.1f} g"
+    if x[0] > max_mass:
+        return f"mass {x[0] * 1e3:.0f} g above --max-mass {max_mass * 1e3:.0f} g"
+    com = np.linalg.norm(x[1:] / x[0])
+    if com > max_com:
+        return f"COM {com * 1e3:.0f} mm from the tag, beyond --max-com {max_com * 1e3:.0f} mm"
+    return None
+
+
+def _identifiable(obj: Samples, noise: np.ndarray, where: str) -> None:
+    """Refuses samples whose poses cannot determine x = [m, m p] at all (singular load
+    regressor: e.g. every sample at one pose), before any estimate."""
+    ident = identifiability(jnp.asarray(obj.A), jnp.arange(obj.n_samples)[None],
+                            jnp.asarray(noise), jnp.asarray([1.0, 0.0, 0.0, 0.0]))
+    if bool(ident.rank_deficient[0]):
+        n_poses = len(np.unique(np.round(np.asarray(obj.q), 6), axis=0))
+        raise UsageError(f"{where}: no method gives a physically possible estimate: the poses "
+                         f"do not determine mass and COM (load regressor singular; "
+                         f"{n_poses} distinct pose(s) in {obj.n_samples} samples): sample "
+                         "configurations that vary joints 2-4 (jaxinertia plan-poses)")
+
+
+def _uncertainty_fields(u, o: int) -> dict:
+    """One object's answer of one method: standard errors, intervals, covariance."""
+    x, cov = np.asarray(u.x[o, 0]), np.asarray(u.cov[o, 0])
+    se = np.asarray(standard_errors(x, cov))
+    out = {"mass_se_kg": float(se[0]), "com_se_m": se[1:].tolist()}
+    for level in LEVELS:
+        _, lo, hi = (np.asarray(a) for a in intervals(x, cov, level))
+        out[f"interval_{round(level * 100)}"] = {
+            "mass_kg": [float(lo[0]), float(hi[0])],
+            "com_tag_m": np.stack([lo[1:], hi[1:]], axis=-1).tolist()}
+    out.update(covariance_x=cov.tolist(),
+               covariance_mass_com=np.asarray(mass_com_covariance(x, cov)[1]).tolist(),
+               covariance_terms={"noise": np.asarray(u.cov_noise[o, 0]).tolist(),
+                                 "ensemble": np.asarray(u.cov_ensemble[o, 0]).tolist()},
+               torque_error_level_Nm=np.asarray(u.noise_std[o, 0]).tolist())
+    return out
+
+
+def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_size: int = 64,
+             n_sets: int = 200, seed: int = 0, max_mass: float = 5.0,
+             max_com: float = 0.5, max_com_se: float | None = None,
+             session_strength: float | None = None) -> dict:
+    """Mass and COM of each object in a sample file (ground truth, if any, is not used),
+    by every method, with standard errors, intervals and covariance.
+
+    Per object: all its samples in one WLS (the estimate) and ``n_sets`` random sets of
+    ``set_size`` samples for a spread. A method whose estimate is singular or physically
+    impossible (mass not in (0, ``max_mass``], COM farther than ``max_com`` from the tag)
+    is reported as failed, with the reason, never as a number; an object no method can
+    estimate is an error.
+
+    Session (:mod:`jaxinertia.session`): each object's discrepancy is first rescaled per
+    joint by its own current-discrepancy slope against the model folder's (the ratio is in
+    the answer; ``session_strength`` overrides the folder's strength, 0 = off).
+
+    Uncertainty (:mod:`jaxinertia.uncertainty`): residual scatter with a floor at the
+    torque models' validation error (recomputed from the training files the model folder
+    names, when they are still there; else residuals only, said in ``torque_error_floor``)
+    plus the spread over the model pairs. Identifiability: poses whose load regressor is
+    singular are refused before any estimate; with ``max_com_se`` [m], so is an object
+    whose COM the poses alone determine worse than that (predicted standard error at the
+    estimated mass, for the floor's torque error level, else
+    :data:`~jaxinertia.uncertainty.DEFAULT_TORQUE_NOISE_NM`).
+    """
+    objects, meta = objects_at_rest(sample_file, need_truth=False)
+    objects = [o.without_truth() for o in objects]
+    pair, baselines, fc, config = load_models(models, robot=meta.get("robot"))
+    objects, ratios = adapt_objects(objects, session_reference(config, session_strength))
+    floor, floor_source = training_validation_error(pair, fc, config)
+    noise = floor if floor is not None else np.full(objects[0].n_joints,
+                                                    DEFAULT_TORQUE_NOISE_NM)
+    noise_source = ("torque models' validation error" if floor is not None else
+                    f"nominal {DEFAULT_TORQUE_NOISE_NM * 1e3:.0f} N mm per joint")
+    for obj in objects:  # every refusal before any estimate
+        where = f"{sample_file}" + (f" [{obj.name}]" if len(objects) > 1 else "")
+        if obj.n_samples < set_size:
+            raise UsageError(f"{where}: {obj.n_samples} sample(s); an estimate needs at least "
+                             f"one set of --set-size {set_size}")
+        if np.all(obj.q_d == obj.q):
+            raise UsageError(f"{where}: q_d - q is zero on every sample: no discrepancy to "
+                             "read a load from (torque off, or q_d recorded as q?)")
+        _identifiable(obj, noise, where)
+    out: dict = {"file": str(sample_file), "objects": {},
+                 "torque_error_floor": {"Nm": None if floor is None else floor.tolist(),
+                                        "source": floor_source}}
+    for obj, ratio in zip(objects, ratios):
+        all_samples = [np.arange(obj.n_samples)[None]]
+        res = evaluate([obj], all_samples, pair=pair, baselines=baselines, fc=fc,
+                       l_max=[np.nan])
+        unc = uncertainty_of([obj], all_samples, pair=pair, fc=fc, baselines=baselines,
+                             floor=floor)
+        sets, _ = choose_sets([obj], n_sets=n_sets, set_size=set_size, seed=seed)
+        spread = evaluate([obj], sets, pair=pair, baselines=baselines, fc=fc, l_max=[np.nan])
+        methods = {}
+        for m, x_all in res["estimates"].items():
+            x_models = np.asarray(x_all).reshape(-1, 4)  # (K, 4) or (1, 4)
+            x = np.mean(x_models, axis=0)
+            why = _gate(x, max_mass=max_mass, max_com=max_com)
+            if why is not None:
+                methods[m] = {"ok": False, "reason": why}
+                continue
+            xs = np.asarray(spread["estimates"][m]).reshape(-1, 4)
+            good = np.array([_gate(v, max_mass=max_mass, max_com=max_com) is None for v in xs])
+            methods[m] = {
+                "ok": True, "mass_kg": float(x[0]), "com_tag_m": (x[1:] / x[0]).tolist(),
+                **_uncertainty_fields(unc[m], 0),
+                "mass_std_across_models_kg": float(np.std(x_models[:, 0])),
+                f"mass_std_over_{set_size}_sample_sets_kg": float(np.std(xs[good, 0])),
+                f"com_std_over_{set_size}_sample_sets_m":
+                    np.std(xs[good, 1:] / xs[good, :1], axis=0).tolist(),
+                "failed_sets": int(np.sum(~good)), "n_sets": int(len(xs)),
+            }
+        if not any(r["ok"] for r in methods.values()):
+            raise UsageError(f"{sample_file} [{obj.name}]: no method gives a physically possible "
+                             "estimate (" + "; ".join(f"{m}: {r['reason']}"
+                                                      for m, r in methods.items()) + ")")
+        best = next(methods[m] for m in ("T-A", "T", "PE", "Sensor")
+                    if methods.get(m, {}).get("ok"))
+        x_best = np.r_[best["mass_kg"], best["mass_kg"] * np.asarray(best["com_tag_m"])]
+        ident = identifiability(jnp.asarray(obj.A), jnp.asarray(all_samples[0]),
+                                jnp.asarray(noise), jnp.asarray(x_best))
+        pred_se = np.asarray(ident.se[0])
+        out["objects"][obj.name] = {
+            "n_samples": obj.n_samples, "methods": methods, "session_ratio": ratio,
+            "identifiability": {"condition": float(ident.condition[0]),
+                                "predicted_mass_se_kg": float(pred_se[0]),
+                                "predicted_com_se_m": pred_se[1:].tolist(),
+                                "torque_error_Nm": np.asarray(noise).tolist(),
+                                "torque_error_source": noise_source}}
+        if max_com_se is not None and np.max(pred_se[1:]) > max_com_se:
+            raise UsageError(
+                f"{sample_file} [{obj.name}]: the poses determine the COM only to "
+                f"+-{np.max(pred_se[1:]) * 1e3:.1f} mm (predicted standard error at "
+                f"{x_best[0] * 1e3:.0f} g, torque error {noise_source}), above --max-com-se "
+                f"{max_com_se * 1e3:.1f} mm: sample more varied poses (jaxinertia plan-poses)")
+    return out
