@@ -280,7 +280,7 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     results: dict = {"argv": sys.argv, "machine": str(jax.devices()[0])}
     pair, baselines, fc, config = load_models(args.models)
-    floor, why = training_validation_error(pair, fc, config)
+    floor, why = training_validation_error(config)
     results["floor"] = {"Nm": None if floor is None else floor.tolist(), "source": why}
     print(f"torque error floor: {why}: {floor}")
     sim, _ = load_samples(args.sim_test)

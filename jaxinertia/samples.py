@@ -22,6 +22,8 @@ written once.
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
 import os
 from collections.abc import Sequence
@@ -283,15 +285,20 @@ class Samples:
 # ---- files -----------------------------------------------------------------------------
 
 
-def read_npz(path: str | os.PathLike, *, missing_hint: str = "") -> dict[str, np.ndarray]:
-    """Every array of an ``.npz`` file; a missing or unreadable file is a
-    :class:`FileFormatError` naming it."""
+def read_npz(path: str | os.PathLike, *, missing_hint: str = "",
+             digest: dict | None = None) -> dict[str, np.ndarray]:
+    """Every array of an ``.npz`` file, the file read once; a missing or unreadable file is
+    a :class:`FileFormatError` naming it. ``digest``: receives the SHA-256 of the bytes
+    read (``digest["sha256"]``), so that a caller recording the file needs no second read."""
     path = Path(path)
     if not path.exists():
         raise FileFormatError(path, None, "no such file" + (f"; {missing_hint}"
                                                             if missing_hint else ""))
     try:
-        with np.load(path, allow_pickle=False) as z:
+        raw = path.read_bytes()
+        if digest is not None:
+            digest["sha256"] = hashlib.sha256(raw).hexdigest()
+        with np.load(io.BytesIO(raw), allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
     except Exception as e:  # zipfile/pickle/format errors all mean "unreadable"
         raise FileFormatError(path, None, f"not a readable .npz file ({e})") from e
@@ -328,8 +335,12 @@ def load_native(path: str | os.PathLike, *, need_truth: bool = True,
     Samples flagged ``at_rest = False`` (timed out) are dropped unless ``only_at_rest`` is
     False (the continuous run, read without waiting for rest).
     """
-    path = Path(path)
-    fields = read_npz(path)
+    return _native(Path(path), read_npz(path), need_truth=need_truth,
+                   only_at_rest=only_at_rest)
+
+
+def _native(path: Path, fields: dict, *, need_truth: bool,
+            only_at_rest: bool) -> tuple[Samples, dict]:
     if "metadata" not in fields:
         raise FileFormatError(path, "metadata", "missing: not a jaxinertia sample file")
     try:
@@ -403,15 +414,18 @@ def load_lbipe(path: str | os.PathLike, name: str | None = None, *,
 
 def load_samples(path: str | os.PathLike, *, need_truth: bool = True,
                  only_at_rest: bool = True) -> tuple[Samples, dict]:
-    """A sample file of either layout and its metadata (for the authors' layout:
-    ``{"format": "lbipe", "objects": [name]}``)."""
+    """A sample file of either layout, read once, and its metadata (for the authors'
+    layout: ``{"format": "lbipe", "objects": [name]}``), with the SHA-256 of the bytes read
+    under ``"sha256"``."""
     path = Path(path)
-    fields = read_npz(path)
+    digest: dict = {}
+    fields = read_npz(path, digest=digest)
     if "metadata" in fields:
-        return load_native(path, need_truth=need_truth, only_at_rest=only_at_rest)
+        samples, meta = _native(path, fields, need_truth=need_truth, only_at_rest=only_at_rest)
+        return samples, {**meta, **digest}
     if "joint_data" in fields:
         s = _from_lbipe(fields, path, None)
-        return s, {"format": "lbipe", "objects": list(s.names), "source": "lbipe"}
+        return s, {"format": "lbipe", "objects": list(s.names), "source": "lbipe", **digest}
     raise FileFormatError(path, "metadata", "missing: neither a jaxinertia sample file nor "
                           "the authors' layout (joint_data, A, x)")
 

@@ -38,7 +38,6 @@ the others.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from pathlib import Path
 from statistics import NormalDist
 from typing import NamedTuple
 
@@ -47,7 +46,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxinertia.baselines import Baselines
-from jaxinertia.checkpoints import file_sha256
 from jaxinertia.errors import UsageError
 from jaxinertia.estimation import ModelPair, estimate_sets, predict_torques
 from jaxinertia.evaluation import baseline_torques, stack
@@ -59,8 +57,7 @@ from jaxinertia.identification import (
     solve_sets,
     sum_over_sets,
 )
-from jaxinertia.samples import Samples, load_samples
-from jaxinertia.training import per_object_subset, split_validation
+from jaxinertia.samples import Samples
 
 __all__ = [
     "DEFAULT_TORQUE_NOISE_NM",
@@ -336,32 +333,16 @@ def validation_torque_error(pair: ModelPair, fc: FeatureConfig, val: Samples) ->
     return np.sqrt(np.mean(err**2, axis=(0, 1)))
 
 
-def training_validation_error(pair: ModelPair, fc: FeatureConfig, config: dict,
-                              ) -> tuple[np.ndarray | None, str]:
-    """The torque models' validation error per joint (N,) [N m] from a model folder's
-    config: the training files it names (when still there, with the same SHA-256) are read
-    and split as training split them (:func:`jaxinertia.training.split_validation`, the
-    run's ``val_fraction`` and ``seed``). Returns ``(None, why)`` when it cannot."""
-    data, training = config.get("data"), config.get("training") or {}
-    if not data or "val_fraction" not in training or "seed" not in training:
-        return None, "the model folder names no training data (released models?)"
-    parts = []
-    for entry in data:
-        path = Path(str(entry.get("file", "")))
-        if not path.is_file():
-            return None, f"training file {path} is not there"
-        if entry.get("sha256") and file_sha256(path) != entry["sha256"]:
-            return None, f"training file {path} changed since training (SHA-256)"
-        parts.append(load_samples(path)[0])
-    everything = Samples.concatenate(parts)
-    if config.get("samples_per_object") is not None:
-        everything = per_object_subset(everything, config["samples_per_object"],
-                                       training["seed"])
-    _, val = split_validation(everything, training["val_fraction"], training["seed"])
-    if val.n_samples == 0:
-        return None, "the training run kept no validation samples"
-    return (validation_torque_error(pair, fc, val),
-            f"validation split of the training data ({val.n_samples} samples)")
+def training_validation_error(config: dict) -> tuple[np.ndarray | None, str]:
+    """The torque models' validation error per joint (N,) [N m] that training recorded in
+    a model folder's config (``torque_validation_error_Nm``: :func:`validation_torque_error`
+    on the run's own validation split). Returns ``(None, why)`` when there is none."""
+    err = config.get("torque_validation_error_Nm")
+    if err is None:
+        return None, ("the model folder records no validation error (released models, or "
+                      "trained before it was recorded)")
+    n = config.get("samples", {}).get("validation")
+    return np.asarray(err, np.float64), f"validation split of the training data ({n} samples)"
 
 
 # ---- everything for objects and sets ----------------------------------------------------

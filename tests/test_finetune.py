@@ -31,7 +31,7 @@ from jaxinertia.training import (
     torque_predictions,
     train_torque_models,
 )
-from jaxinertia.uncertainty import training_validation_error
+from jaxinertia.uncertainty import training_validation_error, validation_torque_error
 
 # float32 networks evaluated twice the same way: equal up to float32 rounding.
 F32 = {"rtol": 1e-5, "atol": 1e-6}
@@ -147,9 +147,13 @@ def test_finetuning_starts_from_the_folder_keeps_its_scaling_and_improves(folder
     after = np.abs(np.asarray(torque_predictions(pair.torque_model, pair.torque_vars, fc,
                                                  val)) - val.tau).mean()
     assert after < 0.7 * before, (before, after)
-    # The uncertainty floor is recomputed on the same validation samples training kept.
-    floor, why = training_validation_error(pair, fc, config)
+    # The uncertainty floor: the error training measured on the validation samples it kept
+    # (recorded in the folder, not recomputed from the files).
+    floor, why = training_validation_error(config)
     assert floor is not None and f"({config['samples']['validation']} samples)" in why
+    ratio = np.asarray(config["data"][0]["session_ratio"])  # the file as training read it
+    val_read = val.replace(q_d=val.q + (val.q_d - val.q) * ratio)
+    np.testing.assert_allclose(floor, validation_torque_error(pair, fc, val_read), rtol=1e-5)
 
 
 def _take(path, n):

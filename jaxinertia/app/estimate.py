@@ -104,7 +104,7 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
     objects = [o.without_truth() for o in objects]
     pair, baselines, fc, config = load_models(models, robot=meta.get("robot"))
     objects, ratios = adapt_objects(objects, session_reference(config, session_strength))
-    floor, floor_source = training_validation_error(pair, fc, config)
+    floor, floor_source = training_validation_error(config)
     noise = floor if floor is not None else np.full(objects[0].n_joints,
                                                     DEFAULT_TORQUE_NOISE_NM)
     noise_source = ("torque models' validation error" if floor is not None else

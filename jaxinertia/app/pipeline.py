@@ -20,7 +20,7 @@ import jax
 import numpy as np
 
 from jaxinertia.baselines import fit_baselines
-from jaxinertia.checkpoints import file_sha256, load_models, save_models
+from jaxinertia.checkpoints import load_models, save_models
 from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.estimation import ModelPair
 from jaxinertia.evaluation import choose_sets, evaluate, l_max_of
@@ -45,6 +45,7 @@ from jaxinertia.training import (
     train_attention_models,
     train_torque_models,
 )
+from jaxinertia.uncertainty import validation_torque_error
 
 __all__ = ["RealData", "adapt_objects", "copy_models", "evaluate_models", "objects_at_rest",
            "evaluate_samples", "load_real", "released_benchmark", "session_reference",
@@ -73,11 +74,7 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
     evaluation and estimation read every file in it.
     """
     check_output(out, overwrite=overwrite, folder=True)
-    parts, metas = [], []
-    for f in sample_files:
-        d, meta = load_samples(f)
-        parts.append(d)
-        metas.append(meta)
+    parts, metas = zip(*(load_samples(f) for f in sample_files))  # each file read once
     # The authors' layout records no robot: it is taken to be the native files' one.
     robots = {m.get("robot") for m in metas} - {None}
     if len(robots) > 1:
@@ -90,23 +87,8 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
         cfg = cfg.replace(n_models=pair0.n_models,
                           torque_model=torque_model_kind(pair0.torque_model))
         start = (pair0, fc0, config0)
-    # Each file is one recording session, read in the reference session as strongly as
-    # cfg.session_strength says: a real file in the models' reference (``session``, else
-    # the init folder's, else the data's own), a simulated one in the simulator's own (the
-    # pooled simulated files: the calibration that made them stands for the reference).
-    strength = float(cfg.session_strength)
-    simulated = [m.get("source") == "simulator" for m in metas]
-    sim_ref = (SessionReference(servo_session([p for p, s in zip(parts, simulated) if s])
-                                .current_gain, strength) if any(simulated) else None)
-    reference = None if start is None else session_reference(start[2], strength)
-    if session is not None:
-        reference = SessionReference(session.current_gain, strength)
-    if reference is None:
-        reference = sim_ref or SessionReference(servo_session(parts).current_gain, strength)
-    ratios = []
-    for i, (p, sim) in enumerate(zip(parts, simulated)):
-        parts[i], ratio = adapt(p, sim_ref if sim else reference)
-        ratios.append(ratio.tolist())
+    parts, reference, ratios = _sessions_read(parts, metas, float(cfg.session_strength),
+                                              None if start is None else start[2], session)
     data = Samples.concatenate(parts)
     if samples_per_object is not None:
         data = per_object_subset(data, samples_per_object, cfg.seed)
@@ -135,7 +117,7 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
                      torque_model=torque.model, attention_model=attention.model)
     info = {
         "training": cfg.to_dict(),
-        "data": [{"file": str(Path(f).resolve()), "sha256": file_sha256(f),
+        "data": [{"file": str(Path(f).resolve()), "sha256": m["sha256"],
                   "objects": m.get("objects"), "scenario": m.get("scenario"),
                   "seed": m.get("seed"), "source": m.get("source"),
                   "session_ratio": r}
@@ -144,6 +126,9 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
         "samples_per_object": samples_per_object,
         "simulator": metas[0].get("simulator") or (start[2].get("simulator") if start else None),
         "samples": {"train": train_set.n_samples, "validation": val_set.n_samples},
+        # What the uncertainty's floor needs: the torque models' error on this run's own
+        # validation split (per joint, RMS over the pairs) [N m].
+        "torque_validation_error_Nm": validation_torque_error(pair, fc, val_set).tolist(),
         "best_epoch": {"torque": torque.best_epoch.tolist(),
                        "attention": attention.best_epoch.tolist()},
         "history": {"torque": torque.history.tolist(), "attention": attention.history.tolist()},
@@ -155,6 +140,25 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
                                    "training": start[2].get("training")}
     save_models(out, pair, baselines, fc, robot=robot, extra=info)  # atomic
     return info
+
+
+def _sessions_read(parts, metas, strength: float, init_config: dict | None,
+                   session: ServoSession | None):
+    """Each file is one recording session, read in the reference session as strongly as
+    ``strength`` says: a real file in the models' reference (``session``, else the init
+    folder's, else the data's own), a simulated one in the simulator's own (the pooled
+    simulated files: the calibration that made them stands for the reference). Returns the
+    files' records, the reference and each file's per-joint ratio."""
+    simulated = [m.get("source") == "simulator" for m in metas]
+    sim_ref = (SessionReference(servo_session([p for p, s in zip(parts, simulated) if s])
+                                .current_gain, strength) if any(simulated) else None)
+    reference = None if init_config is None else session_reference(init_config, strength)
+    if session is not None:
+        reference = SessionReference(session.current_gain, strength)
+    if reference is None:
+        reference = sim_ref or SessionReference(servo_session(parts).current_gain, strength)
+    read = [adapt(p, sim_ref if sim else reference) for p, sim in zip(parts, simulated)]
+    return [r[0] for r in read], reference, [r[1].tolist() for r in read]
 
 
 class RealData(NamedTuple):

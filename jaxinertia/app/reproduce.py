@@ -129,7 +129,7 @@ def _coverage(models: Path, test_file: Path, real: RealData | None, *, n_sets: i
     """Coverage of the trained models' intervals on the simulated test objects (the sets of
     the evaluate stage) and, when there are real files, on them."""
     pair, _, fc, config = load_models(models)
-    floor, why = training_validation_error(pair, fc, config)
+    floor, why = training_validation_error(config)
     reference = session_reference(config)
     data, _ = load_samples(test_file)
     objects, _ = adapt_objects(data.by_object(), reference)
