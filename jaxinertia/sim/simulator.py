@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from jaxinertia.dynamics import bias_forces, mass_matrix
-from jaxinertia.identification import cholesky_solve
+from jaxinertia.linalg import cholesky_solve
 from jaxinertia.robot import Robot
 from jaxinertia.sim.friction import FrictionParams, friction_bound, solve_box_friction
 from jaxinertia.sim.servo import (
