@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxinertia.baselines import fit_pe_law, pe_rows
 from jaxinertia.errors import UsageError
 from jaxinertia.lbipe import find_layout, test_files
 from jaxinertia.objects import HeldObject
@@ -85,12 +86,11 @@ def baseline_statistics(q_d, q, direction, tau, current_tau) -> dict[str, np.nda
                            "current_mae", "tau_max")}
     for j in range(qe.shape[1]):
         one = np.ones(len(qe))
-        X = np.column_stack([qe[:, j], -s[:, j], one])
-        c, *_ = np.linalg.lstsq(X, tau[:, j], rcond=None)
+        c = fit_pe_law(qe[:, j], s[:, j], tau[:, j])
         out["k"].append(c[0])
         out["f"].append(c[1])
         out["c"].append(c[2])
-        out["pe_mae"].append(np.mean(np.abs(X @ c - tau[:, j])))
+        out["pe_mae"].append(np.mean(np.abs(pe_rows(qe[:, j], s[:, j]) @ c - tau[:, j])))
         X = np.column_stack([qe[:, j], -s[:, j], -s[:, j] * np.abs(tau[:, j]), one])
         c, *_ = np.linalg.lstsq(X, tau[:, j], rcond=None)
         out["f0"].append(c[1])
