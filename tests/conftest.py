@@ -186,3 +186,13 @@ def small_lbipe_dir(lbipe_dir, tmp_path_factory) -> Path:
     released weights, for the pipeline tests (test_folds, the tiny end to end): one layout
     for all of them, so that their programs on the real data compile once."""
     return small_layout(lbipe_dir, tmp_path_factory.mktemp("lbipe"))
+
+
+@pytest.fixture(scope="session")
+def stream_programs():
+    """The simulator stream's compiled programs for the tests: the command line's own
+    (``jaxinertia.app.programs``), so that a program compiled by a test that calls the
+    library serves the in-process ``main()`` calls too, and the other way round."""
+    from jaxinertia.app.programs import stream_programs as programs  # noqa: PLC0415 - the app's, at first use
+
+    return programs()

@@ -34,6 +34,7 @@ from jaxinertia.app.pipeline import (
     train,
 )
 from jaxinertia.app.plots import plot_calibration, plot_lbipe_estimates
+from jaxinertia.app.programs import stream_programs
 from jaxinertia.app.report import calibration_report, table1, table2, table3
 from jaxinertia.app.reproduce import reproduce
 from jaxinertia.design import load_plan
@@ -134,7 +135,7 @@ def cmd_simulate(args) -> int:
             raise UsageError(f"--plan {args.plan}: {plan[0].shape[1]} joints per pose; the "
                              f"simulated arm has {params.robot.n_joints}")
     results = sim_run.simulate_scenario(params, args.scenario, n=args.n, objects=args.objects,
-                                        seed=args.seed, plan=plan)
+                                        seed=args.seed, plan=plan, programs=stream_programs())
     for name, (_, r) in results.items():
         bad = int(np.sum(~r["at_rest"]))
         if bad:
@@ -172,7 +173,8 @@ def cmd_calibrate(args) -> int:
     params, info = calibrate_servo_friction(params, args.lbipe_dir, iterations=args.iterations,
                                             seed=args.seed, kinetic_ratio=args.kinetic_ratio,
                                             fit_offset=args.fit_offset, progress=True,
-                                            objects=args.real_objects)
+                                            objects=args.real_objects,
+                                            programs=stream_programs())
     payload = {"robot": "open_manipulator_x", "link_gravity": gravity_info,
                "servo_friction": sim_params.params_to_dict(params),
                "fit": {"iterations": args.iterations, "seed": args.seed,

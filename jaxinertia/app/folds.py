@@ -34,6 +34,7 @@ import jax
 import numpy as np
 
 from jaxinertia.app.pipeline import evaluate_models, load_real, released_benchmark, train
+from jaxinertia.app.programs import stream_programs
 from jaxinertia.app.report import render, table1
 from jaxinertia.app.simdata import simulate_files
 from jaxinertia.fileio import write_text
@@ -101,14 +102,16 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
         params = params.replace(robot=robot)
         params, info = calibrate_servo_friction(
             params, lbipe_dir, iterations=scale.calibration_iterations, seed=seed,
-            fit_offset=True, objects=[fit_on], log=lambda m: None, progress=False)
+            fit_offset=True, objects=[fit_on], log=lambda m: None, progress=False,
+            programs=stream_programs())
         plans = real_plan(params.robot, lbipe_dir, held)
         real_held = {k: np.concatenate([getattr(d, k) for _, _, d in plans])
                      for k in ("q_d", "q", "direction", "tau", "current_tau")}
         st_real = _stats(real_held)
 
         def replay(p, plans=plans):  # the held-out objects' real plans replayed in p
-            sim = simulate_real_plan(p, plans, jax.random.key(seed + 7))
+            sim = simulate_real_plan(p, plans, jax.random.key(seed + 7),
+                                     programs=stream_programs())
             st = _stats({k: v[sim["at_rest"]] for k, v in sim.items()})
             return {k: st[k].tolist() for k in ("k", "c", "pe_mae")}
 
