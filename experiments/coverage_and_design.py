@@ -30,6 +30,7 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
+from jaxinertia import apply_xla_workarounds  # noqa: E402
 from jaxinertia.checkpoints import load_models  # noqa: E402
 from jaxinertia.design import (  # noqa: E402
     DEFAULT_MARGIN_DEG,
@@ -259,6 +260,7 @@ def _print_coverage(title: str, cov: dict) -> None:
 
 
 def main(argv=None) -> int:
+    apply_xla_workarounds()  # XLA:CPU settings, before JAX starts its backend
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--models", type=Path, default=Path("runs/demo/models"))
     p.add_argument("--sim-test", type=Path, default=Path("runs/demo/data/test.npz"))

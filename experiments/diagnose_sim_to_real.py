@@ -14,7 +14,7 @@ import argparse
 
 import jax
 
-import jaxinertia  # noqa: F401  (XLA:CPU flags)
+from jaxinertia import apply_xla_workarounds
 
 jax.config.update("jax_enable_x64", True)
 
@@ -31,6 +31,7 @@ def _row(label: str, v) -> str:
 
 
 def main() -> None:
+    apply_xla_workarounds()  # XLA:CPU settings, before JAX starts its backend
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("models")
     ap.add_argument("--lbipe-dir", default=None)

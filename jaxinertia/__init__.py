@@ -4,13 +4,13 @@ The library's main names (see docs/architecture.md for the data flow and each mo
 job)::
 
     from jaxinertia import Samples, load_samples, load_regressor, solve_sets, evaluate
+
+Importing the package has no side effect: a program of one's own that runs the batched
+evaluation on a CPU calls :func:`apply_xla_workarounds` before its first JAX computation
+(the command line does).
 """
 
-from jaxinertia import _xla_workarounds
-
-_xla_workarounds.apply()  # before JAX creates its CPU backend
-
-# ruff: noqa: E402  (the XLA:CPU settings above must come first)
+from jaxinertia._xla_workarounds import apply as apply_xla_workarounds
 from jaxinertia.errors import JaxinertiaError
 from jaxinertia.estimation import ModelPair, estimate_sets
 from jaxinertia.evaluation import evaluate
@@ -36,6 +36,7 @@ __all__ = [
     "Robot",
     "Samples",
     "WLSResult",
+    "apply_xla_workarounds",
     "ee_jacobian",
     "ee_pose",
     "estimate_sets",

@@ -32,7 +32,9 @@ for _flag in ("--xla_cpu_use_fusion_emitters=false", "--xla_llvm_disable_expensi
     if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _flag).strip()
 
-import jaxinertia  # noqa: E402, F401  (applies the XLA:CPU settings before JAX starts)
+from jaxinertia import apply_xla_workarounds  # noqa: E402
+
+apply_xla_workarounds()  # the library's XLA:CPU settings, before JAX starts (and inherited)
 
 jax.config.update("jax_enable_x64", True)
 

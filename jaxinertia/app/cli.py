@@ -14,7 +14,7 @@ import os
 import sys
 from pathlib import Path
 
-from jaxinertia import compilation_cache
+from jaxinertia import _xla_workarounds, compilation_cache
 from jaxinertia.app import commands, estimate_commands, hardware_commands, vision_commands
 from jaxinertia.app.options import Parser
 from jaxinertia.errors import JaxinertiaError
@@ -47,6 +47,7 @@ def _compilation_cache() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    _xla_workarounds.apply()  # before any command starts JAX's backend
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as e:  # --help (0) or a bad option (2, one line printed)

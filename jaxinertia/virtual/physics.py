@@ -47,7 +47,7 @@ from dataclasses import dataclass
 import jax
 import numpy as np
 
-from jaxinertia import compilation_cache
+from jaxinertia import _xla_workarounds, compilation_cache
 from jaxinertia.hardware import control_table as ct
 from jaxinertia.sim.servo import ServoParams, goal_ticks
 from jaxinertia.sim.simulator import SimParams, SimState, step, trapezoid
@@ -283,6 +283,7 @@ def physics_main(spec: PhysicsSpec, tables, goal_writes, lock, events, ready, st
                  parent_pid: int) -> None:
     """Entry of the physics process."""
     try:
+        _xla_workarounds.apply()  # a spawned process: before its JAX backend starts
         jax.config.update("jax_enable_x64", True)
         if spec.cache_dir:
             compilation_cache.enable(spec.cache_dir, spec.cache_max_size)
