@@ -22,7 +22,7 @@ import numpy as np  # noqa: E402
 
 from jaxinertia.baselines import fit_baselines  # noqa: E402
 from jaxinertia.checkpoints import load_models  # noqa: E402
-from jaxinertia.lbipe import default_lbipe_dir, find_layout, test_files  # noqa: E402
+from jaxinertia.lbipe import default_lbipe_dir, find_layout, load_test_files  # noqa: E402
 from jaxinertia.training import torque_predictions  # noqa: E402
 
 
@@ -41,7 +41,7 @@ def main() -> None:
     print("per joint:" + "".join(f"{f'joint {j + 1}':>9}" for j in range(4)))
     print(_row("model folder PE gain [N m/rad]", bl.pe_gain))
     print(_row("model folder PE intercept [N mm]", np.asarray(bl.pe_offset) * 1e3))
-    for r in test_files(layout):
+    for r in load_test_files(layout):
         name = r.name
         real = fit_baselines(r.q_d, r.q, r.direction, r.current_tau, r.tau)
         print(f"{name} ({r.n_samples} real samples)")

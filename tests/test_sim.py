@@ -201,8 +201,8 @@ def stream_case():
     compiled program; what is tested does not depend on the sizes: 10 samples refill 3
     lanes three times over, and on 8 lanes the last two wait for a lane to free."""
     p = default_sim_params()
-    plans = [(objects.test_object("cube"), *random_plan(5, 0), jax.random.key(3)),
-             (objects.test_object("white"), *random_plan(5, 1), jax.random.key(4))]
+    plans = [(objects.paper_object("cube"), *random_plan(5, 0), jax.random.key(3)),
+             (objects.paper_object("white"), *random_plan(5, 1), jax.random.key(4))]
     refs = [jax.tree.map(np.asarray, simulate_samples(
         p, obj, jnp.asarray(q_d), jnp.asarray(d), jax.random.split(key, len(q_d)))._asdict())
         for obj, q_d, d, key in plans]
@@ -256,12 +256,12 @@ def test_the_stream_runs_the_stepping_program_precompiled_before_its_plans():
     with stream.StreamPrograms() as programs:
         p = default_sim_params()
         before = steps_programs()
-        programs.precompile(p, objects.test_object("red"), lanes=3, batch_last=True)
+        programs.precompile(p, objects.paper_object("red"), lanes=3, batch_last=True)
         precompiled = steps_programs() - before
         assert len(precompiled) == 1
         # 9 samples: the sample table (padded to 16) is the other stream tests' one, so that
         # the record program compiled for them serves (the session's compilation cache).
-        out, = run_plans(p, [(objects.test_object("cube"), *random_plan(9, 2),
+        out, = run_plans(p, [(objects.paper_object("cube"), *random_plan(9, 2),
                               jax.random.key(1))],
                          lanes=3, tail_lanes=0, batch_last=True, programs=programs,
                          progress=False)
@@ -290,7 +290,7 @@ def test_a_failed_compilation_leaves_the_other_stream_programs_usable():
 
     p, stub = default_sim_params(), StubCompiler()
     programs = stream.StreamPrograms(stub)
-    plan = stream.LanePlan(objects.test_object("cube"), *random_plan(9, 2), jax.random.key(1))
+    plan = stream.LanePlan(objects.paper_object("cube"), *random_plan(9, 2), jax.random.key(1))
     args, sizes = stream._assemble(p, [plan], 3, keys=False)
     table, carry = jax.eval_shape(partial(stream._prepare, sizes=sizes, lanes=3), *args)
     first = programs.programs(p, table, carry, 0, 32, True)
@@ -332,7 +332,7 @@ def test_planning_grid_drops_configurations_at_the_mounting_surface():
 def test_bad_plans_and_diverging_integration_name_the_scenario_and_sample(stream_programs):
     params = default_sim_params()
     q, d = random_plan(4, seed=0)
-    cube = objects.test_object("cube")
+    cube = objects.paper_object("cube")
 
     def run(p, qq, dd):
         return run_plan(p, cube, qq, dd, jax.random.key(0), desc="test/cube",
@@ -522,7 +522,7 @@ def test_the_stream_traces_and_compiles_its_programs_once_for_new_data(monkeypat
     lanes_n = 13  # a lane count no other test uses: its programs are new here
 
     def run(seed, names):
-        plans = [(objects.test_object(o), *random_plan(n, seed + i), jax.random.key(seed + i))
+        plans = [(objects.paper_object(o), *random_plan(n, seed + i), jax.random.key(seed + i))
                  for i, (o, n) in enumerate(zip(names, (5, 4)))]
         return run_plans(p, plans, lanes=lanes_n, tail_lanes=0, batch_last=True,
                          programs=stream_programs, progress=False)

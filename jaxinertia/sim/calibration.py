@@ -20,7 +20,7 @@ import numpy as np
 
 from jaxinertia.baselines import fit_pe_law, pe_rows
 from jaxinertia.errors import UsageError
-from jaxinertia.lbipe import find_layout, test_files
+from jaxinertia.lbipe import find_layout, load_test_files
 from jaxinertia.objects import HeldObject
 from jaxinertia.robot import Robot
 from jaxinertia.samples import Samples
@@ -41,7 +41,7 @@ def real_files(lbipe_dir: str | os.PathLike,
                objects: Sequence[str] | None = None) -> list[Samples]:
     """The real test files of ``lbipe_dir`` that a fit may look at: those of ``objects``
     (all when None). Held-out protocol: a fit is judged on the objects it did not see."""
-    data = test_files(find_layout(lbipe_dir))
+    data = load_test_files(find_layout(lbipe_dir))
     if objects is None:
         return data
     have = [d.name for d in data]

@@ -15,7 +15,7 @@ from jaxinertia.objects import (
     TRAINING_LOADS_KG,
     HeldObject,
     load_name,
-    test_object,
+    paper_object,
     training_object,
 )
 from jaxinertia.plans import planning_plan, random_plan
@@ -188,7 +188,7 @@ def _scenario_jobs(scenario: str, n: int | None, objects: list[str] | None, seed
         given = (q_d[reps], d[reps])
     if scenario == "test":
         names = objects or list(TEST_OBJECTS)
-        return [(o, test_object(o), given or random_plan(n or 1000, seed + i))
+        return [(o, paper_object(o), given or random_plan(n or 1000, seed + i))
                 for i, o in enumerate(names)]
     jobs = []  # planning or random
     grid = planning_plan() if scenario == "planning" else None
