@@ -500,13 +500,15 @@ def test_simulate_visits_the_poses_of_a_plan_file(tmp_path, capsys):
     assert not (tmp_path / "x.npz").exists()
 
 
-def test_the_stream_traces_and_compiles_its_programs_once_for_new_data(monkeypatch,
-                                                                      stream_programs):
+def test_the_stream_traces_and_compiles_its_programs_once_for_new_data(monkeypatch):
     """A second stream with new data of the same shapes (other goals, directions, objects
     and keys) reuses every program: the lane step is traced once and nothing compiles
-    again (a recompilation per call would cost seconds on a CPU, more on a GPU)."""
+    again (a recompilation per call would cost seconds on a CPU, more on a GPU). A fresh
+    registry: the record program (whose shapes do not depend on the lanes) may be held by
+    the session's from the other tests; XLA's part comes from the session's cache."""
     traces, submitted = [], []
-    lane_step, submit = lanes.lane_step, stream_programs.compiler.submit
+    programs = stream.StreamPrograms()
+    lane_step, submit = lanes.lane_step, programs.compiler.submit
 
     def counted_step(*args, **kw):  # runs only while a program is traced
         traces.append(kw.get("batch_last", False))
@@ -517,7 +519,7 @@ def test_the_stream_traces_and_compiles_its_programs_once_for_new_data(monkeypat
         return submit(fn, *args, **kw)
 
     monkeypatch.setattr(lanes, "lane_step", counted_step)
-    monkeypatch.setattr(stream_programs.compiler, "submit", counted_submit)
+    monkeypatch.setattr(programs.compiler, "submit", counted_submit)
     p = default_sim_params()
     lanes_n = 13  # a lane count no other test uses: its programs are new here
 
@@ -525,15 +527,16 @@ def test_the_stream_traces_and_compiles_its_programs_once_for_new_data(monkeypat
         plans = [(objects.paper_object(o), *random_plan(n, seed + i), jax.random.key(seed + i))
                  for i, (o, n) in enumerate(zip(names, (5, 4)))]
         return run_plans(p, plans, lanes=lanes_n, tail_lanes=0, batch_last=True,
-                         programs=stream_programs, progress=False)
+                         programs=programs, progress=False)
 
-    prepared = stream._prepare._cache_size()
-    first = run(0, ("cube", "white"))
-    assert traces == [True] and sorted(submitted) == ["finish", "refill", "steps"]
-    assert stream._prepare._cache_size() == prepared + 1
-    second = run(10, ("black", "red"))
-    assert traces == [True], "the lane step was traced again"
-    assert sorted(submitted) == ["finish", "refill", "steps"], "a program compiled again"
-    assert stream._prepare._cache_size() == prepared + 1, "the preparation compiled again"
+    with programs:
+        prepared = stream._prepare._cache_size()
+        first = run(0, ("cube", "white"))
+        assert traces == [True] and sorted(submitted) == ["finish", "refill", "steps"]
+        assert stream._prepare._cache_size() == prepared + 1
+        second = run(10, ("black", "red"))
+        assert traces == [True], "the lane step was traced again"
+        assert sorted(submitted) == ["finish", "refill", "steps"], "a program compiled again"
+        assert stream._prepare._cache_size() == prepared + 1, "the preparation compiled again"
     assert not np.array_equal(first[0]["q"], second[0]["q"])  # the new data were used
     assert all(r["at_rest"].all() for r in first + second)
