@@ -351,15 +351,14 @@ def stream_plans(params: SimParams, plans: list[LanePlan], *, lanes: int | None 
     tail = tail if 0 < tail < lanes and S >= 4 * lanes else 0
     prepare = partial(_prepare, sizes=sizes, lanes=lanes)
     batch_last = batch_last_default() if batch_last is None else bool(batch_last)
-    registry = programs
-    programs = registry.programs(params, *jax.eval_shape(prepare, *args), tail, refill_every,
-                                 batch_last)
+    futures = programs.programs(params, *jax.eval_shape(prepare, *args), tail, refill_every,
+                                batch_last)
     table, carry = prepare(*args)
-    block = _Block(*registry.result(programs["main"]))
+    block = _Block(*programs.result(futures["main"]))
     _log.debug("stream: programs ready after %.3f s", time.perf_counter() - t_start)
     t0 = time.perf_counter()
     with tqdm(total=S, desc=desc, unit="sample", disable=not progress) as bar:
-        done, small = 0, programs["tail"]
+        done, small = 0, futures["tail"]
         while done < S:
             for _ in range(blocks_per_call):  # dispatched asynchronously
                 carry = block.refill(params, table, carry)
@@ -370,9 +369,9 @@ def stream_plans(params: SimParams, plans: list[LanePlan], *, lanes: int | None 
                        time.perf_counter() - t0, done, handed, carry.lanes.idx.shape[0])
             if (small and handed >= S and handed - done <= tail
                     and all(f.done() for f in small)):
-                compact, *programs_small = registry.result(small)
+                compact, *programs_small = programs.result(small)
                 carry, block, small = compact(carry), _Block(*programs_small), None
-    finish, = registry.result([programs["finish"]])
+    finish, = programs.result([futures["finish"]])
     out = jax.tree.map(lambda a: np.asarray(a)[:S], finish(params, table, carry.out))
     _log.debug("stream: recorded after %.3f s", time.perf_counter() - t0)
     bounds = np.cumsum((0,) + sizes)
