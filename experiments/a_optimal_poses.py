@@ -22,6 +22,7 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
+from jaxinertia import apply_xla_workarounds  # noqa: E402
 from jaxinertia.design import information, inner_workspace, regressors, select  # noqa: E402
 from jaxinertia.open_manipulator_x import WORKSPACE_DEG  # noqa: E402
 from jaxinertia.plans import planning_plan  # noqa: E402
@@ -70,6 +71,7 @@ def a_exchange(C: np.ndarray, idx: np.ndarray, L: np.ndarray, max_swaps: int = 5
 
 
 def main(argv=None) -> int:
+    apply_xla_workarounds()  # XLA:CPU settings, before JAX starts its backend
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, default=16)
     ap.add_argument("--margins", type=float, nargs="*", default=[0.0, 10.0, 15.0])

@@ -23,11 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxinertia import apply_xla_workarounds
+
 #: Their ``attn_model_test``'s L_max per object [m].
 L_MAX = {"cube": 69.2820e-3, "white": 75.5513e-3}
 
 
 def main() -> None:
+    apply_xla_workarounds()  # XLA:CPU settings, before JAX starts its backend
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--lbipe-dir", type=Path, required=True)
     ap.add_argument("--train-dir", type=Path, default=Path("runs/bench_authors"))

@@ -28,7 +28,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-import jaxinertia  # noqa: F401  (XLA settings before JAX starts)
+from jaxinertia import apply_xla_workarounds
 
 jax.config.update("jax_enable_x64", True)
 
@@ -75,6 +75,7 @@ def _training_files(data: Path) -> None:
 
 
 def main() -> None:
+    apply_xla_workarounds()  # XLA:CPU settings, before JAX starts its backend
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--lbipe-dir", type=Path, default=None)
     ap.add_argument("--rounds", type=int, default=3)

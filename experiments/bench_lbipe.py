@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import jaxinertia  # noqa: F401  (XLA settings before JAX starts)
+from jaxinertia import apply_xla_workarounds
 
 jax.config.update("jax_enable_x64", True)
 
@@ -58,6 +58,7 @@ def _time_batched(pair, feats, A, tau_g, sets, repeats):
 
 
 def main() -> None:
+    apply_xla_workarounds()  # XLA:CPU settings, before JAX starts its backend
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--lbipe-dir", default=default_lbipe_dir())
     ap.add_argument("--repeats", type=int, default=20)

@@ -26,8 +26,11 @@ import logging  # noqa: E402
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
+from jaxinertia import apply_xla_workarounds  # noqa: E402
+
 
 def main() -> None:
+    apply_xla_workarounds()  # XLA:CPU settings, before JAX starts its backend
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--lanes", type=int, help="default: jaxinertia.sim.stream.default_lanes()")
     ap.add_argument("--tail-lanes", type=int,

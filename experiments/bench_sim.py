@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import jaxinertia  # noqa: F401
+from jaxinertia import apply_xla_workarounds
 
 
 def _timed(fn, *args, repeats=3):
@@ -41,6 +41,7 @@ def _timed(fn, *args, repeats=3):
 
 
 def main() -> None:
+    apply_xla_workarounds()  # XLA:CPU settings, before JAX starts its backend
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--batches", type=int, nargs="+", default=[1024, 8192])
     ap.add_argument("--steps", type=int, default=1000)

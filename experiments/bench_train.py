@@ -19,7 +19,7 @@ import time
 
 import jax
 
-import jaxinertia  # noqa: F401  (XLA:CPU flags)
+from jaxinertia import apply_xla_workarounds
 
 jax.config.update("jax_enable_x64", True)
 
@@ -120,6 +120,7 @@ def torch_version() -> str:
 
 
 def main() -> None:
+    apply_xla_workarounds()  # XLA:CPU settings, before JAX starts its backend
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", help="a native sample file (default: synthetic, paper size)")
     ap.add_argument("--models", type=int, default=10)

@@ -19,7 +19,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-import jaxinertia  # noqa: F401  (XLA settings)
+from jaxinertia import apply_xla_workarounds
 from jaxinertia.app.reproduce import CONTINUOUS_OBJECTS
 from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import continuous_force
@@ -32,6 +32,7 @@ TICK = 2 * np.pi / 4096
 
 
 def main() -> None:
+    apply_xla_workarounds()  # XLA:CPU settings, before JAX starts its backend
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("models", type=Path)
     ap.add_argument("--n", type=int, default=4096)

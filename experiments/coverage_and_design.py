@@ -30,6 +30,7 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
+from jaxinertia import apply_xla_workarounds  # noqa: E402
 from jaxinertia.checkpoints import load_models  # noqa: E402
 from jaxinertia.design import (  # noqa: E402
     DEFAULT_MARGIN_DEG,
@@ -43,7 +44,7 @@ from jaxinertia.estimation import estimate_sets  # noqa: E402
 from jaxinertia.evaluation import choose_sets, evaluate, l_max_of, stack  # noqa: E402
 from jaxinertia.features import LBIPE_FEATURES  # noqa: E402
 from jaxinertia.lbipe import find_layout, golden_path, load_golden, load_released_models  # noqa: E402
-from jaxinertia.lbipe import test_files as real_files  # noqa: E402
+from jaxinertia.lbipe import load_test_files as real_files  # noqa: E402
 from jaxinertia.open_manipulator_x import WORKSPACE_DEG  # noqa: E402
 from jaxinertia.samples import load_samples  # noqa: E402
 from jaxinertia.uncertainty import (  # noqa: E402
@@ -179,7 +180,7 @@ def simulated_plans_section(objects, pair, fc, *, repeats: int, seed: int,
     ``repeats`` random plans of 16 and of 64 poses (uniform in the workspace, as the test
     scenario draws them); Table I metrics over the repeats."""
     from jaxinertia import __version__  # noqa: PLC0415 (the simulator only here)
-    from jaxinertia.objects import test_object  # noqa: PLC0415
+    from jaxinertia.objects import paper_object  # noqa: PLC0415
     from jaxinertia.plans import random_plan  # noqa: PLC0415
     from jaxinertia.samples import Samples  # noqa: PLC0415
     from jaxinertia.sim.params import default_sim_params  # noqa: PLC0415
@@ -207,7 +208,7 @@ def simulated_plans_section(objects, pair, fc, *, repeats: int, seed: int,
             np.tile(weighted.q_d, (r, 1)), np.tile(weighted.direction, (r, 1)))
     jobs = [(k, o.name) for k in designs for o in objects]
     key = jax.random.key(seed)
-    plans = [(test_object(name), *designs[k](repeats), jax.random.fold_in(key, i))
+    plans = [(paper_object(name), *designs[k](repeats), jax.random.fold_in(key, i))
              for i, (k, name) in enumerate(jobs)]
     t = time.perf_counter()
     results = run_plans(params, plans, descs=[f"{k}/{n}" for k, n in jobs], progress=False)
@@ -259,6 +260,7 @@ def _print_coverage(title: str, cov: dict) -> None:
 
 
 def main(argv=None) -> int:
+    apply_xla_workarounds()  # XLA:CPU settings, before JAX starts its backend
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--models", type=Path, default=Path("runs/demo/models"))
     p.add_argument("--sim-test", type=Path, default=Path("runs/demo/data/test.npz"))

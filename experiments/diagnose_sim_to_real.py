@@ -14,7 +14,7 @@ import argparse
 
 import jax
 
-import jaxinertia  # noqa: F401  (XLA:CPU flags)
+from jaxinertia import apply_xla_workarounds
 
 jax.config.update("jax_enable_x64", True)
 
@@ -22,7 +22,7 @@ import numpy as np  # noqa: E402
 
 from jaxinertia.baselines import fit_baselines  # noqa: E402
 from jaxinertia.checkpoints import load_models  # noqa: E402
-from jaxinertia.lbipe import default_lbipe_dir, find_layout, test_files  # noqa: E402
+from jaxinertia.lbipe import default_lbipe_dir, find_layout, load_test_files  # noqa: E402
 from jaxinertia.training import torque_predictions  # noqa: E402
 
 
@@ -31,6 +31,7 @@ def _row(label: str, v) -> str:
 
 
 def main() -> None:
+    apply_xla_workarounds()  # XLA:CPU settings, before JAX starts its backend
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("models")
     ap.add_argument("--lbipe-dir", default=None)
@@ -40,7 +41,7 @@ def main() -> None:
     print("per joint:" + "".join(f"{f'joint {j + 1}':>9}" for j in range(4)))
     print(_row("model folder PE gain [N m/rad]", bl.pe_gain))
     print(_row("model folder PE intercept [N mm]", np.asarray(bl.pe_offset) * 1e3))
-    for r in test_files(layout):
+    for r in load_test_files(layout):
         name = r.name
         real = fit_baselines(r.q_d, r.q, r.direction, r.current_tau, r.tau)
         print(f"{name} ({r.n_samples} real samples)")

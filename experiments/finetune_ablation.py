@@ -20,6 +20,7 @@ import argparse
 import time
 from pathlib import Path
 
+from jaxinertia import apply_xla_workarounds
 from jaxinertia.app.folds import FoldScale, run_folds
 from jaxinertia.app.options import enable_x64
 from jaxinertia.app.pipeline import evaluate_models, load_real, released_benchmark, train
@@ -51,6 +52,7 @@ def _row(fold, held, label, res):
 
 
 def main() -> None:
+    apply_xla_workarounds()  # XLA:CPU settings, before JAX starts its backend
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("folds", type=Path, help="a reproduce run's folds/ folder")
     ap.add_argument("--out", type=Path, default=Path("runs/finetune_ablation"))

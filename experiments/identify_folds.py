@@ -31,8 +31,9 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from jaxinertia import apply_xla_workarounds  # noqa: E402
 from jaxinertia.fileio import write_json  # noqa: E402
-from jaxinertia.lbipe import default_lbipe_dir, find_layout, test_files  # noqa: E402
+from jaxinertia.lbipe import default_lbipe_dir, find_layout, load_test_files  # noqa: E402
 from jaxinertia.sim.calibration import (  # noqa: E402
     baseline_statistics,
     calibrate_servo_friction,
@@ -109,6 +110,7 @@ def train_folds(args) -> None:
 
 
 def main() -> None:
+    apply_xla_workarounds()  # XLA:CPU settings, before JAX starts its backend
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--lbipe-dir", default=None)
     ap.add_argument("--iterations", type=int, default=6)
@@ -123,7 +125,7 @@ def main() -> None:
     if args.train:
         return train_folds(args)
     lbipe = args.lbipe_dir or default_lbipe_dir()
-    names = [d.name for d in test_files(find_layout(lbipe))]
+    names = [d.name for d in load_test_files(find_layout(lbipe))]
     print(f"backend {jax.default_backend()}, real objects {names}")
     out = {"config": vars(args), "folds": {}}
     fmt = lambda v, f="{:+.1f}": " / ".join(f.format(x) for x in v)  # noqa: E731

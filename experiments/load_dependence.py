@@ -30,7 +30,7 @@ import argparse
 import numpy as np
 
 from jaxinertia.fileio import write_json
-from jaxinertia.lbipe import default_lbipe_dir, find_layout, test_files
+from jaxinertia.lbipe import default_lbipe_dir, find_layout, load_test_files
 
 #: Feature families, cumulative: each adds columns to the ones before it.
 FAMILIES = {
@@ -106,7 +106,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
-    files = {d.name: d for d in test_files(find_layout(args.lbipe_dir or default_lbipe_dir()))}
+    files = {d.name: d for d in load_test_files(find_layout(args.lbipe_dir or default_lbipe_dir()))}
     if len(files) < 2:
         raise SystemExit(f"need two real objects, have {sorted(files)}")
     rng = np.random.default_rng(args.seed)

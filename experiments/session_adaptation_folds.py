@@ -18,6 +18,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from jaxinertia import apply_xla_workarounds
 from jaxinertia.app.pipeline import load_real
 from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import METHODS, evaluate
@@ -27,6 +28,7 @@ from jaxinertia.session import SessionReference, adapt, servo_session
 
 
 def main():
+    apply_xla_workarounds()  # XLA:CPU settings, before JAX starts its backend
     jax.config.update("jax_enable_x64", True)
     ap = argparse.ArgumentParser()
     ap.add_argument("run")

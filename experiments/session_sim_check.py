@@ -26,10 +26,11 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from jaxinertia import apply_xla_workarounds
 from jaxinertia.app.pipeline import evaluate_samples, train
 from jaxinertia.app.reproduce import FULL, QUICK
 from jaxinertia.app.simdata import simulate_files
-from jaxinertia.lbipe import default_lbipe_dir, find_layout, test_files
+from jaxinertia.lbipe import default_lbipe_dir, find_layout, load_test_files
 from jaxinertia.session import servo_session
 from jaxinertia.sim.calibration import baseline_statistics
 from jaxinertia.sim.params import default_sim_params
@@ -37,7 +38,7 @@ from jaxinertia.sim.randomize import session_drawn, session_spread
 
 
 def real_spread(lbipe_dir):
-    files = test_files(find_layout(lbipe_dir))
+    files = load_test_files(find_layout(lbipe_dir))
     cur = [servo_session(o).current_gain for o in files]
     tor = [baseline_statistics(o.q_d, o.q, o.direction, o.tau, o.current_tau)["k"]
            for o in files]
@@ -46,6 +47,7 @@ def real_spread(lbipe_dir):
 
 
 def main():
+    apply_xla_workarounds()  # XLA:CPU settings, before JAX starts its backend
     jax.config.update("jax_enable_x64", True)
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", default="runs/session_sim")

@@ -6,14 +6,15 @@ job)::
     from jaxinertia import Samples, load_samples, load_regressor, solve_sets, evaluate
 
 They are imported when first used (PEP 562), not with the package: ``import jaxinertia``
-(and the command line's ``--help``) does not start JAX, flax or optax.
+(and the command line's ``--help``) does not start JAX, flax or optax. Importing the
+package has no side effect: a program of one's own that runs the batched evaluation on a
+CPU calls :func:`apply_xla_workarounds` before its first JAX computation (the command line
+does).
 """
 
 import importlib
 
-from jaxinertia import _xla_workarounds
-
-_xla_workarounds.apply()  # before JAX creates its CPU backend
+from jaxinertia._xla_workarounds import apply as apply_xla_workarounds  # noqa: F401
 
 __version__ = "0.1.0"
 
@@ -33,7 +34,7 @@ _NAMES = {
     "load_regressor": "statics", "tag_pose": "statics",
 }
 
-__all__ = sorted(_NAMES)
+__all__ = sorted([*_NAMES, "apply_xla_workarounds"])
 
 
 def __getattr__(name: str):

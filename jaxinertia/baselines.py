@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-__all__ = ["Baselines", "fit_baselines"]
+__all__ = ["Baselines", "fit_baselines", "fit_pe_law", "pe_rows"]
 
 
 @struct.dataclass
@@ -49,6 +49,20 @@ def _x64() -> bool:
     return bool(jax.config.jax_enable_x64)
 
 
+def pe_rows(q_err, direction) -> np.ndarray:
+    """(S, 3) regressor rows ``[q_d - q, -s, 1]`` of the position-error law of one joint,
+    ``tau = k (q_d - q) - s f + c``, for errors and directions (S,)."""
+    return np.column_stack([q_err, -direction, np.ones(len(q_err))])
+
+
+def fit_pe_law(q_err, direction, tau) -> np.ndarray:
+    """``[k, f, c]`` (3,) of the position-error law ``tau = k (q_d - q) - s f + c`` of one
+    joint, fitted by least squares to errors ``q_err`` [rad], directions and torques
+    ``tau`` [N m] (S,): the PE baseline's gain, friction and offset."""
+    coef, *_ = np.linalg.lstsq(pe_rows(q_err, direction), tau, rcond=None)
+    return coef
+
+
 def fit_baselines(q_d, q, direction, current_tau, tau) -> Baselines:
     """Least-squares fit of both baselines on training samples (S, N) [rad, N m]."""
     q_d, q, s, cur, tau = (np.asarray(a, np.float64) for a in (q_d, q, direction, current_tau,
@@ -58,8 +72,7 @@ def fit_baselines(q_d, q, direction, current_tau, tau) -> Baselines:
     one = np.ones(len(q))
     out: dict[str, list[float]] = {k: [] for k in Baselines.__dataclass_fields__}
     for j in range(q.shape[1]):
-        X = np.column_stack([q_d[:, j] - q[:, j], -s[:, j], one])
-        (P, f, b), *_ = np.linalg.lstsq(X, tau[:, j], rcond=None)
+        P, f, b = fit_pe_law(q_d[:, j] - q[:, j], s[:, j], tau[:, j])
         out["pe_gain"].append(P)
         out["pe_friction"].append(f)
         out["pe_offset"].append(b)

@@ -36,6 +36,7 @@ import numpy as np
 
 from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.fileio import write_text
+from jaxinertia.linalg import gram, logdet_spd
 from jaxinertia.open_manipulator_x import MOUNT_CLEARANCE_M, TAG_IN_EE, WORKSPACE_DEG
 from jaxinertia.plans import planning_plan
 from jaxinertia.robot import Robot, open_manipulator_x
@@ -49,7 +50,6 @@ __all__ = [
     "inner_workspace",
     "information",
     "load_plan",
-    "logdet_spd",
     "plan_poses",
     "random_logdets",
     "regressors",
@@ -67,31 +67,11 @@ PLAN_FORMAT_VERSION = 1
 RIDGE = 1e-8
 
 
-def logdet_spd(G: jnp.ndarray) -> jnp.ndarray:
-    """``log det`` of small symmetric matrices (..., P, P) by an unrolled Cholesky
-    factorisation (one fused kernel over any batch); ``-inf`` where not positive definite."""
-    P = G.shape[-1]
-    L: dict[tuple[int, int], jnp.ndarray] = {}
-    total = jnp.zeros(G.shape[:-2], G.dtype)
-    ok = jnp.ones(G.shape[:-2], bool)
-    for j in range(P):
-        d = G[..., j, j] - sum((L[j, k] ** 2 for k in range(j)), start=0.0)
-        ok = ok & (d > 0)
-        L[j, j] = jnp.sqrt(jnp.where(d > 0, d, 1.0))
-        total = total + jnp.log(L[j, j])
-        for i in range(j + 1, P):
-            off = G[..., i, j] - sum((L[i, k] * L[j, k] for k in range(j)), start=0.0)
-            L[i, j] = off / L[j, j]
-    return jnp.where(ok, 2.0 * total, -jnp.inf)
-
-
 def information(A: jnp.ndarray, joint_weights: jnp.ndarray | None = None) -> jnp.ndarray:
     """Per-sample information ``A_s^T W A_s`` (S, P, P) of regressors A (S, N, P);
     ``joint_weights`` (N,) (None: ones)."""
     A = jnp.asarray(A)
-    w = jnp.ones(A.shape[-2], A.dtype) if joint_weights is None else jnp.asarray(
-        joint_weights, A.dtype)
-    return jnp.einsum("snp,n,snq->spq", A, w, A)
+    return gram(A, None if joint_weights is None else jnp.asarray(joint_weights, A.dtype))
 
 
 def _scaled(C: jnp.ndarray) -> jnp.ndarray:

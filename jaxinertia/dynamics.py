@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from jaxinertia.identification import cholesky_solve
 from jaxinertia.kinematics import Poses, forward_kinematics, joint_axes
+from jaxinertia.linalg import cholesky_solve
 from jaxinertia.robot import Robot
 
 __all__ = ["bias_forces", "euler_step", "forward_dynamics", "inverse_dynamics", "mass_matrix"]

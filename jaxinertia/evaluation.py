@@ -3,7 +3,7 @@
 ``evaluate(objects, sets, pair=..., baselines=...)`` evaluates O objects x K model pairs x B
 sets of M samples: the torque and attention models in one jitted call
 (:func:`jaxinertia.estimation.estimate_sets`), the baselines (Sensor, PE: identity weights)
-in one more (:func:`jaxinertia.identification.solve_sets` vmapped over objects). The same
+in one more (:func:`jaxinertia.identification.identity_solves`). The same
 code serves the released models on the real files, trained models on simulated or real
 objects, the estimate of an unknown object and the switching-load run; each object is a
 :class:`jaxinertia.samples.Samples` of one object. Sets are chosen by :func:`choose_sets`.
@@ -23,7 +23,7 @@ from jaxinertia.baselines import Baselines
 from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.estimation import Estimates, ModelPair, estimate_sets
 from jaxinertia.features import FeatureConfig, featurize
-from jaxinertia.identification import WLSResult, solve_sets
+from jaxinertia.identification import WLSResult, identity_solves
 from jaxinertia.metrics import inertial_metrics, torque_metrics
 from jaxinertia.objects import bounding_box_diagonal
 from jaxinertia.samples import Samples
@@ -135,13 +135,6 @@ def stack(objects: Sequence[Samples], sets: Sequence[np.ndarray],
 # ---- evaluation -------------------------------------------------------------------------
 
 
-@jax.jit
-def _solve_identity(A, y, tau_g, sets) -> WLSResult:
-    """Identity-weight WLS for (O, S, N) torque estimates y."""
-    return jax.vmap(lambda A_o, y_o, g_o, s_o: solve_sets(A_o, y_o - g_o, None, s_o))(
-        A, y.astype(A.dtype), tau_g, sets)
-
-
 def baseline_torques(baselines: Baselines, obj: Samples) -> dict[str, np.ndarray]:
     """(S, N) torques [N m] of the Sensor and PE baselines."""
     s = jnp.asarray(obj.direction)
@@ -189,7 +182,7 @@ def evaluate(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
         for m in ("Sensor", "PE"):
             tau_hat[m] = [p[m] for p in per_obj]
             y = jnp.asarray(np.stack([_pad(t, batch.A.shape[1]) for t in tau_hat[m]]))
-            solves[m] = _solve_identity(batch.A, y, batch.tau_g, batch.sets)
+            solves[m] = identity_solves(batch.A, y, batch.tau_g, batch.sets)
     est: Estimates | None = None
     if pair is not None:
         est = estimate_sets(pair, batch.features, batch.A, batch.tau_g, batch.sets)

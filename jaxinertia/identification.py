@@ -25,12 +25,13 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxinertia.linalg import cholesky_solve, gram_statistics
+
 __all__ = [
-    "cholesky_solve",
     "DEFAULT_MAX_CONDITION",
     "WLSResult",
+    "identity_solves",
     "mass_and_com",
-    "sample_statistics",
     "solve_normal",
     "set_statistics",
     "solve_sets",
@@ -114,34 +115,6 @@ def symmetric_eigvals(S: jnp.ndarray, sweeps: int = 5) -> jnp.ndarray:
     return jnp.stack([a[(i, i)] for i in range(P)], axis=-1)
 
 
-def cholesky_solve(S: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
-    """Solves ``S z = b`` for symmetric positive-definite S (..., P, P), b (..., P).
-
-    For P <= 8 the factorisation and both substitutions are unrolled into elementwise
-    operations (one fused kernel over any batch, differentiable like any jnp code);
-    larger systems go to LAPACK/cuSOLVER.
-    """
-    P = S.shape[-1]
-    if P > 8:
-        L = jnp.linalg.cholesky(S)
-        return jax.scipy.linalg.cho_solve((L, True), b[..., None])[..., 0]
-    L: dict[tuple[int, int], jnp.ndarray] = {}
-    for j in range(P):
-        d = S[..., j, j] - sum((L[j, k] ** 2 for k in range(j)), start=0.0)
-        L[j, j] = jnp.sqrt(d)
-        for i in range(j + 1, P):
-            off = S[..., i, j] - sum((L[i, k] * L[j, k] for k in range(j)), start=0.0)
-            L[i, j] = off / L[j, j]
-    u = []  # L u = b
-    for i in range(P):
-        u.append((b[..., i] - sum((L[i, k] * u[k] for k in range(i)), start=0.0)) / L[i, i])
-    z = [None] * P  # L^T z = u
-    for i in reversed(range(P)):
-        acc = u[i] - sum((L[k, i] * z[k] for k in range(i + 1, P)), start=0.0)
-        z[i] = acc / L[i, i]
-    return jnp.stack(z, axis=-1)
-
-
 def solve_normal(
     G: jnp.ndarray,
     b: jnp.ndarray,
@@ -197,23 +170,12 @@ def wls(
     """
     dtype = jnp.result_type(A, y)
     A, y = A.astype(dtype), y.astype(dtype)
-    Aw = A if w is None else A * jnp.maximum(w.astype(dtype), 0.0)[:, None]
-    yw = y if w is None else y * jnp.maximum(w.astype(dtype), 0.0)
-    return solve_normal(Aw.T @ A, Aw.T @ y, yw @ y, max_condition=max_condition)
+    w = None if w is None else jnp.maximum(w.astype(dtype), 0.0)
+    return solve_normal(*gram_statistics(A, y, w), max_condition=max_condition)
 
 
 #: ``wls`` over a leading batch axis of sets: A (B, R, P), y (B, R), w (B, R).
 wls_batched = jax.vmap(wls, in_axes=(0, 0, 0))
-
-
-def sample_statistics(A: jnp.ndarray, y: jnp.ndarray, w: jnp.ndarray | None = None):
-    """Per-sample Gram statistics: A (S, N, P), y (S, N), w (S, N) | None ->
-    ``(A_s^T W_s A_s (S, P, P), A_s^T W_s y_s (S, P), y_s^T W_s y_s (S,))``."""
-    Aw = A if w is None else A * jnp.maximum(w, 0.0)[..., None]
-    yw = y if w is None else y * jnp.maximum(w, 0.0)
-    G = jnp.einsum("snp,snq->spq", Aw, A)
-    b = jnp.einsum("snp,sn->sp", Aw, y)
-    return G, b, jnp.sum(yw * y, axis=-1)
 
 
 def set_statistics(
@@ -230,8 +192,8 @@ def set_statistics(
     """
     dtype = jnp.result_type(A, y)
     A, y = A.astype(dtype), y.astype(dtype)
-    w = None if w is None else w.astype(dtype)
-    G, b, c = sample_statistics(A, y, w)
+    w = None if w is None else jnp.maximum(w.astype(dtype), 0.0)
+    G, b, c = gram_statistics(A, y, w)
     # Sum only the unique entries of G, and keep G apart from (b, c) so that G stays
     # unbatched under vmap when it does not depend on the batched arguments.
     P = A.shape[-1]
@@ -255,6 +217,16 @@ def solve_sets(
     Returns a :class:`WLSResult` with leading axis B.
     """
     return solve_normal(*set_statistics(A, y, w, sets), max_condition=max_condition)
+
+
+@jax.jit
+def identity_solves(A: jnp.ndarray, tau_hat: jnp.ndarray, tau_g: jnp.ndarray,
+                    sets: jnp.ndarray) -> WLSResult:
+    """Identity-weight WLS of every object's sets (the Sensor and PE baselines): A
+    (O, S, N, P), torque estimates tau_hat and free-motion torques tau_g (O, S, N) [N m],
+    sets (O, B, M). Returns a :class:`WLSResult` with leading axes (O, B)."""
+    return jax.vmap(lambda A_o, y_o, g_o, s_o: solve_sets(A_o, y_o - g_o, None, s_o))(
+        A, tau_hat.astype(A.dtype), tau_g, sets)
 
 
 #: Above this many (sets x samples) entries, sums over sets use a gather instead of the

@@ -35,7 +35,7 @@ __all__ = [
     "golden_path",
     "load_golden",
     "load_released_models",
-    "test_files",
+    "load_test_files",
 ]
 
 GET_IT = (
@@ -86,7 +86,7 @@ def find_layout(root: str | os.PathLike) -> LbipeLayout:
     return LbipeLayout(root, tests, weights, golden if golden.is_dir() else None, prefer)
 
 
-def test_files(layout: LbipeLayout) -> list[Samples]:
+def load_test_files(layout: LbipeLayout) -> list[Samples]:
     """Every ``data/data_test_<name>.npz`` of the layout, read and validated."""
     return [load_lbipe(p, name, missing_hint=GET_IT) for name, p in layout.test_files.items()]
 

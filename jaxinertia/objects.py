@@ -29,7 +29,7 @@ __all__ = [
     "load_name",
     "make_object",
     "resolve",
-    "test_object",
+    "paper_object",
     "training_object",
 ]
 
@@ -89,7 +89,7 @@ def make_object(mass: float, com_tag, *, l_max: float = 0.07, tag_in_ee=None) ->
                       jnp.asarray(R), jnp.asarray(p), jnp.asarray(inertia))
 
 
-def test_object(name: str, *, tag_in_ee=None) -> HeldObject:
+def paper_object(name: str, *, tag_in_ee=None) -> HeldObject:
     """One of :data:`TEST_OBJECTS` by name."""
     t = TEST_OBJECTS[name]
     return make_object(t.mass, t.com_tag, l_max=t.diagonal, tag_in_ee=tag_in_ee)
@@ -122,7 +122,7 @@ def resolve(name: str) -> HeldObject:
     """The object called ``name``: a test object, ``empty`` (or ``none``, ``0g``), or a
     load of N grams written ``Ng``. Raises :class:`UsageError` naming the known ones."""
     if name in TEST_OBJECTS:
-        return test_object(name)
+        return paper_object(name)
     mass = _load_mass(name)
     if mass is not None:
         return training_object(mass)

@@ -45,6 +45,7 @@ from tqdm.auto import tqdm
 from jaxinertia.errors import TrainingError, UsageError
 from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.identification import solve_normal
+from jaxinertia.linalg import gram_statistics
 from jaxinertia.networks import TORQUE_MODELS, AttentionModel, PhysicalTorqueModel, TorqueModel
 from jaxinertia.samples import Samples
 from jaxinertia.sharding import shard
@@ -433,10 +434,7 @@ def attention_loss(weights, A, y, x_true, *, w_mass: float, w_com: float):
     """
     dtype = A.dtype
     w = weights.astype(dtype)
-    G = jnp.einsum("bmnp,bmn,bmnq->bpq", A, w, A)
-    b = jnp.einsum("bmnp,bmn,bmn->bp", A, w, y)
-    c = jnp.einsum("bmn,bmn,bmn->b", y, w, y)
-    res = solve_normal(G, b, c)
+    res = solve_normal(*gram_statistics(A, y, w, rows=2))
     m = x_true[:, 0]
     loaded = m > 0
     m_safe = jnp.where(loaded, m, 1.0)

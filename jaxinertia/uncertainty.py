@@ -52,11 +52,12 @@ from jaxinertia.evaluation import baseline_torques, stack
 from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.identification import (
     DEFAULT_MAX_CONDITION,
-    cholesky_solve,
+    identity_solves,
+    set_statistics,
     solve_normal,
-    solve_sets,
     sum_over_sets,
 )
+from jaxinertia.linalg import cholesky_solve
 from jaxinertia.samples import Samples
 
 __all__ = [
@@ -305,10 +306,7 @@ def identifiability(A: jnp.ndarray, sets: jnp.ndarray, noise: jnp.ndarray,
     error scales as 1/m)."""
     dtype = A.dtype
     w = jnp.broadcast_to(1.0 / jnp.asarray(noise, dtype) ** 2, A.shape[:2])
-    G = jnp.einsum("snp,sn,snq->spq", A, w, A)
-    iu, ju = jnp.triu_indices(A.shape[-1])
-    (G_u,) = sum_over_sets(sets, G[:, iu, ju])
-    G = jnp.zeros(G_u.shape[:-1] + (4, 4), dtype).at[..., iu, ju].set(G_u).at[..., ju, iu].set(G_u)
+    G, _, _ = set_statistics(A, jnp.zeros(A.shape[:2], dtype), w, sets)
     res = solve_normal(G, jnp.zeros(G.shape[:-1], dtype), jnp.zeros(G.shape[:-2], dtype),
                        max_condition=max_condition)
     cov = jnp.where(res.rank_deficient[..., None, None], jnp.nan, _inv_spd(G))
@@ -348,12 +346,6 @@ def training_validation_error(config: dict) -> tuple[np.ndarray | None, str]:
 # ---- everything for objects and sets ----------------------------------------------------
 
 
-@jax.jit
-def _identity_solves(A, y, tau_g, sets):
-    return jax.vmap(lambda A_o, y_o, g_o, s_o: solve_sets(A_o, y_o - g_o, None, s_o))(
-        A, y.astype(A.dtype), tau_g, sets)
-
-
 def uncertainty_of(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
                    pair: ModelPair | None = None, fc: FeatureConfig | None = None,
                    baselines: Baselines | None = None, floor: np.ndarray | None = None,
@@ -373,7 +365,7 @@ def uncertainty_of(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
             tau = jnp.asarray(np.stack([  # padded like stack(): the last sample repeated
                 np.pad(p[m], ((0, batch.A.shape[1] - len(p[m])), (0, 0)), mode="edge")
                 for p in per_obj]))
-            x = _identity_solves(batch.A, tau, batch.tau_g, batch.sets).x
+            x = identity_solves(batch.A, tau, batch.tau_g, batch.sets).x
             out[m] = set_uncertainty(batch.A, batch.tau_g, tau[:, None], None, batch.sets,
                                      x[:, None], none)
     if pair is not None:

@@ -32,7 +32,9 @@ for _flag in ("--xla_cpu_use_fusion_emitters=false", "--xla_llvm_disable_expensi
     if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _flag).strip()
 
-import jaxinertia  # noqa: E402, F401  (applies the XLA:CPU settings before JAX starts)
+from jaxinertia import apply_xla_workarounds  # noqa: E402
+
+apply_xla_workarounds()  # the library's XLA:CPU settings, before JAX starts (and inherited)
 
 jax.config.update("jax_enable_x64", True)
 
@@ -186,3 +188,13 @@ def small_lbipe_dir(lbipe_dir, tmp_path_factory) -> Path:
     released weights, for the pipeline tests (test_folds, the tiny end to end): one layout
     for all of them, so that their programs on the real data compile once."""
     return small_layout(lbipe_dir, tmp_path_factory.mktemp("lbipe"))
+
+
+@pytest.fixture(scope="session")
+def stream_programs():
+    """The simulator stream's compiled programs for the tests: the command line's own
+    (``jaxinertia.app.programs``), so that a program compiled by a test that calls the
+    library serves the in-process ``main()`` calls too, and the other way round."""
+    from jaxinertia.app.programs import stream_programs as programs  # noqa: PLC0415 - the app's, at first use
+
+    return programs()

@@ -5,6 +5,7 @@ simulator, and imports inside functions are rare and say why."""
 from __future__ import annotations
 
 import ast
+import os
 from pathlib import Path
 
 import pytest
@@ -146,3 +147,25 @@ def test_long_modules_state_why(graph):
             if "one module" not in doc.lower():
                 long.append(f"{m}: {text.count(chr(10))} lines")
     assert not long, "long modules without a stated reason ('one module'):\n" + "\n".join(long)
+
+
+def test_importing_the_package_runs_nothing():
+    """``jaxinertia/__init__.py`` only imports and names (no call at module level: the
+    XLA:CPU workaround is applied by the programs that start JAX, not on import)."""
+    tree = ast.parse((PACKAGE / "__init__.py").read_text())
+    calls = [f"line {n.lineno}: {ast.unparse(n)}" for stmt in tree.body for n in ast.walk(stmt)
+             if isinstance(n, ast.Call)]
+    assert not calls, "calls on import:\n" + "\n".join(calls)
+
+
+def test_the_command_line_applies_the_xla_workarounds(monkeypatch, capsys):
+    """``main()`` adds the XLA:CPU workaround to ``XLA_FLAGS`` before any command runs
+    (and so before JAX starts); the processes it starts inherit it."""
+    from jaxinertia._xla_workarounds import _CPU_FLAGS  # noqa: PLC0415 - the package under test
+    from jaxinertia.app.cli import main  # noqa: PLC0415 - this file reads sources otherwise
+
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    monkeypatch.delenv("JAXINERTIA_KEEP_XLA_FLAGS", raising=False)
+    assert main(["--help"]) == 0
+    capsys.readouterr()
+    assert all(f in os.environ["XLA_FLAGS"].split() for f in _CPU_FLAGS), os.environ["XLA_FLAGS"]

@@ -24,10 +24,11 @@ BANDS = {"pe_mae": 0.25, "k": 0.10, "current_mae": 0.25, "mu": 0.30, "tau_max": 
 
 
 @pytest.fixture(scope="module")
-def stats(lbipe_dir):
+def stats(lbipe_dir, stream_programs):
     params = default_sim_params()
     plans = real_plan(params.robot, lbipe_dir)
-    sim = simulate_real_plan(params, plans, jax.random.key(123))  # not the fit's key
+    sim = simulate_real_plan(params, plans, jax.random.key(123),  # not the fit's key
+                             programs=stream_programs)
     real = {k: np.concatenate([getattr(d, k) for _, _, d in plans]) for k in FIELDS}
     assert np.mean(sim["at_rest"]) == 1.0
     return (baseline_statistics(*(real[k] for k in FIELDS)),
@@ -65,10 +66,11 @@ def test_load_friction_slope_matches_real(stats):
     assert abs(sim["mu"][3] - real["mu"][3]) <= 2 * se, (sim["mu"][3], real["mu"][3], se)
 
 
-def test_max_torque_over_the_four_test_objects():
+def test_max_torque_over_the_four_test_objects(stream_programs):
     """The test scenario as the paper ran it (1000 samples per object): a maximum over
     fewer samples is biased low."""
-    res = simulate_scenario(default_sim_params(), "test", n=1000, seed=0, progress=False)
+    res = simulate_scenario(default_sim_params(), "test", n=1000, seed=0,
+                            programs=stream_programs, progress=False)
     assert list(res) == list(TEST_OBJECTS)
     tau_max = np.max([np.max(np.abs(r["tau"][r["at_rest"]]), axis=0)
                       for _, r in res.values()], axis=0)

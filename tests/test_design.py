@@ -17,7 +17,6 @@ from jaxinertia.design import (
     balance_directions,
     information,
     load_plan,
-    logdet_spd,
     plan_poses,
     random_logdets,
     regressors,
@@ -26,6 +25,7 @@ from jaxinertia.design import (
     select_pools,
 )
 from jaxinertia.errors import FileFormatError, UsageError
+from jaxinertia.linalg import logdet_spd
 from jaxinertia.open_manipulator_x import WORKSPACE_DEG
 from jaxinertia.plans import planning_plan, random_plan
 from jaxinertia.robot import OPEN_MANIPULATOR_X_XML, data_path

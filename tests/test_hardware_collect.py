@@ -64,7 +64,7 @@ def reference():
     def run():
         q_d, d = random_plan(N, 0)
         for seed in (1, 2):  # the second: the simulator's own sample-to-sample spread
-            s = simulate_samples(default_sim_params(), objects.test_object(OBJECT), q_d, d,
+            s = simulate_samples(default_sim_params(), objects.paper_object(OBJECT), q_d, d,
                                  jax.random.key(seed))
             out.setdefault("samples", []).append(jax.tree.map(np.asarray, s))
 
@@ -117,7 +117,7 @@ def test_collected_file_loads_like_a_simulated_one(collected):
     steps = fields["current_tau"] / (2.69e-3 * 4.1 / 2.3)
     np.testing.assert_allclose(steps, np.round(steps), atol=TOL["current_steps"],
                                err_msg="current_tau [LSB]")
-    np.testing.assert_allclose(fields["x"][0], np.asarray(objects.test_object(OBJECT).x),
+    np.testing.assert_allclose(fields["x"][0], np.asarray(objects.paper_object(OBJECT).x),
                                err_msg="x")
     # tau = tau_g + A x with A at the measured q and the kinematic tag pose.
     np.testing.assert_allclose(fields["tau"], fields["tau_g"] + fields["A"] @ fields["x"][0],

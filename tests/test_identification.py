@@ -11,7 +11,6 @@ from support.asserts import assert_tree_close
 
 import jaxinertia.identification as ident
 from jaxinertia.identification import (
-    cholesky_solve,
     mass_and_com,
     set_statistics,
     solve_sets,
@@ -19,6 +18,7 @@ from jaxinertia.identification import (
     wls,
     wls_batched,
 )
+from jaxinertia.linalg import cholesky_solve
 from jaxinertia.samples import load_lbipe
 
 # Tolerances, one per reference:

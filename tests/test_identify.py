@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from jaxinertia.errors import UsageError
-from jaxinertia.objects import test_object as paper_object
+from jaxinertia.objects import paper_object
 from jaxinertia.plans import random_plan
 from jaxinertia.samples import Samples
 from jaxinertia.sim.identify import (

@@ -207,11 +207,11 @@ def test_estimate_sets_compiles_once_per_shape():
 
 def test_evaluate_compiles_once_for_new_objects_of_the_same_shapes():
     """The evaluator's two jitted programs, estimate_sets (T, T-A) and the identity-weight
-    solve_sets of the baselines (evaluation._solve_identity, Sensor and PE), compile once
+    solve_sets of the baselines (identification.identity_solves, Sensor and PE), compile once
     for two evaluations of other objects with the same sample and set counts."""
     rng = np.random.default_rng(9)
     pair = _tiny_pair()
-    with compile_counter("estimate_sets", "_solve_identity") as seen:
+    with compile_counter("estimate_sets", "identity_solves") as seen:
         for seed in (10, 11):
             d = _synthetic(np.random.default_rng(seed), n=90, n_obj=2)
             b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.tau)
@@ -219,7 +219,7 @@ def test_evaluate_compiles_once_for_new_objects_of_the_same_shapes():
             sets = [np.stack([rng.choice(o.n_samples, 11, replace=False) for _ in range(5)])
                     for o in objs]
             evaluate(objs, sets, pair=pair, baselines=b, fc=_fc(), l_max=[0.07, 0.08])
-    assert seen.compiles == {"estimate_sets": 1, "_solve_identity": 1}, seen
+    assert seen.compiles == {"estimate_sets": 1, "identity_solves": 1}, seen
 
 
 def test_sliding_windows_and_mean_filter():

@@ -11,7 +11,7 @@ from support.synthetic import synthetic_samples
 from jaxinertia.app.folds import choose_recipe
 from jaxinertia.errors import UsageError
 from jaxinertia.lbipe import find_layout
-from jaxinertia.lbipe import test_files as real_files
+from jaxinertia.lbipe import load_test_files as real_files
 from jaxinertia.session import (
     MAX_RELATIVE_SE,
     RATIO_RANGE,

@@ -6,6 +6,8 @@ import itertools
 import json
 import subprocess
 import sys
+from concurrent.futures import Future
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -138,7 +140,7 @@ def test_a_sample_satisfies_tau_minus_tau_g_equals_A_x(params, rests):
                                    err_msg="servo + friction")
 
 
-def test_simulated_samples_follow_the_lbipe_conventions():
+def test_simulated_samples_follow_the_lbipe_conventions(stream_programs):
     robot = open_manipulator_x().replace(armature=jnp.full(4, 0.01))
     # No constant torque offset: zeros rather than None, so that the parameters have the
     # shipped ones' structure and the stream's programs (default lanes) compiled for the
@@ -151,7 +153,8 @@ def test_simulated_samples_follow_the_lbipe_conventions():
     S = 48
     q_d = rng.uniform(np.asarray(LBIPE_FEATURES.q_min), np.asarray(LBIPE_FEATURES.q_max), (S, 4))
     direction = rng.choice([-1.0, 1.0], (S, 4))
-    s = run_plan(params, obj, q_d, direction, jax.random.key(0), progress=False)
+    s = run_plan(params, obj, q_d, direction, jax.random.key(0), programs=stream_programs,
+                 progress=False)
     assert s["at_rest"].all()
     # Present position in whole ticks, current in 2.69 mA steps (times k_t).
     ticks = s["q"] / RAD_PER_TICK
@@ -198,8 +201,8 @@ def stream_case():
     compiled program; what is tested does not depend on the sizes: 10 samples refill 3
     lanes three times over, and on 8 lanes the last two wait for a lane to free."""
     p = default_sim_params()
-    plans = [(objects.test_object("cube"), *random_plan(5, 0), jax.random.key(3)),
-             (objects.test_object("white"), *random_plan(5, 1), jax.random.key(4))]
+    plans = [(objects.paper_object("cube"), *random_plan(5, 0), jax.random.key(3)),
+             (objects.paper_object("white"), *random_plan(5, 1), jax.random.key(4))]
     refs = [jax.tree.map(np.asarray, simulate_samples(
         p, obj, jnp.asarray(q_d), jnp.asarray(d), jax.random.split(key, len(q_d)))._asdict())
         for obj, q_d, d, key in plans]
@@ -207,7 +210,8 @@ def stream_case():
 
 
 @pytest.mark.parametrize("batch_last", [False, True], ids=["vmap", "batch-last"])
-def test_streamed_lanes_give_the_samples_of_the_plain_vmap(batch_last, stream_case):
+def test_streamed_lanes_give_the_samples_of_the_plain_vmap(batch_last, stream_case,
+                                                          stream_programs):
     """The lane scheduler (lanes refill as samples finish, objects mixed) runs the same
     arithmetic as ``simulate_samples`` (one vmapped protocol per sample) with the same
     per-sample keys, so the samples agree; and they do not depend on the lane count.
@@ -219,8 +223,10 @@ def test_streamed_lanes_give_the_samples_of_the_plain_vmap(batch_last, stream_ca
     1e-12; across lane counts only the state may differ, in its last bits (the compiled
     loops differ with the batch size)."""
     p, plans, refs = stream_case
-    a = run_plans(p, plans, lanes=3, batch_last=batch_last, progress=False)
-    b = run_plans(p, plans, lanes=8, batch_last=batch_last, progress=False)
+    a = run_plans(p, plans, lanes=3, batch_last=batch_last, programs=stream_programs,
+                  progress=False)
+    b = run_plans(p, plans, lanes=8, batch_last=batch_last, programs=stream_programs,
+                  progress=False)
     state = ("q_true", "servo_tau", "friction_tau")
     for ref, got_a, got_b in zip(refs, a, b):
         for k in ref:
@@ -237,28 +243,66 @@ def test_streamed_lanes_give_the_samples_of_the_plain_vmap(batch_last, stream_ca
         assert got_a["at_rest"].all()
 
 
-def test_the_stream_runs_the_stepping_program_precompiled_before_its_plans(monkeypatch):
+def test_the_stream_runs_the_stepping_program_precompiled_before_its_plans():
     """``precompile`` (what ``simulate_scenarios`` calls before building its plans) submits
     the stepping program for the same abstract lanes as the stream builds from real plans:
     the stream then compiles no second one."""
 
     def steps_programs():
-        return {k for k in stream._PROGRAMS if k[0] == "steps"}
+        return {k for k in programs.keys() if k[0] == "steps"}
 
     # A fresh registry: 3 lanes, as in test_streamed_lanes_give_the_samples_of_the_plain_vmap,
     # is new to it here (XLA's part comes from the session's compilation cache).
-    monkeypatch.setattr(stream, "_PROGRAMS", {})
-    p = default_sim_params()
-    before = steps_programs()
-    stream.precompile(p, objects.test_object("red"), lanes=3, batch_last=True)
-    precompiled = steps_programs() - before
-    assert len(precompiled) == 1
-    # 9 samples: the sample table (padded to 16) is the other stream tests' one, so that
-    # the record program compiled for them serves (the session's compilation cache).
-    out, = run_plans(p, [(objects.test_object("cube"), *random_plan(9, 2), jax.random.key(1))],
-                     lanes=3, tail_lanes=0, batch_last=True, progress=False)
-    assert steps_programs() == before | precompiled
-    assert out["at_rest"].all()
+    with stream.StreamPrograms() as programs:
+        p = default_sim_params()
+        before = steps_programs()
+        programs.precompile(p, objects.paper_object("red"), lanes=3, batch_last=True)
+        precompiled = steps_programs() - before
+        assert len(precompiled) == 1
+        # 9 samples: the sample table (padded to 16) is the other stream tests' one, so that
+        # the record program compiled for them serves (the session's compilation cache).
+        out, = run_plans(p, [(objects.paper_object("cube"), *random_plan(9, 2),
+                              jax.random.key(1))],
+                         lanes=3, tail_lanes=0, batch_last=True, programs=programs,
+                         progress=False)
+        assert steps_programs() == before | precompiled
+        assert out["at_rest"].all()
+
+
+def test_a_failed_compilation_leaves_the_other_stream_programs_usable():
+    """A stream program whose compilation fails is forgotten alone: its error reaches the
+    caller, the programs compiled beside it stay held (a later stream does not compile
+    them again) and the failed one is submitted afresh when next needed. (A stand-in
+    compiler: the registry is under test, not XLA; only the preparation is traced.)"""
+
+    class StubCompiler:
+        def __init__(self):
+            self.submitted, self.fail = [], {"finish"}
+
+        def submit(self, fn, *args, untimed=False, **static):  # noqa: ARG002
+            self.submitted.append(fn.__name__)
+            out = Future()
+            if fn.__name__ in self.fail:
+                out.set_exception(RuntimeError(f"{fn.__name__}: the compiler crashed"))
+            else:
+                out.set_result(f"compiled {fn.__name__}")
+            return out
+
+    p, stub = default_sim_params(), StubCompiler()
+    programs = stream.StreamPrograms(stub)
+    plan = stream.LanePlan(objects.paper_object("cube"), *random_plan(9, 2), jax.random.key(1))
+    args, sizes = stream._assemble(p, [plan], 3, keys=False)
+    table, carry = jax.eval_shape(partial(stream._prepare, sizes=sizes, lanes=3), *args)
+    first = programs.programs(p, table, carry, 0, 32, True)
+    assert programs.result(first["main"]) == ("compiled refill", "compiled steps")
+    with pytest.raises(RuntimeError, match="finish: the compiler crashed"):
+        programs.result([first["finish"]])
+    assert sorted(k[0] for k in programs.keys()) == ["refill", "steps"]
+    stub.fail.clear()
+    again = programs.programs(p, table, carry, 0, 32, True)
+    assert again["main"] == first["main"], "a program that compiled was submitted again"
+    assert programs.result(again["main"] + (again["finish"],))[-1] == "compiled finish"
+    assert sorted(stub.submitted) == ["finish", "finish", "refill", "steps"]
 
 
 def test_planning_grid_drops_configurations_at_the_mounting_surface():
@@ -285,13 +329,14 @@ def test_planning_grid_drops_configurations_at_the_mounting_surface():
     assert min(abs(zg - MOUNT_CLEARANCE_M) for zg in z.values()) > 0.002
 
 
-def test_bad_plans_and_diverging_integration_name_the_scenario_and_sample():
+def test_bad_plans_and_diverging_integration_name_the_scenario_and_sample(stream_programs):
     params = default_sim_params()
     q, d = random_plan(4, seed=0)
-    cube = objects.test_object("cube")
+    cube = objects.paper_object("cube")
 
     def run(p, qq, dd):
-        return run_plan(p, cube, qq, dd, jax.random.key(0), desc="test/cube", progress=False)
+        return run_plan(p, cube, qq, dd, jax.random.key(0), desc="test/cube",
+                        programs=stream_programs, progress=False)
 
     outside = q.copy()
     outside[2, 3] = np.radians(150.0)  # joint 4's upper limit is 112.9 deg
@@ -309,13 +354,14 @@ def test_bad_plans_and_diverging_integration_name_the_scenario_and_sample():
         run(params.replace(dt=0.05), q, d)
 
     # An unknown object or scenario is refused before anything is compiled.
-    before = set(stream._PROGRAMS)
+    before = stream_programs.keys()
     with pytest.raises(UsageError, match=r"unknown test object\(s\) \['teapot'\]"):
         simulate_scenarios(params, [ScenarioRequest("random", 4),
-                                    ScenarioRequest("test", 4, ["cube", "teapot"])], lanes=7)
+                                    ScenarioRequest("test", 4, ["cube", "teapot"])], lanes=7,
+                           programs=stream_programs)
     with pytest.raises(UsageError, match="unknown scenario 'grid'"):
-        simulate_scenarios(params, [ScenarioRequest("grid")], lanes=7)
-    assert set(stream._PROGRAMS) == before
+        simulate_scenarios(params, [ScenarioRequest("grid")], lanes=7, programs=stream_programs)
+    assert stream_programs.keys() == before
 
 
 def test_continuous_run_switches_objects_and_keeps_the_statics_of_each():
@@ -457,9 +503,12 @@ def test_simulate_visits_the_poses_of_a_plan_file(tmp_path, capsys):
 def test_the_stream_traces_and_compiles_its_programs_once_for_new_data(monkeypatch):
     """A second stream with new data of the same shapes (other goals, directions, objects
     and keys) reuses every program: the lane step is traced once and nothing compiles
-    again (a recompilation per call would cost seconds on a CPU, more on a GPU)."""
+    again (a recompilation per call would cost seconds on a CPU, more on a GPU). A fresh
+    registry: the record program (whose shapes do not depend on the lanes) may be held by
+    the session's from the other tests; XLA's part comes from the session's cache."""
     traces, submitted = [], []
-    lane_step, submit = lanes.lane_step, stream._COMPILER.submit
+    programs = stream.StreamPrograms()
+    lane_step, submit = lanes.lane_step, programs.compiler.submit
 
     def counted_step(*args, **kw):  # runs only while a program is traced
         traces.append(kw.get("batch_last", False))
@@ -470,23 +519,24 @@ def test_the_stream_traces_and_compiles_its_programs_once_for_new_data(monkeypat
         return submit(fn, *args, **kw)
 
     monkeypatch.setattr(lanes, "lane_step", counted_step)
-    monkeypatch.setattr(stream._COMPILER, "submit", counted_submit)
+    monkeypatch.setattr(programs.compiler, "submit", counted_submit)
     p = default_sim_params()
     lanes_n = 13  # a lane count no other test uses: its programs are new here
 
     def run(seed, names):
-        plans = [(objects.test_object(o), *random_plan(n, seed + i), jax.random.key(seed + i))
+        plans = [(objects.paper_object(o), *random_plan(n, seed + i), jax.random.key(seed + i))
                  for i, (o, n) in enumerate(zip(names, (5, 4)))]
         return run_plans(p, plans, lanes=lanes_n, tail_lanes=0, batch_last=True,
-                         progress=False)
+                         programs=programs, progress=False)
 
-    prepared = stream._prepare._cache_size()
-    first = run(0, ("cube", "white"))
-    assert traces == [True] and sorted(submitted) == ["finish", "refill", "steps"]
-    assert stream._prepare._cache_size() == prepared + 1
-    second = run(10, ("black", "red"))
-    assert traces == [True], "the lane step was traced again"
-    assert sorted(submitted) == ["finish", "refill", "steps"], "a program compiled again"
-    assert stream._prepare._cache_size() == prepared + 1, "the preparation compiled again"
+    with programs:
+        prepared = stream._prepare._cache_size()
+        first = run(0, ("cube", "white"))
+        assert traces == [True] and sorted(submitted) == ["finish", "refill", "steps"]
+        assert stream._prepare._cache_size() == prepared + 1
+        second = run(10, ("black", "red"))
+        assert traces == [True], "the lane step was traced again"
+        assert sorted(submitted) == ["finish", "refill", "steps"], "a program compiled again"
+        assert stream._prepare._cache_size() == prepared + 1, "the preparation compiled again"
     assert not np.array_equal(first[0]["q"], second[0]["q"])  # the new data were used
     assert all(r["at_rest"].all() for r in first + second)

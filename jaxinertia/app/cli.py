@@ -22,6 +22,7 @@ import os
 import sys
 from pathlib import Path
 
+from jaxinertia import _xla_workarounds  # (light: the environment only, no JAX)
 from jaxinertia.app.options import Parser
 from jaxinertia.errors import JaxinertiaError
 from jaxinertia.fileio import command_locks
@@ -128,6 +129,7 @@ def _quiet_closed_loops(unraisable) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    _xla_workarounds.apply()  # before any command starts JAX's backend
     argv = sys.argv[1:] if argv is None else list(argv)
     command = _command_of(argv)
     bad = _not_utf8(argv)

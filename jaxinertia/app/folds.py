@@ -46,6 +46,7 @@ from jaxinertia.app.pipeline import (
     session_reference,
     train,
 )
+from jaxinertia.app.programs import stream_programs
 from jaxinertia.app.simdata import simulate_files
 from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import evaluate
@@ -203,13 +204,15 @@ def _calibrate(fold: _Fold):
     robot, gravity = fit_link_gravity(params.robot, fold.lbipe_dir, [fold.fit_on])
     params, info = calibrate_servo_friction(
         params.replace(robot=robot), fold.lbipe_dir, iterations=scale.calibration_iterations,
-        seed=seed, fit_offset=True, objects=[fold.fit_on], log=lambda m: None, progress=False)
+        seed=seed, fit_offset=True, objects=[fold.fit_on], log=lambda m: None, progress=False,
+        programs=stream_programs())
     plans = real_plan(params.robot, fold.lbipe_dir, fold.held)
     real_held = _stats({k: np.concatenate([getattr(d, k) for _, _, d in plans])
                         for k in ("q_d", "q", "direction", "tau", "current_tau")})
 
     def replay(p):  # the held-out objects' real plans replayed in p
-        sim = simulate_real_plan(p, plans, jax.random.key(seed + 7))
+        sim = simulate_real_plan(p, plans, jax.random.key(seed + 7),
+                                 programs=stream_programs())
         return _stats({k: v[sim["at_rest"]] for k, v in sim.items()})
 
     identified = None

@@ -32,7 +32,7 @@ from jaxinertia.lbipe import (
     golden_path,
     load_golden,
     load_released_models,
-    test_files,
+    load_test_files,
 )
 from jaxinertia.networks import torque_model_kind
 from jaxinertia.samples import Samples, load_samples
@@ -177,7 +177,7 @@ def load_real(lbipe_dir: str | os.PathLike, *, seed: int = 0, n_sets: int = 1000
     folder has them, else seeded random sets. An object without a bounding-box diagonal
     is an error (``l_max`` supplies one), never silently left out."""
     layout = find_layout(lbipe_dir)
-    objects = test_files(layout)
+    objects = load_test_files(layout)
     paths = list(layout.test_files.values())
     diag = [l_max_of([o], l_max, path=p)[0] for o, p in zip(objects, paths)]
 

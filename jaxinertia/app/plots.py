@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxinertia.baselines import fit_pe_law, pe_rows
 from jaxinertia.fileio import replacing
 from jaxinertia.samples import Samples
 
@@ -95,9 +96,8 @@ def plot_calibration(real: dict, sim: dict, path: str | os.PathLike) -> Path:
         ax = axes[2, j]
         for label, d, c in (("real", real, "k"), ("simulated", sim, "tab:green")):
             qe = d["q_d"][:, j] - d["q"][:, j]
-            X = np.column_stack([qe, -d["direction"][:, j], np.ones(len(qe))])
-            coef, *_ = np.linalg.lstsq(X, d["tau"][:, j], rcond=None)
-            r = (X @ coef - d["tau"][:, j]) * 1e3
+            coef = fit_pe_law(qe, d["direction"][:, j], d["tau"][:, j])
+            r = (pe_rows(qe, d["direction"][:, j]) @ coef - d["tau"][:, j]) * 1e3
             ax.hist(r, bins=50, histtype="step", color=c, lw=1.5,
                     label=f"{label}: MAE {np.mean(np.abs(r)):.0f}")
         ax.set(title=f"PE-fit residual, joint {j + 1}", xlabel="[N mm]")

@@ -72,6 +72,7 @@ def cmd_simulate(args) -> int:
     import numpy as np
 
     from jaxinertia import __version__, design, samples  # (as above)
+    from jaxinertia.app.programs import stream_programs  # (as above)
     from jaxinertia.arms import get_arm  # (as above)
     from jaxinertia.sim import continuous, run  # (as above)
     from jaxinertia.sim.params import arm_sim_params  # (as above)
@@ -96,7 +97,8 @@ def cmd_simulate(args) -> int:
             raise UsageError(f"--plan {args.plan}: {plan[0].shape[1]} joints per pose; the "
                              f"simulated arm has {params.robot.n_joints}")
     results = run.simulate_scenario(params, args.scenario, n=args.n, objects=args.objects,
-                                    seed=args.seed, plan=plan, arm=arm)
+                                    seed=args.seed, plan=plan, arm=arm,
+                                    programs=stream_programs())
     for name, (_, r) in results.items():
         bad = int(np.sum(~np.asarray(r["at_rest"], bool)))
         if bad:
@@ -131,6 +133,7 @@ def cmd_calibrate(args) -> int:
     import numpy as np
 
     from jaxinertia.app.plots import plot_calibration  # (as above)
+    from jaxinertia.app.programs import stream_programs  # (as above)
     from jaxinertia.app.report import calibration_report  # (as above)
     from jaxinertia.fileio import write_json, write_text  # (as above: light, used here only)
     from jaxinertia.sim.calibration import calibrate_servo_friction, fit_link_gravity  # (above)
@@ -151,7 +154,7 @@ def cmd_calibrate(args) -> int:
     params, info = calibrate_servo_friction(
         params, lbipe_dir, iterations=args.iterations, seed=args.seed,
         kinetic_ratio=args.kinetic_ratio, fit_offset=args.fit_offset, progress=True,
-        objects=args.real_objects)
+        objects=args.real_objects, programs=stream_programs())
     out = args.out
     payload = {"robot": "open_manipulator_x", "link_gravity": gravity_info,
                "servo_friction": params_to_dict(params),

@@ -11,6 +11,7 @@ import jax
 import numpy as np
 
 from jaxinertia import __version__
+from jaxinertia.app.programs import stream_programs
 from jaxinertia.errors import UsageError
 from jaxinertia.samples import Samples, load_native, save_native
 from jaxinertia.sim.params import params_to_dict
@@ -76,7 +77,7 @@ def simulate_files(params, wanted: list[tuple[Path, str, int | None, int]], *,
     if missing and spread is None:
         results = simulate_scenarios(
             params, [ScenarioRequest(scenario, n, None, seed) for _, scenario, n, seed in missing],
-            progress=progress)
+            programs=stream_programs(), progress=progress)
     elif missing:
         if any(scenario != "random" or n is None for _, scenario, n, _ in missing):
             raise UsageError("domain randomization splits random-scenario files over the "
@@ -86,7 +87,8 @@ def simulate_files(params, wanted: list[tuple[Path, str, int | None, int]], *,
             arm = perturbed(params, jax.random.fold_in(jax.random.key(missing[0][3]), r), spread)
             per_arm.append(simulate_scenarios(arm, [
                 ScenarioRequest(scenario, -(-n // draws), None, seed + 7919 * (r + 1))
-                for _, scenario, n, seed in missing], progress=progress))
+                for _, scenario, n, seed in missing], programs=stream_programs(),
+                progress=progress))
         results = [_merge([arm[i] for arm in per_arm]) for i in range(len(missing))]
     for (path, scenario, n, seed), res in zip(missing, results):
         fields, meta = native_fields(res, params, scenario=scenario, seed=seed,

@@ -63,6 +63,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from jaxinertia.linalg import spd_inverse_rows
 from jaxinertia.robot import Robot
 from jaxinertia.sim.friction import friction_bound
 from jaxinertia.sim.servo import servo_step
@@ -286,31 +287,6 @@ def _dynamics(robot: Robot, q, qd):
     return _barrier((M, bias), q[0, 0])
 
 
-def _inverse_columns(M, dtype):
-    """dt-free ``M^-1`` as nested lists, row c = solve(M, e_c), by the same unrolled Cholesky
-    factorisation and substitutions as :func:`jaxinertia.identification.cholesky_solve`."""
-    P = len(M)
-    L = {}
-    for j in range(P):
-        d = M[j][j] - sum((L[j, k] ** 2 for k in range(j)), start=0.0)
-        L[j, j] = jnp.sqrt(d)
-        for i in range(j + 1, P):
-            off = M[i][j] - sum((L[i, k] * L[j, k] for k in range(j)), start=0.0)
-            L[i, j] = off / L[j, j]
-    rows = []
-    for col in range(P):
-        b = [jnp.asarray(1.0 if i == col else 0.0, dtype) for i in range(P)]
-        u = []
-        for i in range(P):
-            u.append((b[i] - sum((L[i, k] * u[k] for k in range(i)), start=0.0)) / L[i, i])
-        zz = [None] * P
-        for i in reversed(range(P)):
-            acc = u[i] - sum((L[k, i] * zz[k] for k in range(i + 1, P)), start=0.0)
-            zz[i] = acc / L[i, i]
-        rows.append(zz)
-    return rows
-
-
 def step_batched(params: SimParams, state: SimState, goal: jnp.ndarray) -> SimState:
     """``simulator.step`` for B arms at once, batch-last.
 
@@ -334,7 +310,7 @@ def step_batched(params: SimParams, state: SimState, goal: jnp.ndarray) -> SimSt
         M[i][i] = M[i][i] + dt * damping[i]
     offset = 0.0 if params.torque_offset is None else _lane(params.torque_offset, 1)
     rhs = servo.torque + offset - damping * qd - bias
-    Minv = _inverse_columns(M, q.dtype)
+    Minv = spd_inverse_rows(M, q.dtype)
     W = [[dt * Minv[r][c] for c in range(n)] for r in range(n)]
     v_free = [qd[r] + sum((W[r][c] * rhs[c] for c in range(n)), start=0.0) for r in range(n)]
     bound = friction_bound(fp, q, qd, servo.torque)

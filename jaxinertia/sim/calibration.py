@@ -18,13 +18,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxinertia.baselines import fit_pe_law, pe_rows
 from jaxinertia.errors import UsageError
-from jaxinertia.lbipe import find_layout, test_files
+from jaxinertia.lbipe import find_layout, load_test_files
 from jaxinertia.objects import HeldObject
 from jaxinertia.robot import Robot
 from jaxinertia.samples import Samples
 from jaxinertia.sim.run import run_plans
 from jaxinertia.sim.simulator import SimParams
+from jaxinertia.sim.stream import StreamPrograms
 from jaxinertia.statics import (
     fit_tag_pose,
     identify_gravity_base_parameters,
@@ -39,7 +41,7 @@ def real_files(lbipe_dir: str | os.PathLike,
                objects: Sequence[str] | None = None) -> list[Samples]:
     """The real test files of ``lbipe_dir`` that a fit may look at: those of ``objects``
     (all when None). Held-out protocol: a fit is judged on the objects it did not see."""
-    data = test_files(find_layout(lbipe_dir))
+    data = load_test_files(find_layout(lbipe_dir))
     if objects is None:
         return data
     have = [d.name for d in data]
@@ -85,12 +87,11 @@ def baseline_statistics(q_d, q, direction, tau, current_tau) -> dict[str, np.nda
                            "current_mae", "tau_max")}
     for j in range(qe.shape[1]):
         one = np.ones(len(qe))
-        X = np.column_stack([qe[:, j], -s[:, j], one])
-        c, *_ = np.linalg.lstsq(X, tau[:, j], rcond=None)
+        c = fit_pe_law(qe[:, j], s[:, j], tau[:, j])
         out["k"].append(c[0])
         out["f"].append(c[1])
         out["c"].append(c[2])
-        out["pe_mae"].append(np.mean(np.abs(X @ c - tau[:, j])))
+        out["pe_mae"].append(np.mean(np.abs(pe_rows(qe[:, j], s[:, j]) @ c - tau[:, j])))
         X = np.column_stack([qe[:, j], -s[:, j], -s[:, j] * np.abs(tau[:, j]), one])
         c, *_ = np.linalg.lstsq(X, tau[:, j], rcond=None)
         out["f0"].append(c[1])
@@ -122,13 +123,14 @@ def real_plan(robot: Robot, lbipe_dir,
     return plans
 
 
-def simulate_real_plan(params: SimParams, plans, key, *,
+def simulate_real_plan(params: SimParams, plans, key, *, programs: StreamPrograms | None = None,
                        progress: bool = False) -> dict[str, np.ndarray]:
-    """Simulates every real file's goals/directions/object; returns the stacked fields."""
+    """Simulates every real file's goals/directions/object; returns the stacked fields.
+    ``programs``: the caller's compiled stream programs (None: this call's own)."""
     parts = run_plans(params, [(obj, d.q_d, d.direction, jax.random.fold_in(key, i))
                                for i, (_, obj, d) in enumerate(plans)],
                       descs=[name for name, _, _ in plans], desc="real plans",
-                      progress=progress)
+                      programs=programs, progress=progress)
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
@@ -145,7 +147,8 @@ def _intercept(d: dict, ref: dict) -> np.ndarray:
 
 def calibrate_servo_friction(params, lbipe_dir, *, iterations: int = 6, seed: int = 0,
                              kinetic_ratio: float = 0.6, fit_offset: bool = False, log=print,
-                             progress: bool = False, objects: Sequence[str] | None = None):
+                             progress: bool = False, objects: Sequence[str] | None = None,
+                             programs: StreamPrograms | None = None):
     """Fixed-point fit of per-joint servo gain, torque constant and friction parameters so
     that the simulated real plan reproduces the real baseline statistics (k, f0, mu,
     current gain, PE MAE). Kinetic (Coulomb) friction is ``kinetic_ratio`` times the
@@ -154,7 +157,14 @@ def calibrate_servo_friction(params, lbipe_dir, *, iterations: int = 6, seed: in
     PE gain and friction, ``mean(tau - k qe + s f)``, matches the real one; without it the
     simulated arm has the real gains and friction but not the real intercepts, which is
     most of the sim-to-real gap (docs/results.md). Only the real files of ``objects`` are
-    looked at (all when None). Returns ``(params, history)``."""
+    looked at (all when None). ``programs``: the caller's compiled stream programs (None:
+    this call's own, shared by its iterations). Returns ``(params, history)``."""
+    if programs is None:
+        with StreamPrograms() as own:
+            return calibrate_servo_friction(
+                params, lbipe_dir, iterations=iterations, seed=seed,
+                kinetic_ratio=kinetic_ratio, fit_offset=fit_offset, log=log, progress=progress,
+                objects=objects, programs=own)
     plans = real_plan(params.robot, lbipe_dir, objects)
     real = baseline_statistics(
         np.concatenate([d.q_d for _, _, d in plans]), np.concatenate([d.q for _, _, d in plans]),
@@ -174,7 +184,7 @@ def calibrate_servo_friction(params, lbipe_dir, *, iterations: int = 6, seed: in
     n_offset = OFFSET_ITERATIONS if fit_offset else 0
     for it in range(iterations + n_offset + 1):
         # The same random numbers every iteration: the updates see parameter changes only.
-        sim = simulate_real_plan(params, plans, key, progress=progress)
+        sim = simulate_real_plan(params, plans, key, programs=programs, progress=progress)
         ok = sim["at_rest"]
         st = baseline_statistics(*(sim[k][ok] for k in ("q_d", "q", "direction", "tau",
                                                           "current_tau")))

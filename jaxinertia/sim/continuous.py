@@ -29,9 +29,9 @@ from tqdm.auto import tqdm
 
 from jaxinertia.objects import HeldObject, resolve
 from jaxinertia.plans import continuous_plan, switching_schedule
-from jaxinertia.sim.sampling import Record, jitter_friction, loaded_params, record
+from jaxinertia.sim.sampling import Record, jitter_friction, record
 from jaxinertia.sim.servo import goal_ticks
-from jaxinertia.sim.simulator import SimParams, SimState, step, trapezoid
+from jaxinertia.sim.simulator import SimParams, SimState, physical_params, step, trapezoid
 
 __all__ = ["lane_indices", "simulate_continuous", "simulate_continuous_run"]
 
@@ -80,7 +80,7 @@ def simulate_continuous(
         q0, q1, o, d, k, live = inp
         obj = jax.tree_util.tree_map(lambda a: a[o], objects)
         k_f, k_r = jax.random.split(k)
-        p = jitter_friction(loaded_params(params, obj), k_f, q1.shape[0])
+        p = jitter_friction(physical_params(params, obj), k_f, q1.shape[0])
 
         def body(s, i):
             goal, _ = trapezoid(q0, q1, i * p.dt, p.profile_velocity, p.profile_acceleration)

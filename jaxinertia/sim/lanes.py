@@ -38,9 +38,9 @@ from flax import struct
 
 from jaxinertia.objects import HeldObject
 from jaxinertia.sim import batched
-from jaxinertia.sim.sampling import Record, jitter_friction, loaded_params, record
+from jaxinertia.sim.sampling import Record, jitter_friction, record
 from jaxinertia.sim.servo import goal_ticks
-from jaxinertia.sim.simulator import SimParams, SimState, step, trapezoid
+from jaxinertia.sim.simulator import SimParams, SimState, physical_params, step, trapezoid
 
 __all__ = ["DELTA", "Carry", "Ended", "Lanes", "Table", "compact", "finish", "lane_step",
            "prepare", "refill", "steps"]
@@ -211,7 +211,7 @@ def prepare(params: SimParams, q_d, direction, obj_id, objects: HeldObject, keys
     S_pad, n = q_d.shape
     pad = S_pad - keys.shape[0]
     keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], pad, 0)])
-    loaded = jax.vmap(loaded_params, (None, 0))(params, objects)
+    loaded = jax.vmap(physical_params, (None, 0))(params, objects)
     count = jnp.asarray(sum(sizes), jnp.int32)
     table = Table(q_d, direction, keys, obj_id, objects, loaded, count)
     dtype = q_d.dtype

@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxinertia.baselines import fit_pe_law
 from jaxinertia.sim.simulator import SimParams
 
 __all__ = ["DomainSpread", "SessionSpread", "perturbed", "session_drawn", "session_spread",
@@ -37,12 +38,6 @@ class DomainSpread:
                 "offset_Nm": np.asarray(self.offset).tolist()}
 
 
-def _pe_fit(qe, s, tau):
-    X = np.column_stack([qe, -s, np.ones(len(qe))])
-    c, *_ = np.linalg.lstsq(X, tau, rcond=None)
-    return c[0], c[2]
-
-
 def spread_from_samples(q_d, q, direction, tau) -> DomainSpread:
     """The load dependence of the position-error law in real samples of known objects:
     per joint, the relative gain difference and the intercept difference between the
@@ -51,8 +46,8 @@ def spread_from_samples(q_d, q, direction, tau) -> DomainSpread:
     gain, offset = [], []
     for j in range(qe.shape[1]):
         heavy = np.abs(tau[:, j]) > np.median(np.abs(tau[:, j]))
-        (k_lo, c_lo), (k_hi, c_hi) = (_pe_fit(qe[m, j], s[m, j], tau[m, j])
-                                      for m in (~heavy, heavy))
+        (k_lo, _, c_lo), (k_hi, _, c_hi) = (fit_pe_law(qe[m, j], s[m, j], tau[m, j])
+                                            for m in (~heavy, heavy))
         gain.append(abs(k_hi - k_lo) / (0.5 * (k_hi + k_lo)))
         offset.append(abs(c_hi - c_lo))
     return DomainSpread(np.asarray(gain), np.asarray(offset))

@@ -16,13 +16,13 @@ from jaxinertia.objects import (
     TRAINING_LOADS_KG,
     HeldObject,
     load_name,
-    test_object,
+    paper_object,
     training_object,
 )
 from jaxinertia.plans import planning_plan, random_plan
 from jaxinertia.sim.params import params_to_dict
 from jaxinertia.sim.simulator import SimParams
-from jaxinertia.sim.stream import Plan, precompile, stream_plans
+from jaxinertia.sim.stream import LanePlan, StreamPrograms, stream_plans
 
 __all__ = ["as_float64", "native_fields", "run_plan", "run_plans", "ScenarioRequest",
            "simulate_scenario", "simulate_scenarios"]
@@ -30,6 +30,7 @@ __all__ = ["as_float64", "native_fields", "run_plan", "run_plans", "ScenarioRequ
 
 def run_plan(params: SimParams, obj: HeldObject, q_d: np.ndarray, direction: np.ndarray,
              key: jax.Array, *, lanes: int | None = None, desc: str = "simulating",
+             programs: StreamPrograms | None = None,
              progress: bool = True) -> dict[str, np.ndarray]:
     """Simulates one object's plan; returns the sample fields (numpy, leading axis S).
 
@@ -37,21 +38,24 @@ def run_plan(params: SimParams, obj: HeldObject, q_d: np.ndarray, direction: np.
     on the lane count (nor on the device's default) nor on the scheduling.
     """
     return run_plans(params, [(obj, q_d, direction, key)], lanes=lanes, descs=[desc],
-                     desc=desc, progress=progress)[0]
+                     desc=desc, programs=programs, progress=progress)[0]
 
 
 def run_plans(params: SimParams, plans: list, *, lanes: int | None = None,
               tail_lanes: int | None = None, batch_last: bool | None = None,
               descs: list[str] | None = None, desc: str = "simulating",
+              programs: StreamPrograms | None = None,
               progress: bool = True) -> list[dict[str, np.ndarray]]:
     """Simulates several plans ``(object, q_d, direction, key)`` in one stream of lanes
-    (:mod:`jaxinertia.sim.stream`); every plan is checked first and every result after,
-    errors naming ``descs[i]`` and the sample."""
+    (:mod:`jaxinertia.sim.stream`; ``programs``: the caller's compiled programs, None: the
+    stream's own); every plan is checked first and every result after, errors naming
+    ``descs[i]`` and the sample."""
     descs = descs or [f"{desc}[{i}]" for i in range(len(plans))]
-    checked = [Plan(obj, *_check_plan(params, q_d, d, name), key)
+    checked = [LanePlan(obj, *_check_plan(params, q_d, d, name), key)
                for (obj, q_d, d, key), name in zip(plans, descs)]
     results = stream_plans(params, checked, lanes=lanes, tail_lanes=tail_lanes,
-                           batch_last=batch_last, desc=desc, progress=progress)
+                           batch_last=batch_last, programs=programs, desc=desc,
+                           progress=progress)
     out = []
     for plan, res, name in zip(checked, results, descs):
         res = res._asdict()
@@ -111,6 +115,7 @@ def _check_plan(params: SimParams, q_d, direction, desc: str):
 def simulate_scenario(params: SimParams, scenario: str, *, n: int | None = None,
                       objects: list[str] | None = None, seed: int = 0,
                       lanes: int | None = None, plan: tuple | None = None,
+                      programs: StreamPrograms | None = None,
                       progress: bool = True, arm: Arm | None = None
                       ) -> dict[str, tuple[HeldObject, dict]]:
     """Runs a scenario; returns ``{object name: (object, fields)}``.
@@ -124,7 +129,7 @@ def simulate_scenario(params: SimParams, scenario: str, *, n: int | None = None,
     ``params`` must be that arm's (:func:`jaxinertia.sim.params.arm_sim_params`).
     """
     return simulate_scenarios(params, [ScenarioRequest(scenario, n, objects, seed, plan)],
-                              lanes=lanes, progress=progress, arm=arm)[0]
+                              lanes=lanes, programs=programs, progress=progress, arm=arm)[0]
 
 
 class ScenarioRequest(NamedTuple):
@@ -139,14 +144,21 @@ class ScenarioRequest(NamedTuple):
 
 def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
                        lanes: int | None = None, tail_lanes: int | None = None,
-                       batch_last: bool | None = None, progress: bool = True,
-                       arm: Arm | None = None) -> list[dict[str, tuple[HeldObject, dict]]]:
+                       batch_last: bool | None = None, programs: StreamPrograms | None = None,
+                       progress: bool = True, arm: Arm | None = None
+                       ) -> list[dict[str, tuple[HeldObject, dict]]]:
     """Several scenarios in one stream of lanes (one compiled program, one tail); each
-    result is what :func:`simulate_scenario` returns for its request."""
+    result is what :func:`simulate_scenario` returns for its request. ``programs``: the
+    caller's compiled stream programs (None: compiled for this call alone)."""
     for r in requests:  # bad requests fail before anything compiles
         _check_request(r.scenario, r.objects)
+    if programs is None:
+        with StreamPrograms() as own:
+            return simulate_scenarios(params, requests, lanes=lanes, tail_lanes=tail_lanes,
+                                      batch_last=batch_last, programs=own, progress=progress,
+                                      arm=arm)
     # The stepping program needs no plans: it compiles while they are built.
-    precompile(params, training_object(0.0), lanes=lanes, batch_last=batch_last)
+    programs.precompile(params, training_object(0.0), lanes=lanes, batch_last=batch_last)
     jobs, descs, plans = [], [], []
     for r in requests:
         named = _scenario_jobs(r.scenario, r.n, r.objects, r.seed, r.plan, arm=arm,
@@ -159,7 +171,7 @@ def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
             descs.append(f"{r.scenario}/{name}")
         jobs.append(named)
     results = iter(run_plans(params, plans, lanes=lanes, tail_lanes=tail_lanes,
-                             batch_last=batch_last, descs=descs,
+                             batch_last=batch_last, descs=descs, programs=programs,
                              desc="+".join(r.scenario for r in requests), progress=progress))
     return [{name: (obj, next(results)) for name, obj, _ in named} for named in jobs]
 
@@ -190,7 +202,7 @@ def _scenario_jobs(scenario: str, n: int | None, objects: list[str] | None, seed
         given = (q_d[reps], d[reps])
     if scenario == "test":
         names = objects or list(TEST_OBJECTS)
-        return [(o, test_object(o, **tag), given or random_plan(n or 1000, seed + i, **ws))
+        return [(o, paper_object(o, **tag), given or random_plan(n or 1000, seed + i, **ws))
                 for i, o in enumerate(names)]
     jobs = []  # planning or random
     grid = planning_plan(**grid_kw) if scenario == "planning" else None

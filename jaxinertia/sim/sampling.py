@@ -23,10 +23,10 @@ from jaxinertia.sim.servo import (
     RAD_PER_TICK,
     present_ticks,
 )
-from jaxinertia.sim.simulator import SimParams, SimState, attach_payload, move_and_settle
+from jaxinertia.sim.simulator import SimParams, SimState, move_and_settle, physical_params
 from jaxinertia.statics import load_regressor, tag_pose
 
-__all__ = ["Record", "jitter_friction", "loaded_params", "record", "simulate_samples"]
+__all__ = ["Record", "jitter_friction", "record", "simulate_samples"]
 
 
 class Record(NamedTuple):
@@ -86,15 +86,6 @@ def _one_sample(params: SimParams, bare: Robot, obj: HeldObject, q_d, direction,
                   settle_time=t)
 
 
-def loaded_params(params: SimParams, obj: HeldObject) -> SimParams:
-    """The physical arm holding ``obj`` (gravity reversed, see :func:`simulate_samples`)."""
-    bare = params.robot
-    R_ee = obj.R_ee_tag
-    inertia_ee = R_ee @ obj.inertia @ R_ee.T
-    physical = bare.with_gravity(-bare.gravity)
-    return params.replace(robot=attach_payload(physical, obj.mass, obj.com_ee(), inertia_ee))
-
-
 # Compiled as one program (the parameters, object and plan are arguments): run eagerly, each
 # call compiled its settling loops again.
 @jax.jit
@@ -123,7 +114,7 @@ def simulate_samples(
     """
     delta = params.pre_position if delta is None else delta
     bare = params.robot
-    loaded = loaded_params(params, obj)
+    loaded = physical_params(params, obj)
     # One key per sample (or a single key, split here): samples do not depend on batching.
     keys = key if key.ndim == 1 else jax.random.split(key, q_d.shape[0])
     return jax.vmap(_one_sample, (None, None, None, 0, 0, None, 0))(

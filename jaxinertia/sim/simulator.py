@@ -20,7 +20,8 @@ import jax.numpy as jnp
 from flax import struct
 
 from jaxinertia.dynamics import bias_forces, mass_matrix
-from jaxinertia.identification import cholesky_solve
+from jaxinertia.linalg import cholesky_solve
+from jaxinertia.objects import HeldObject
 from jaxinertia.robot import Robot
 from jaxinertia.sim.friction import FrictionParams, friction_bound, solve_box_friction
 from jaxinertia.sim.servo import (
@@ -32,8 +33,8 @@ from jaxinertia.sim.servo import (
     servo_step,
 )
 
-__all__ = ["SimParams", "SimState", "attach_payload", "hold", "move_and_settle", "step",
-           "trapezoid"]
+__all__ = ["SimParams", "SimState", "attach_payload", "hold", "move_and_settle",
+           "physical_params", "step", "trapezoid"]
 
 
 @struct.dataclass
@@ -92,6 +93,19 @@ def attach_payload(robot: Robot, mass, com_ee, inertia_ee=None) -> Robot:
     I = shifted(robot.inertia[b], m_b, c_b) + shifted(I_p, mass, c_p)
     return robot.replace(mass=robot.mass.at[b].set(m), com=robot.com.at[b].set(c),
                          inertia=robot.inertia.at[b].set(I))
+
+
+def physical_params(params: SimParams, obj: HeldObject | None = None) -> SimParams:
+    """The arm as it physically moves, from the parameters of the bare arm in the recorded
+    convention (``params.robot``): gravity as felt and the held object (None: none) fused
+    into the end effector. The recorded torques follow the opposite of the physical gravity
+    (see :func:`jaxinertia.sim.sampling.simulate_samples`), so the arm feels
+    ``-robot.gravity``."""
+    physical = params.robot.with_gravity(-params.robot.gravity)
+    if obj is not None:
+        R = obj.R_ee_tag
+        physical = attach_payload(physical, obj.mass, obj.com_ee(), R @ obj.inertia @ R.T)
+    return params.replace(robot=physical)
 
 
 def step(params: SimParams, state: SimState, goal: jnp.ndarray) -> SimState:

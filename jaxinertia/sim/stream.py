@@ -10,8 +10,11 @@ The host loop dispatches ``blocks_per_call`` blocks (a refill program, then a st
 program of ``refill_every`` servo periods; buffers donated) before it reads the count of
 finished samples for the progress bar; the records are computed once after the stream
 (:func:`jaxinertia.sim.lanes.finish`). The programs are compiled ahead of time in
-background threads (:class:`_Compiler`), overlapping the preparation and each other;
-:func:`precompile` starts the stepping program before the plans exist. On an accelerator
+background threads (:class:`Compiler`), overlapping the preparation and each other, and
+kept by a :class:`StreamPrograms` that the caller owns (the command line keeps one for its
+process; without one a stream compiles for itself alone);
+:meth:`StreamPrograms.precompile` starts the stepping program before the plans exist. On
+an accelerator
 the last samples move to a program of fewer lanes (:func:`default_tail_lanes`). By default
 the lanes step batch-last (:func:`batch_last_default`).
 """
@@ -34,14 +37,13 @@ from jaxinertia.sim import lanes as lane_program
 from jaxinertia.sim.sampling import Record
 from jaxinertia.sim.simulator import SimParams
 
-__all__ = ["Plan", "batch_last_default", "default_lanes", "default_tail_lanes", "precompile",
-           "stream_plans"]
+__all__ = ["Compiler", "LanePlan", "StreamPrograms", "batch_last_default", "default_lanes",
+           "default_tail_lanes", "stream_plans"]
 
 _log = logging.getLogger(__name__)
-_T_IMPORT = time.perf_counter()
 
 
-class Plan(NamedTuple):
+class LanePlan(NamedTuple):
     """One object's samples: goals and directions (S, N) and the key split per sample."""
 
     obj: HeldObject
@@ -80,7 +82,7 @@ _prepare = jax.jit(lane_program.prepare, static_argnames=("sizes", "lanes"))
 _compact = jax.jit(lane_program.compact, static_argnames=("size",))
 
 
-def _sample_keys(plans: list[Plan]) -> jax.Array:
+def _sample_keys(plans: list[LanePlan]) -> jax.Array:
     """``jax.random.split(plan.key, S)`` of every plan, concatenated, from one program on
     the host CPU (on a GPU each threefry program takes ~0.3 s to compile).
 
@@ -117,7 +119,7 @@ def default_tail_lanes(lanes: int) -> int:
     return 0 if jax.default_backend() == "cpu" else max(lanes // 16, 1)
 
 
-class _Compiler:
+class Compiler:
     """Compiles programs ahead of time in the background, for abstract arguments.
 
     Lowering (tracing to StableHLO) is Python and holds the GIL: one thread lowers the
@@ -129,6 +131,7 @@ class _Compiler:
     def __init__(self, workers: int = 4):
         self._lowering = ThreadPoolExecutor(1, thread_name_prefix="jaxinertia-lower")
         self._compiling = ThreadPoolExecutor(workers, thread_name_prefix="jaxinertia-compile")
+        self._t0 = time.perf_counter()
 
     def submit(self, fn, *args, untimed: bool = False, **static) -> Future:
         """A future of ``fn.lower(*args, **static).compile()``.
@@ -147,7 +150,7 @@ class _Compiler:
                 out.set_result(lowered.compile(compiler_options=options))
                 _log.debug("stream: %s lowered in %.2f s, compiled in %.2f s (done at %.2f s)",
                            name, t_lowered, time.perf_counter() - t0,
-                           time.perf_counter() - _T_IMPORT)
+                           time.perf_counter() - self._t0)
             except BaseException as e:  # noqa: BLE001 - handed to the waiting thread
                 out.set_exception(e)
 
@@ -163,6 +166,11 @@ class _Compiler:
         self._lowering.submit(lower)
         return out
 
+    def close(self) -> None:
+        """Waits for the programs submitted and stops the threads."""
+        self._lowering.shutdown(wait=True)
+        self._compiling.shutdown(wait=True)
+
 
 def _on_gpu() -> bool:
     return jax.default_backend() == "gpu"
@@ -175,71 +183,113 @@ class _Block(NamedTuple):
     steps: object
 
 
-#: Compiled stream programs per signature (shapes, dtypes, static settings): ahead-of-time
-#: compiled executables are not kept by ``jax.jit``'s own cache.
-_PROGRAMS: dict = {}
-_COMPILER = _Compiler()
-
-
 def _signature(tree) -> tuple:
     leaves, treedef = jax.tree.flatten(tree)
     return treedef, tuple((np.shape(x), str(x.dtype if hasattr(x, "dtype") else type(x)))
                           for x in leaves)
 
 
-def _steps_program(params: SimParams, lanes, n: int, batch_last: bool,
-                   untimed: bool = False) -> Future:
-    """A future of the compiled :func:`jaxinertia.sim.lanes.steps` for the (abstract)
-    ``lanes``; submitted once per signature (:func:`precompile` may have submitted it).
+class StreamPrograms:
+    """The stream's compiled programs, one per program and signature (shapes, dtypes,
+    static settings), held for as long as their owner keeps this object: ahead-of-time
+    compiled executables are not kept by ``jax.jit``'s own cache. Streams given the same
+    object share its programs (and its :class:`Compiler`'s threads); a compilation that
+    fails is forgotten alone (the next stream that needs it submits it again), the other
+    programs stay.
 
-    Batch-last steps always compile ``untimed``: they have no ``dot`` for the GPU
-    autotuner to choose kernels for, and skipping it saved 0.3-1 s of an H100's 4.3-5.7 s
-    compile (three cold paper-scale runs each way) with the same stream time."""
-    untimed = untimed or batch_last
-    key = ("steps", _signature((params, lanes)), n, batch_last, untimed,
-           jax.default_backend())
-    if key not in _PROGRAMS:
-        _PROGRAMS[key] = _COMPILER.submit(_steps_jit, params, lanes, n=n,
-                                          batch_last=batch_last, untimed=untimed)
-    return _PROGRAMS[key]
+    ``compiler``: what compiles (default: a new :class:`Compiler`; anything with its
+    ``submit``).
+    """
 
+    def __init__(self, compiler: Compiler | None = None):
+        self.compiler = compiler or Compiler()
+        self._programs: dict[tuple, Future] = {}
 
-def _programs(params: SimParams, table, carry, tail: int, refill_every: int,
-              batch_last: bool) -> dict:
-    """Futures of the stream's compiled programs for the (abstract) ``table`` and
-    ``carry``, in the order they are needed: ``main`` (refill, steps: the largest,
-    submitted first unless :func:`precompile` did already), ``finish`` and, when
-    ``tail``, ``tail`` (compaction, refill and steps on ``tail`` lanes). The last two
-    compile while the stream runs."""
-    key = (_signature((params, table, carry)), tail, refill_every, batch_last,
-           jax.default_backend())
-    if key not in _PROGRAMS:
-        c = _COMPILER
-        steps = _steps_program(params, carry.lanes, refill_every, batch_last)
-        refill = c.submit(_refill_jit, params, table, carry)
-        programs = dict(main=(refill, steps),
-                        finish=c.submit(_finish, params, table, carry.out, untimed=True),
-                        tail=None)
+    def __enter__(self) -> StreamPrograms:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        close = getattr(self.compiler, "close", None)
+        if close is not None:
+            close()
+
+    def keys(self) -> frozenset:
+        """The programs held (submitted, compiling or compiled): ``(name, signature,
+        ...)``."""
+        return frozenset(self._programs)
+
+    def _program(self, key: tuple, fn, *args, untimed: bool = False, **static) -> Future:
+        """The future of ``fn`` compiled for ``args``, submitted once per ``key``."""
+        key = key + (untimed, jax.default_backend())
+        if key not in self._programs:
+            self._programs[key] = self.compiler.submit(fn, *args, untimed=untimed, **static)
+        return self._programs[key]
+
+    def steps(self, params: SimParams, lanes, n: int, batch_last: bool,
+              untimed: bool = False) -> Future:
+        """A future of the compiled :func:`jaxinertia.sim.lanes.steps` for the (abstract)
+        ``lanes`` (:meth:`precompile` may have submitted it).
+
+        Batch-last steps always compile ``untimed``: they have no ``dot`` for the GPU
+        autotuner to choose kernels for, and skipping it saved 0.3-1 s of an H100's 4.3-5.7 s
+        compile (three cold paper-scale runs each way) with the same stream time."""
+        return self._program(("steps", _signature((params, lanes)), n, batch_last), _steps_jit,
+                             params, lanes, n=n, batch_last=batch_last,
+                             untimed=untimed or batch_last)
+
+    def programs(self, params: SimParams, table, carry, tail: int, refill_every: int,
+                 batch_last: bool) -> dict:
+        """Futures of the stream's compiled programs for the (abstract) ``table`` and
+        ``carry``, submitted in the order they are needed: ``main`` (refill, steps: the
+        largest, submitted first unless :meth:`precompile` did already), ``finish`` and,
+        when ``tail``, ``tail`` (compaction, refill and steps on ``tail`` lanes). The last
+        two compile while the stream runs."""
+        steps = self.steps(params, carry.lanes, refill_every, batch_last)
+        refill = self._program(("refill", _signature((params, table, carry))), _refill_jit,
+                               params, table, carry)
+        programs = dict(main=(refill, steps), tail=None,
+                        finish=self._program(("finish", _signature((params, table, carry.out))),
+                                             _finish, params, table, carry.out, untimed=True))
         if tail:
             small = jax.eval_shape(partial(_compact, size=tail), carry)
-            compact = c.submit(_compact, carry, size=tail, untimed=True)
-            steps = _steps_program(params, small.lanes, refill_every, batch_last,
-                                   untimed=True)
-            refill = c.submit(_refill_jit, params, table, small, untimed=True)
+            compact = self._program(("compact", _signature(carry), tail), _compact, carry,
+                                    size=tail, untimed=True)
+            steps = self.steps(params, small.lanes, refill_every, batch_last, untimed=True)
+            refill = self._program(("refill", _signature((params, table, small))), _refill_jit,
+                                   params, table, small, untimed=True)
             programs["tail"] = (compact, refill, steps)
-        _PROGRAMS[key] = programs
-    return _PROGRAMS[key]
+        return programs
+
+    def result(self, futures) -> tuple:
+        """The compiled programs of ``futures``, waited for; a failed compilation is
+        forgotten (that program alone) and its error raised."""
+        try:
+            return tuple(f.result() for f in futures)
+        except Exception:
+            self._programs = {k: f for k, f in self._programs.items()
+                              if not (f.done() and f.exception() is not None)}
+            raise
+
+    def precompile(self, params: SimParams, obj: HeldObject, *, lanes: int | None = None,
+                   batch_last: bool | None = None, refill_every: int = 32) -> None:
+        """Starts compiling the stream's stepping program for ``lanes`` lanes in the
+        background and returns at once; a later :func:`stream_plans` with the same settings
+        and this object uses it.
+
+        The stepping program is the largest and depends on neither the plans nor the objects
+        (``obj``: any held object, for the shapes), so a caller can start it before building
+        its plans: on a GPU its compilation is most of a cold paper-scale run.
+        """
+        lanes = int(lanes or default_lanes())
+        batch_last = batch_last_default() if batch_last is None else bool(batch_last)
+        n = params.robot.n_joints
+        dummy = LanePlan(obj, np.zeros((1, n)), np.ones((1, n)), jax.random.key(0))
+        args, sizes = _assemble(params, [dummy], lanes, keys=False)
+        _, carry = jax.eval_shape(partial(_prepare, sizes=sizes, lanes=lanes), *args)
+        self.steps(params, carry.lanes, refill_every, batch_last)
 
 
-def _result(futures):
-    try:
-        return tuple(f.result() for f in futures)
-    except Exception:
-        _PROGRAMS.clear()  # do not keep a failed compilation
-        raise
-
-
-def _assemble(params: SimParams, plans: list[Plan], lanes: int, *, keys: bool = True):
+def _assemble(params: SimParams, plans: list[LanePlan], lanes: int, *, keys: bool = True):
     """The arguments of :func:`jaxinertia.sim.lanes.prepare` (host-side assembly in numpy,
     one transfer): samples padded to a power of two (at least ``lanes``), objects to a
     multiple of four. ``keys=False``: the sample keys only as a shape (for
@@ -262,28 +312,10 @@ def _assemble(params: SimParams, plans: list[Plan], lanes: int, *, keys: bool = 
     return args, sizes
 
 
-def precompile(params: SimParams, obj: HeldObject, *, lanes: int | None = None,
-               batch_last: bool | None = None, refill_every: int = 32) -> None:
-    """Starts compiling the stream's stepping program for ``lanes`` lanes in the background
-    and returns at once; a later :func:`stream_plans` with the same settings uses it.
-
-    The stepping program is the largest and depends on neither the plans nor the objects
-    (``obj``: any held object, for the shapes), so a caller can start it before building
-    its plans: on a GPU its compilation is most of a cold paper-scale run.
-    """
-    lanes = int(lanes or default_lanes())
-    batch_last = batch_last_default() if batch_last is None else bool(batch_last)
-    n = params.robot.n_joints
-    dummy = Plan(obj, np.zeros((1, n)), np.ones((1, n)), jax.random.key(0))
-    args, sizes = _assemble(params, [dummy], lanes, keys=False)
-    _, carry = jax.eval_shape(partial(_prepare, sizes=sizes, lanes=lanes), *args)
-    _steps_program(params, carry.lanes, refill_every, batch_last)
-
-
-def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = None,
+def stream_plans(params: SimParams, plans: list[LanePlan], *, lanes: int | None = None,
                  tail_lanes: int | None = None, batch_last: bool | None = None,
-                 refill_every: int = 32,
-                 blocks_per_call: int = 16, desc: str = "simulating",
+                 refill_every: int = 32, blocks_per_call: int = 16,
+                 programs: StreamPrograms | None = None, desc: str = "simulating",
                  progress: bool = True) -> list[Record]:
     """Simulates every plan's samples (``params.robot``: the bare arm, lbipe convention);
     returns one :class:`~jaxinertia.sim.sampling.Record` (numpy) per plan, in plan order.
@@ -301,7 +333,16 @@ def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = No
     ``batch_last`` (default :func:`batch_last_default`): step the lanes with
     :func:`jaxinertia.sim.batched.step_batched` rather than ``vmap`` of
     :func:`jaxinertia.sim.simulator.step`; the same physics, rounded differently.
+
+    ``programs``: where the compiled programs are found and kept (None: compiled for this
+    stream alone).
     """
+    if programs is None:
+        with StreamPrograms() as own:
+            return stream_plans(params, plans, lanes=lanes, tail_lanes=tail_lanes,
+                                batch_last=batch_last, refill_every=refill_every,
+                                blocks_per_call=blocks_per_call, programs=own, desc=desc,
+                                progress=progress)
     t_start = time.perf_counter()
     lanes = int(lanes or default_lanes())
     args, sizes = _assemble(params, plans, lanes)
@@ -310,14 +351,14 @@ def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = No
     tail = tail if 0 < tail < lanes and S >= 4 * lanes else 0
     prepare = partial(_prepare, sizes=sizes, lanes=lanes)
     batch_last = batch_last_default() if batch_last is None else bool(batch_last)
-    programs = _programs(params, *jax.eval_shape(prepare, *args), tail, refill_every,
-                         batch_last)
+    futures = programs.programs(params, *jax.eval_shape(prepare, *args), tail, refill_every,
+                                batch_last)
     table, carry = prepare(*args)
-    block = _Block(*_result(programs["main"]))
+    block = _Block(*programs.result(futures["main"]))
     _log.debug("stream: programs ready after %.3f s", time.perf_counter() - t_start)
     t0 = time.perf_counter()
     with tqdm(total=S, desc=desc, unit="sample", disable=not progress) as bar:
-        done, small = 0, programs["tail"]
+        done, small = 0, futures["tail"]
         while done < S:
             for _ in range(blocks_per_call):  # dispatched asynchronously
                 carry = block.refill(params, table, carry)
@@ -328,9 +369,9 @@ def stream_plans(params: SimParams, plans: list[Plan], *, lanes: int | None = No
                        time.perf_counter() - t0, done, handed, carry.lanes.idx.shape[0])
             if (small and handed >= S and handed - done <= tail
                     and all(f.done() for f in small)):
-                compact, *programs_small = _result(small)
+                compact, *programs_small = programs.result(small)
                 carry, block, small = compact(carry), _Block(*programs_small), None
-    finish, = _result([programs["finish"]])
+    finish, = programs.result([futures["finish"]])
     out = jax.tree.map(lambda a: np.asarray(a)[:S], finish(params, table, carry.out))
     _log.debug("stream: recorded after %.3f s", time.perf_counter() - t0)
     bounds = np.cumsum((0,) + sizes)

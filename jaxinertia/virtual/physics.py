@@ -47,16 +47,15 @@ from dataclasses import dataclass
 import jax
 import numpy as np
 
-from jaxinertia import compilation_cache
+from jaxinertia import _xla_workarounds, compilation_cache
 from jaxinertia.hardware import control_table as ct
-from jaxinertia.objects import HeldObject
 from jaxinertia.sim.servo import ServoParams, goal_ticks
-from jaxinertia.sim.simulator import SimParams, SimState, attach_payload, step, trapezoid
+from jaxinertia.sim.simulator import SimParams, SimState, step, trapezoid
 from jaxinertia.virtual.bus import ServoMemory, table_views
 from jaxinertia.xm430 import PWM_FULL_SCALE
 
-__all__ = ["REGISTERS", "ArmPhysics", "PhysicsLoop", "PhysicsSpec", "Present", "physical_params",
-           "physics_main", "publish", "servo_from_registers"]
+__all__ = ["REGISTERS", "ArmPhysics", "PhysicsLoop", "PhysicsSpec", "Present", "physics_main",
+           "publish", "servo_from_registers"]
 
 #: Profile register 0 means "no profile": a step goal. Stand-ins that the trapezoid takes.
 _UNLIMITED_VELOCITY = 1e6  # [rad/s]
@@ -97,16 +96,6 @@ def _advance(params: SimParams, gain_scale, registers, friction_scale, state: Si
 _at_rest = jax.jit(SimState.at_rest)
 
 
-def physical_params(params: SimParams, obj: HeldObject | None) -> SimParams:
-    """The simulator's parameters of the arm as it moves: gravity as felt (the opposite of
-    the recorded convention) and the object fused into the end effector."""
-    physical = params.robot.with_gravity(-params.robot.gravity)
-    if obj is not None:
-        R = obj.R_ee_tag
-        physical = attach_payload(physical, obj.mass, obj.com_ee(), R @ obj.inertia @ R.T)
-    return params.replace(robot=physical)
-
-
 @dataclass(frozen=True)
 class Present:
     """One published chunk: the joints' present values (N,) each, at ``sim_time`` [s]."""
@@ -127,7 +116,8 @@ class ArmPhysics:
 
     def __init__(self, params: SimParams, *, q0: np.ndarray, chunk: int = 20,
                  seed: int = 0) -> None:
-        """``params``: :func:`physical_params` (leaves may be numpy arrays)."""
+        """``params``: :func:`jaxinertia.sim.simulator.physical_params` (leaves may be numpy
+        arrays)."""
         n = len(q0)
         self.params = params
         # Register -> simulator gain: the calibrated effective gains belong to the factory
@@ -293,6 +283,7 @@ def physics_main(spec: PhysicsSpec, tables, goal_writes, lock, events, ready, st
                  parent_pid: int) -> None:
     """Entry of the physics process."""
     try:
+        _xla_workarounds.apply()  # a spawned process: before its JAX backend starts
         jax.config.update("jax_enable_x64", True)
         if spec.cache_dir:
             compilation_cache.enable(spec.cache_dir, spec.cache_max_size)

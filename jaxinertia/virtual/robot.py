@@ -35,12 +35,11 @@ from jaxinertia.hardware import control_table as ct
 from jaxinertia.objects import HeldObject
 from jaxinertia.open_manipulator_x import GRIPPER_ID, JOINT_IDS
 from jaxinertia.sim.servo import ServoParams
-from jaxinertia.sim.simulator import SimParams
+from jaxinertia.sim.simulator import SimParams, physical_params
 from jaxinertia.virtual.bus import TABLE_SIZE, Faults, ServoBus
 from jaxinertia.virtual.physics import (
     REGISTERS,
     PhysicsSpec,
-    physical_params,
     physics_main,
     servo_from_registers,
 )

@@ -9,8 +9,9 @@ import sys
 import jax
 import numpy as np
 
-import jaxinertia  # noqa: F401  (XLA settings)
+from jaxinertia import apply_xla_workarounds
 
+apply_xla_workarounds()  # an entry point: the XLA:CPU settings before JAX starts
 jax.config.update("jax_enable_x64", True)
 
 from jaxinertia.evaluation import evaluate  # noqa: E402
