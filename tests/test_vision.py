@@ -1,8 +1,10 @@
 """Camera: tag detection + pose against rendered ground truth, camera-pose calibration.
 
-Images come from :func:`jaxinertia.vision.synthetic.render_tag`: the tag texture warped by
-the homography fixed by ``cv2.projectPoints`` of the tag plane (pinhole model), with lens
-distortion, blur and noise. The detector never sees the ground truth.
+Images come from :func:`jaxinertia.vision.synthetic.render_tag`: the official tag image
+(drawn from the family's code bits as the AprilTag library draws it, never with OpenCV's
+``generateImageMarker``) warped by the homography fixed by ``cv2.projectPoints`` of the tag
+plane (pinhole model), with lens distortion, blur and noise. The detector never sees the
+ground truth.
 """
 
 from __future__ import annotations
@@ -15,9 +17,11 @@ import numpy as np
 import pytest
 
 from jaxinertia.app.cli import main
+from jaxinertia.errors import CameraError
 from jaxinertia.kinematics import ee_pose
 from jaxinertia.open_manipulator_x import TAG_IN_EE, WORKSPACE_DEG
 from jaxinertia.robot import open_manipulator_x
+from jaxinertia.vision import families, tags
 from jaxinertia.vision.calibration import (
     CameraPoseError,
     calibrate_camera_pose,
@@ -25,6 +29,7 @@ from jaxinertia.vision.calibration import (
     read_manifest,
     save_camera_pose,
 )
+from jaxinertia.vision.families import FAMILIES, official_cells, tag_cells, tag_image
 from jaxinertia.vision.intrinsics import CameraIntrinsics, IntrinsicsError, load_intrinsics
 from jaxinertia.vision.source import CameraTagSource
 from jaxinertia.vision.synthetic import look_at, render_tag
@@ -276,3 +281,67 @@ def test_manifest_json(tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps({"samples": [{"img": "a.png"}]}))
     with pytest.raises(ValueError, match="bad manifest"):
         read_manifest(tmp_path / "bad.json")
+
+
+# --- The official tag frame, whatever OpenCV's dictionary does --------------------------
+
+
+def test_tag_bits_are_the_official_codes():
+    # Codes copied from the AprilTag library are the reference; OpenCV's dictionary, turned
+    # as families.opencv_turn found, must give the same cells for each, in every family.
+    for name, codes in families._OFFICIAL_CODES.items():
+        for tag_id, code in codes.items():
+            np.testing.assert_array_equal(tag_cells(name, tag_id), official_cells(name, code),
+                                          err_msg=f"{name} id {tag_id}")
+    # tag36h11 id 0 decoded by hand from 0xd7e00984b and the library's bit_x/bit_y: its
+    # top data row holds bits 0-4 and 9, the next bits 31, 5, 6, 7, 14, 10 (1 = white).
+    top_rows = tag_image("tag36h11", 0)[2:4, 2:8] // 255
+    np.testing.assert_array_equal(top_rows, [[1, 1, 0, 1, 0, 1], [0, 1, 1, 1, 0, 1]])
+    assert tag_image("tag36h11", 0).shape == (10, 10)  # total_width of the library
+
+
+@pytest.mark.parametrize("family", list(FAMILIES))
+def test_documented_frame_on_official_tags(family):
+    # An official tag facing the camera, upright: its x axis points right in the image and
+    # its y axis up (R_cam_tag = diag(1, -1, -1)), corner 0 at the image's top left.
+    R, p = FACING @ rot([0, 0, 1], 10), np.array([0.01, 0.005, 0.3])
+    img = render_tag(PLAIN, R, p, TAG, tag_id=1, family=family, blur_sigma=0.8,
+                     noise_std=3.0)
+    det = tags.make_detector(family=family)
+    tp = measure_tag(img, PLAIN, TAG, 1, detector=det)
+    assert angle(tp.R_cam_tag, R) < TOL["tag_R"], np.rad2deg(angle(tp.R_cam_tag, R))
+    assert np.linalg.norm(tp.p_cam_tag - p) < TOL["tag_p"]
+    c = tp.corners
+    assert c[0, 0] < c[1, 0] and c[0, 1] < c[3, 1], "corner 0 is not the top left"
+
+
+def test_generate_image_marker_is_the_official_tag_turned():
+    # OpenCV's own drawing of the same id is the official image turned 180 degrees
+    # (OpenCV 5.0.0): its frame comes out turned about z. Official prints are the reference.
+    D = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
+    marker = cv2.aruco.generateImageMarker(D, TAG_ID, 80, borderBits=1)
+    turn = families.opencv_turn("tag36h11")
+    np.testing.assert_array_equal(np.rot90(marker[::10, ::10] // 255, turn),
+                                  tag_cells("tag36h11", TAG_ID))
+    R, p = POSES["tilt_x_35"]
+    img = render_tag(PLAIN, R, np.asarray(p), TAG, tag_id=TAG_ID, marker=marker,
+                     blur_sigma=0.8, noise_std=3.0)
+    tp = measure_tag(img, PLAIN, TAG, TAG_ID)
+    assert angle(tp.R_cam_tag, R @ rot([0, 0, 1], 90 * turn)) < TOL["tag_R"]
+
+
+def test_corner_order_fails_loudly_without_the_official_tag(monkeypatch):
+    # Should OpenCV stop reading the official codes, the check refuses rather than guess.
+    tags.corner_order.cache_clear()
+    families.opencv_turn.cache_clear()
+    monkeypatch.setitem(families._OFFICIAL_CODES, "tag25h9", {0: 0x1F28CD5})  # id 1's code
+    try:
+        with pytest.raises(CameraError, match="official tag25h9 id 0"):
+            tags.corner_order("tag25h9")
+        with pytest.raises(CameraError, match="rotation"):
+            families.opencv_turn("tag25h9")
+    finally:
+        monkeypatch.undo()
+        tags.corner_order.cache_clear()
+        families.opencv_turn.cache_clear()
+    assert tags.corner_order("tag25h9") in range(4)

@@ -38,7 +38,7 @@ import numpy as np
 from jaxinertia.errors import CameraError, FileFormatError, UsageError
 from jaxinertia.fileio import write_text
 from jaxinertia.vision.intrinsics import CameraIntrinsics
-from jaxinertia.vision.tags import solve_tag_pose, tag_object_points
+from jaxinertia.vision.pose import solve_tag_pose, tag_object_points
 
 __all__ = [
     "CameraPose",

@@ -1,7 +1,9 @@
 """Synthetic camera images of a tag at a known pose (tests, demos, a virtual camera).
 
-Honest pinhole geometry, independent of the detector: the tag image
-(``cv2.aruco.generateImageMarker`` plus its white border) is a texture on the tag plane;
+Honest pinhole geometry, independent of the detector: the official tag image (drawn from
+the family's code bits as the AprilTag library draws it,
+:func:`jaxinertia.vision.families.tag_image`, plus its white border) is a texture on the
+tag plane;
 the homography from that texture to the image is fixed by projecting four tag-plane
 points with ``cv2.projectPoints`` (the pinhole model; exact for a plane). Rendering is
 supersampled and area-averaged (pixels integrate light), lens distortion is applied by
@@ -16,13 +18,10 @@ import cv2
 import numpy as np
 
 from jaxinertia.errors import UsageError
+from jaxinertia.vision.families import DEFAULT_FAMILY, get_family, tag_image
 from jaxinertia.vision.intrinsics import CameraIntrinsics
-from jaxinertia.vision.tags import TAG_FAMILY
 
 __all__ = ["look_at", "render_tag"]
-
-_CELLS = 8  # tag36h11: 6x6 data bits + a one-cell black border = the black square
-
 
 def look_at(p_cam: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0)) -> np.ndarray:
     """R (3, 3) of an OpenCV camera (z forward, y down) at ``p_cam`` looking at ``target``;
@@ -56,6 +55,8 @@ def render_tag(
     tag_size: float,
     *,
     tag_id: int = 0,
+    family: str = DEFAULT_FAMILY,
+    marker: np.ndarray | None = None,
     border_cells: float = 1.0,
     black: float = 25.0,
     white: float = 225.0,
@@ -71,20 +72,25 @@ def render_tag(
       R_cam_tag: (3, 3), p_cam_tag: (3,) [m] tag pose in the camera frame (tag frame as in
         :mod:`jaxinertia.vision.tags`).
       tag_size: edge of the black square [m].
-      border_cells: white margin around the black square, in cells (tag_size / 8).
+      family: the tag family; marker: a black square image to use instead of the official
+        one (e.g. ``cv2.aruco.generateImageMarker``'s, without its white margin).
+      border_cells: white margin around the black square, in cells.
       blur_sigma: Gaussian optical blur [px]; noise_std: additive Gaussian noise [grey levels].
     """
     s = int(supersample)
     cell_px = 32
-    marker = cv2.aruco.generateImageMarker(
-        cv2.aruco.getPredefinedDictionary(TAG_FAMILY), tag_id, _CELLS * cell_px, borderBits=1)
+    cells = get_family(family).black_cells
+    if marker is None:
+        marker = tag_image(family, tag_id, cell_px=cell_px, margin_cells=0)
+    marker = cv2.resize(np.asarray(marker, np.uint8), (cells * cell_px,) * 2,
+                        interpolation=cv2.INTER_NEAREST)
     pad = int(round(border_cells * cell_px))
     tex = cv2.copyMakeBorder(marker, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=255)
     tex = (black + (white - black) * (tex.astype(np.float32) / 255.0)).astype(np.float32)
     n = tex.shape[0]
     # Texture pixel centres are integers (OpenCV's convention); texture coordinate u maps
     # to tag x = (u - c) * m and v to tag y = -(v - c) * m, c the texture's centre.
-    m = tag_size / (_CELLS * cell_px)
+    m = tag_size / (cells * cell_px)
     c = (n - 1) / 2.0
     uv = np.array([[-0.5, -0.5], [n - 0.5, -0.5], [n - 0.5, n - 0.5], [-0.5, n - 0.5]])
     xyz = np.column_stack([(uv[:, 0] - c) * m, -(uv[:, 1] - c) * m, np.zeros(4)])
