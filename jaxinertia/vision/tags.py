@@ -48,6 +48,7 @@ __all__ = [
     "detect_tags",
     "find_tag",
     "make_detector",
+    "no_tag_message",
     "measure_tag",
     "refine_corners_edges",
     "solve_tag_pose",
@@ -74,7 +75,7 @@ class TagDetection:
     @property
     def side_px(self) -> float:
         """Mean edge length of the black square in the image [px]."""
-        return float(np.mean(np.linalg.norm(self.corners - np.roll(self.corners, -1, 0), axis=1)))
+        return _side(self.corners)
 
 
 class TagDetector:
@@ -115,9 +116,13 @@ class TagDetector:
         # off along x and y (about 0.35 mm for a 4 cm tag at 0.3 m).
         self._shift = 0.5 if refine == "apriltag" else 0.0
         self.aruco = cv2.aruco.ArucoDetector(self.family.opencv_dictionary(), p)
+        #: Mean edges [px] of the quads aruco rejected in the last image (at its own size).
+        self.rejected_sides: list[float] = []
 
     def _once(self, g: np.ndarray, how: str) -> list[TagDetection]:
         corners, ids, rejected = self.aruco.detectMarkers(g)
+        if how == "aruco":
+            self.rejected_sides = [_side(q) for q in rejected]
         k = corner_order(self.family)
         out = []
         if ids is not None:
@@ -197,8 +202,9 @@ def _decode_quad(g: np.ndarray, quad: np.ndarray, fam: TagFamily):
     k, tag_id = np.unravel_index(np.argmin(ham), ham.shape)
     if ham[k, tag_id] > _MAX_HAMMING[fam.name]:
         return None
-    # The reading turned k quarter turns is the official grid: its top-left is corner k.
-    return int(tag_id), np.roll(q, -int(k), axis=0)
+    # The reading is the official grid turned k quarter turns counter-clockwise: the
+    # official top-left is corner -k of the quad.
+    return int(tag_id), np.roll(q, int(k), axis=0)
 
 
 @functools.lru_cache(maxsize=8)
@@ -245,6 +251,28 @@ def detect_tags(
     return (detector or TagDetector()).detect(image)
 
 
+def _side(quad) -> float:
+    q = np.asarray(quad, np.float64).reshape(4, 2)
+    return float(np.mean(np.linalg.norm(q - np.roll(q, -1, axis=0), axis=1)))
+
+
+#: Below this edge [px] of the black square a tag36h11 cannot be read (blur 0.8 px, noise
+#: 3 grey levels; docs/hardware.md "Small tags").
+MIN_READABLE_PX = 14
+
+
+def no_tag_message(image: np.ndarray, detector: TagDetector) -> str:
+    """``no tag36h11 tag seen`` and, when the detector found square outlines too small to
+    read in ``image`` (its last), ``; tag too small (N px) ...``."""
+    small = [s for s in detector.rejected_sides if 4 <= s < 1.5 * MIN_READABLE_PX]
+    msg = f"no {detector.family.name} tag seen"
+    if small:
+        msg += (f"; tag too small ({max(small):.0f} px)? a square of that size was found but "
+                f"not read (a tag needs about {MIN_READABLE_PX} px or more: move the camera "
+                "closer or use a larger tag)")
+    return msg
+
+
 def find_tag(
     image: np.ndarray, tag_id: int, detector: TagDetector | None = None
 ) -> TagDetection:
@@ -252,33 +280,22 @@ def find_tag(
 
     Raises:
       TagNotFoundError: the tag is absent, or present more than once (ambiguous).
+      UsageError: ``tag_id`` is not an id of the detector's family.
     """
     detector = detector or TagDetector()
-    name = detector.family.name
+    fam = detector.family
+    if not 0 <= int(tag_id) < fam.n_codes:
+        raise UsageError(f"{fam.name} ids are 0-{fam.n_codes - 1}, got {tag_id}")
     dets = detector.detect(image)
     hits = [d for d in dets if d.tag_id == tag_id]
     if not hits:
         seen = (f"tags seen: {[d.tag_id for d in dets]}" if dets
-                else f"no {name} tag seen{_small_hint(image, detector)}")
-        raise TagNotFoundError(f"{name} id {tag_id} not found in the image ({seen})")
+                else no_tag_message(image, detector))
+        raise TagNotFoundError(f"{fam.name} id {tag_id} not found in the image ({seen})")
     if len(hits) > 1:
-        raise TagNotFoundError(f"{name} id {tag_id} seen {len(hits)} times; tag ids must be "
-                               "unique in the view")
+        raise TagNotFoundError(f"{fam.name} id {tag_id} seen {len(hits)} times; tag ids must "
+                               "be unique in the view")
     return hits[0]
-
-
-def _small_hint(image: np.ndarray, detector: TagDetector) -> str:
-    """``; a square of N px was found but not read: tag too small`` when aruco rejected a
-    tag-like quad too small to read, else empty."""
-    g = _gray(image)
-    _, _, rejected = detector.aruco.detectMarkers(g)
-    sides = [np.mean(np.linalg.norm(q.reshape(4, 2) - np.roll(q.reshape(4, 2), -1, 0), axis=1))
-             for q in rejected]
-    small = [s for s in sides if 4 <= s < 24]
-    if not small:
-        return ""
-    return (f"; tag too small? a square of {max(small):.0f} px was found but not read (tags "
-            f"under about 14 px cannot be read; move closer or use a larger tag)")
 
 
 def measure_tag(
