@@ -10,6 +10,7 @@ ground truth.
 from __future__ import annotations
 
 import json
+import os
 
 import cv2
 import jax
@@ -17,7 +18,7 @@ import numpy as np
 import pytest
 
 from jaxinertia.app.cli import main
-from jaxinertia.errors import CameraError
+from jaxinertia.errors import CameraError, FileFormatError, UsageError
 from jaxinertia.kinematics import ee_pose
 from jaxinertia.open_manipulator_x import TAG_IN_EE, WORKSPACE_DEG
 from jaxinertia.robot import open_manipulator_x
@@ -345,3 +346,136 @@ def test_corner_order_fails_loudly_without_the_official_tag(monkeypatch):
         tags.corner_order.cache_clear()
         families.opencv_turn.cache_clear()
     assert tags.corner_order("tag25h9") in range(4)
+
+
+# --- Small tags, ambiguity, several tags, families ------------------------------------
+
+SMALL = CameraIntrinsics(600.0, 600.0, 159.5, 119.5, 320, 240)
+
+
+def _small_scene(side_px: float, in_plane: float, seed: int):
+    z = 600.0 * TAG / side_px
+    R, p = FACING @ rot([0, 0, 1], in_plane) @ rot([1, 0.3, 0], 20), np.array([0.01 * z, 0, z])
+    img = render_tag(SMALL, R, p, TAG, tag_id=TAG_ID, blur_sigma=0.8, noise_std=3.0,
+                     rng=np.random.default_rng(seed))
+    truth = cv2.projectPoints(tag_object_points(TAG), cv2.Rodrigues(R)[0], p, SMALL.K,
+                              None)[0].reshape(4, 2)
+    return img, truth
+
+
+@pytest.mark.parametrize("in_plane", [90, 270])
+def test_small_tag_found_in_the_official_corner_order(in_plane):
+    # 16 px: aruco alone reads it in 1 of 10 such images (docs/hardware.md, "Small tags");
+    # read from its rejected quad or upsampled, with every corner where it belongs.
+    img, truth = _small_scene(16, in_plane, in_plane)
+    det = tags.find_tag(img, TAG_ID)
+    assert np.abs(det.corners - truth).max() < 1.0, (det.how, det.corners - truth)
+    assert 14 < det.side_px < 18
+    tp = measure_tag(img, SMALL, TAG, TAG_ID)
+    assert tp.ambiguous, "a 16 px tag's tilt is not determined; it must say so"
+
+
+def test_too_small_tag_says_so():
+    img, _ = _small_scene(9, 30, 0)
+    with pytest.raises(TagNotFoundError, match=r"tag too small \(\d+ px\)"):
+        measure_tag(img, SMALL, TAG, TAG_ID)
+
+
+def _two_tags(intr=PLAIN):
+    a = render_tag(intr, FACING @ rot([0, 1, 0], 30), np.array([-0.06, 0, 0.3]), TAG, tag_id=3,
+                   blur_sigma=0.8, noise_std=3.0)
+    b = render_tag(intr, FACING @ rot([1, 0, 0], -25), np.array([0.06, 0.01, 0.3]), TAG,
+                   tag_id=TAG_ID, blur_sigma=0.8, noise_std=3.0)
+    img = a.copy()
+    img[:, intr.width // 2:] = b[:, intr.width // 2:]
+    return img
+
+
+def test_cli_tag_pose_list_family_and_tag_image(tmp_path, capsys):
+    intr_file = tmp_path / "intr.json"
+    intr_file.write_text(json.dumps(PLAIN.to_dict()))
+    cv2.imwrite(str(tmp_path / "two.png"), _two_tags())
+    base = ["tag-pose", "--image", str(tmp_path / "two.png"), "--intrinsics", str(intr_file),
+            "--tag-size", str(TAG)]
+    assert main([*base, "--list", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [t["tag_id"] for t in out["tags"]] == [3, TAG_ID]
+    assert np.allclose([t["p_cam_tag"][0] for t in out["tags"]], [-0.06, 0.06], atol=1e-3)
+    assert all(not t["ambiguous"] and 70 < t["size_px"] < 85 for t in out["tags"])
+    assert main([*base, "--list"]) == 0
+    text = capsys.readouterr().out
+    assert "2 tag36h11 tag(s) seen" in text and "tag 3 (tag36h11" in text
+    # Another family: a tag25h9 is not a tag36h11.
+    img = render_tag(PLAIN, FACING, np.array([0.0, 0.0, 0.3]), TAG, tag_id=5, family="tag25h9",
+                     blur_sigma=0.8, noise_std=3.0)
+    cv2.imwrite(str(tmp_path / "t25.png"), img)
+    base[2] = str(tmp_path / "t25.png")
+    assert main([*base, "--tag-id", "5", "--family", "25h9", "--json"]) == 0
+    assert np.linalg.norm(np.asarray(json.loads(capsys.readouterr().out)["p_cam_tag"])
+                          - [0, 0, 0.3]) < TOL["tag_p"]
+    assert main([*base, "--tag-id", "5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no tag36h11 tag seen" in err[0], err
+    assert main([*base, "--family", "tag99h1"]) == 2
+    assert main([*base, "--tag-id", "600"]) == 2
+    assert "ids are 0-586" in capsys.readouterr().err
+    # tag-image writes the official image; aruco + corner_order find its top-left corner.
+    out_png = tmp_path / "tag.png"
+    assert main(["tag-image", "--id", str(TAG_ID), "--cell-px", "8", "--out", str(out_png)]) == 0
+    written = cv2.imread(str(out_png), cv2.IMREAD_GRAYSCALE)
+    np.testing.assert_array_equal(written, tag_image("tag36h11", TAG_ID, cell_px=8))
+    det = tags.find_tag(cv2.copyMakeBorder(written, 8, 8, 8, 8, cv2.BORDER_CONSTANT, value=255),
+                        TAG_ID)
+    assert np.abs(det.corners[0] - [15.5, 15.5]).max() < 1.0, det.corners
+    assert main(["tag-image", "--id", "1", "--out", str(out_png)]) == 2  # exists
+
+
+def test_non_utf8_paths_and_bytes_end_in_one_line(tmp_path, capsys):
+    # OpenCV 5.0.0 segfaults when handed a path that is not UTF-8; no path reaches it.
+    d = os.fsencode(tmp_path)
+    img_p, yaml_p = os.fsdecode(d + b"/tag\xff.png"), os.fsdecode(d + b"/cam\xfe.yaml")
+    R, p = POSES["tilt_x_35"]
+    ok, buf = cv2.imencode(".png", render_tag(DISTORTED, R, np.asarray(p), TAG, tag_id=TAG_ID,
+                                              blur_sigma=0.8, noise_std=3.0))
+    with open(os.fsencode(img_p), "wb") as f:
+        f.write(buf.tobytes())
+    fs = cv2.FileStorage(str(tmp_path / "cam.yaml"), cv2.FileStorage_WRITE)
+    fs.write("image_width", 640)
+    fs.write("image_height", 480)
+    fs.write("camera_matrix", DISTORTED.K)
+    fs.write("distortion_coefficients", DISTORTED.dist.reshape(1, 5))
+    fs.release()
+    os.rename(tmp_path / "cam.yaml", os.fsencode(yaml_p))
+    args = ["tag-pose", "--image", img_p, "--intrinsics", yaml_p, "--tag-size", str(TAG),
+            "--tag-id", str(TAG_ID), "--json"]
+    assert main(args) == 0
+    assert np.linalg.norm(np.asarray(json.loads(capsys.readouterr().out)["p_cam_tag"])
+                          - p) < TOL["tag_p"]
+    bad = {"--image": [(b"/missing\xff.png", None, "no such image"),
+                       (b"/junk\xff.png", b"\x89PNG\xff\xfe", "not a readable image")],
+           "--intrinsics": [(b"/latin1.json", b'{"fx": "\xe9"}', "not UTF-8"),
+                            (b"/junk\xfd.yaml", b"%YAML:1.0\n[[[", "not valid OpenCV FileStorage"),
+                            (b"/missing\xfc.yaml", None, "no such")]}
+    for option, cases in bad.items():
+        for name, data, words in cases:
+            if data is not None:
+                with open(d + name, "wb") as f:
+                    f.write(data)
+            a = list(args)
+            a[a.index(option) + 1] = os.fsdecode(d + name)
+            assert main(a) == 2, name
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and "Traceback" not in err[0], err
+            assert words in err[0], err
+    # A manifest and a camera pose that are not UTF-8 text.
+    (tmp_path / "m.csv").write_bytes(b"image,q1,q2,q3,q4\n\xff.png,0,0,0,0\n")
+    with pytest.raises(FileFormatError, match="not UTF-8"):
+        read_manifest(tmp_path / "m.csv")
+    (tmp_path / "cp.json").write_bytes(b'{"R_base_cam": "\xff"}')
+    with pytest.raises(CameraPoseError, match="not UTF-8"):
+        load_camera_pose(tmp_path / "cp.json")
+
+
+def test_principal_point_outside_the_image_is_refused():
+    with pytest.raises(UsageError, match="principal point"):
+        CameraIntrinsics(600.0, 600.0, 3000.0, 240.0, 640, 480)

@@ -157,8 +157,10 @@ def _from_filestorage(path: Path) -> CameraIntrinsics:
     fmt = cv2.FileStorage_FORMAT_XML if xml else cv2.FileStorage_FORMAT_YAML
     try:
         fs = cv2.FileStorage(text, cv2.FileStorage_READ | cv2.FileStorage_MEMORY | fmt)
-    except cv2.error as e:
-        raise IntrinsicsError(where, None, f"OpenCV cannot parse it ({e.err})") from e
+    except (cv2.error, SystemError) as e:  # the binding raises SystemError on a bad YAML
+        why = getattr(e, "err", None) or getattr(e.__cause__, "err", None) or "malformed"
+        raise IntrinsicsError(where, None, f"not valid OpenCV FileStorage YAML/XML "
+                              f"(OpenCV: {why})") from None
     try:
         if not fs.isOpened():
             raise IntrinsicsError(where, None, "OpenCV cannot open it as FileStorage YAML/XML")

@@ -116,20 +116,18 @@ class TagDetector:
         # off along x and y (about 0.35 mm for a 4 cm tag at 0.3 m).
         self._shift = 0.5 if refine == "apriltag" else 0.0
         self.aruco = cv2.aruco.ArucoDetector(self.family.opencv_dictionary(), p)
-        #: Mean edges [px] of the quads aruco rejected in the last image (at its own size).
-        self.rejected_sides: list[float] = []
+        #: Mean edges [px] of tag-like squares that could not be read in the last image.
+        self.unread_sides: list[float] = []
 
-    def _once(self, g: np.ndarray, how: str) -> list[TagDetection]:
+    def _once(self, g: np.ndarray, how: str, scale: float = 1.0) -> list[TagDetection]:
         corners, ids, rejected = self.aruco.detectMarkers(g)
-        if how == "aruco":
-            self.rejected_sides = [_side(q) for q in rejected]
         k = corner_order(self.family)
         out = []
         if ids is not None:
             for c, i in zip(corners, ids.ravel()):
                 c = np.asarray(c, np.float64).reshape(4, 2) - self._shift
                 out.append(TagDetection(int(i), np.roll(c, -k, axis=0), self.family.name, how))
-        if self.rescue and _MAX_HAMMING[self.family.name] >= 0 and len(rejected):
+        if self.rescue and len(rejected):
             gf = g.astype(np.float32)
             for q in rejected:
                 q = np.asarray(q, np.float64).reshape(4, 2)
@@ -138,7 +136,11 @@ class TagDetector:
                        for d in out):
                     continue
                 hit = _decode_quad(gf, q, self.family)
-                if hit is not None:
+                if hit is None:
+                    continue
+                if hit[0] is None:  # dark square in a light margin, unreadable
+                    self.unread_sides.append(_side(q) / scale)
+                else:
                     out.append(TagDetection(hit[0], hit[1], self.family.name,
                                             "decoded" if how == "aruco" else how))
         return out
@@ -146,12 +148,13 @@ class TagDetector:
     def detect(self, image: np.ndarray) -> list[TagDetection]:
         """All tags of the family in ``image`` (grey or BGR uint8), sorted by id."""
         g = _gray(image)
+        self.unread_sides = []
         out = self._once(g, "aruco")
         if not out and self.upsample and max(g.shape) <= 4096:
             up = cv2.resize(g, None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC)
             # Pixel centres: upsampled u maps to (u + 0.5) / 2 - 0.5.
             out = [TagDetection(d.tag_id, (d.corners + 0.5) / 2 - 0.5, d.family, "upsampled")
-                   for d in self._once(up, "upsampled")]
+                   for d in self._once(up, "upsampled", 2.0)]
         return sorted(out, key=lambda d: d.tag_id)
 
 
@@ -171,7 +174,8 @@ def _codes_table(fam: TagFamily) -> np.ndarray:
 
 
 def _decode_quad(g: np.ndarray, quad: np.ndarray, fam: TagFamily):
-    """``(tag_id, corners in official order)`` read from a quad, or None."""
+    """``(tag_id, corners in official order)`` read from a quad; ``(None, quad)`` for a
+    dark square in a light margin that cannot be read; None for anything else."""
     q = np.asarray(quad, np.float64)
     area2 = np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1])
     if area2 <= 0:  # counter-clockwise on screen: mirror it to the canonical order
@@ -196,12 +200,12 @@ def _decode_quad(g: np.ndarray, quad: np.ndarray, fam: TagFamily):
         return None
     cells = s[1:-1, 1:-1] > 0.5 * (white + black)
     if cells[border].sum() > 1:
-        return None
+        return (None, q) if cells[border].mean() < 0.25 else None
     bits = cells[1:-1, 1:-1].ravel()
     ham = np.count_nonzero(_codes_table(fam) != bits, axis=2)  # (4, N)
     k, tag_id = np.unravel_index(np.argmin(ham), ham.shape)
     if ham[k, tag_id] > _MAX_HAMMING[fam.name]:
-        return None
+        return None, q
     # The reading is the official grid turned k quarter turns counter-clockwise: the
     # official top-left is corner -k of the quad.
     return int(tag_id), np.roll(q, int(k), axis=0)
@@ -264,7 +268,7 @@ MIN_READABLE_PX = 14
 def no_tag_message(image: np.ndarray, detector: TagDetector) -> str:
     """``no tag36h11 tag seen`` and, when the detector found square outlines too small to
     read in ``image`` (its last), ``; tag too small (N px) ...``."""
-    small = [s for s in detector.rejected_sides if 4 <= s < 1.5 * MIN_READABLE_PX]
+    small = [s for s in detector.unread_sides if s < 2 * MIN_READABLE_PX]
     msg = f"no {detector.family.name} tag seen"
     if small:
         msg += (f"; tag too small ({max(small):.0f} px)? a square of that size was found but "
