@@ -21,7 +21,7 @@ from jaxinertia.errors import UsageError
 from jaxinertia.vision.families import DEFAULT_FAMILY, get_family, tag_image
 from jaxinertia.vision.intrinsics import CameraIntrinsics
 
-__all__ = ["look_at", "render_tag"]
+__all__ = ["look_at", "photo_like", "render_tag"]
 
 def look_at(p_cam: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0)) -> np.ndarray:
     """R (3, 3) of an OpenCV camera (z forward, y down) at ``p_cam`` looking at ``target``;
@@ -118,3 +118,31 @@ def render_tag(
         rng = rng if rng is not None else np.random.default_rng(0)
         ideal = ideal + rng.normal(0.0, noise_std, ideal.shape).astype(np.float32)
     return np.clip(np.rint(ideal), 0, 255).astype(np.uint8)
+
+
+def photo_like(
+    image: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    light: tuple[float, float] = (0.45, 1.0),
+    vignette: float = 0.35,
+    shot_noise: float = 0.6,
+    jpeg_quality: int = 80,
+) -> np.ndarray:
+    """What a camera does to a rendered image beyond optics: light falling off across the
+    scene (a linear ramp from ``light[0]`` to ``light[1]`` of full brightness in a random
+    direction), vignetting (``1 - vignette * r^2`` of the normalised radius r), photon shot
+    noise (standard deviation ``shot_noise * sqrt(level)`` grey levels) and JPEG
+    compression at ``jpeg_quality``. Returns a grey uint8 image."""
+    h, w = image.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    a = rng.uniform(0, 2 * np.pi)
+    t = ((u - w / 2) * np.cos(a) + (v - h / 2) * np.sin(a)) / np.hypot(w, h) + 0.5
+    gain = light[0] + (light[1] - light[0]) * np.clip(t, 0, 1)
+    r2 = ((u - w / 2) ** 2 + (v - h / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
+    img = image.astype(np.float32) * gain * (1.0 - vignette * r2)
+    img += rng.normal(0.0, 1.0, img.shape).astype(np.float32) * shot_noise * np.sqrt(
+        np.maximum(img, 0.0))
+    img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+    return cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)

@@ -260,9 +260,9 @@ def _side(quad) -> float:
     return float(np.mean(np.linalg.norm(q - np.roll(q, -1, axis=0), axis=1)))
 
 
-#: Below this edge [px] of the black square a tag36h11 cannot be read (blur 0.8 px, noise
+#: Below this edge [px] of the black square a tag36h11 is not read reliably (blur 0.8 px, noise
 #: 3 grey levels; docs/hardware.md "Small tags").
-MIN_READABLE_PX = 14
+MIN_READABLE_PX = 16
 
 
 def no_tag_message(image: np.ndarray, detector: TagDetector) -> str:
