@@ -306,10 +306,10 @@ def test_documented_frame_on_official_tags(family):
     # An official tag facing the camera, upright: its x axis points right in the image and
     # its y axis up (R_cam_tag = diag(1, -1, -1)), corner 0 at the image's top left.
     R, p = FACING @ rot([0, 0, 1], 10), np.array([0.01, 0.005, 0.3])
-    img = render_tag(PLAIN, R, p, TAG, tag_id=1, family=family, blur_sigma=0.8,
+    img = render_tag(SMALL, R, p, TAG, tag_id=1, family=family, blur_sigma=0.8,
                      noise_std=3.0)
     det = tags.make_detector(family=family)
-    tp = measure_tag(img, PLAIN, TAG, 1, detector=det)
+    tp = measure_tag(img, SMALL, TAG, 1, detector=det)
     assert angle(tp.R_cam_tag, R) < TOL["tag_R"], np.rad2deg(angle(tp.R_cam_tag, R))
     assert np.linalg.norm(tp.p_cam_tag - p) < TOL["tag_p"]
     c = tp.corners
