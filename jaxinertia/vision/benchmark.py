@@ -42,8 +42,9 @@ def _pose(rng, z: float, max_tilt: float, spread=(0.3, 0.25)):
 
 
 def small_tag_counts(sizes, n: int = 20, *, blur: float = 0.8, noise: float = 3.0,
-                     seed: int = 0) -> dict[str, dict[int, int]]:
-    """Images (of ``n`` per size) where tag36h11 id 7 is found, by detector and edge [px]."""
+                     seed: int = 0, report=None) -> dict[str, dict[int, int]]:
+    """Images (of ``n`` per size) where tag36h11 id 7 is found, by detector and edge [px];
+    ``report(side, {detector: count})`` is called after each size."""
     intr = CameraIntrinsics(600.0, 600.0, 319.5, 239.5, 640, 480)
     p = cv2.aruco.DetectorParameters()
     p.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_APRILTAG
@@ -72,6 +73,8 @@ def small_tag_counts(sizes, n: int = 20, *, blur: float = 0.8, noise: float = 3.
                                      noise_std=noise, rng=rng))
         for k, found in finders.items():
             counts[k][int(side)] = int(sum(bool(found(im)) for im in images))
+        if report is not None:
+            report(int(side), {k: counts[k][int(side)] for k in counts})
     return counts
 
 
@@ -110,10 +113,9 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     if args.what == "small":
         sizes = [int(s) for s in args.sizes.split(",")]
-        counts = small_tag_counts(sizes, args.n, seed=args.seed)
-        print(f"found of {args.n} per edge [px]: " + " ".join(f"{s:>3d}" for s in sizes))
-        for k, row in counts.items():
-            print(f"{k:>12s}: " + " ".join(f"{row[s]:>3d}" for s in sizes))
+        print(f"tag36h11 found, of {args.n} images per edge of the black square:", flush=True)
+        small_tag_counts(sizes, args.n, seed=args.seed, report=lambda side, row: print(
+            f"{side:3d} px: " + ", ".join(f"{k} {v}" for k, v in row.items()), flush=True))
     else:
         r = photo_errors(args.n, seed=args.seed)
         ok = r[np.isfinite(r[:, 2])]

@@ -118,9 +118,12 @@ class TagDetector:
         self.aruco = cv2.aruco.ArucoDetector(self.family.opencv_dictionary(), p)
         #: Mean edges [px] of tag-like squares that could not be read in the last image.
         self.unread_sides: list[float] = []
+        self._saw_quads = False
 
     def _once(self, g: np.ndarray, how: str, scale: float = 1.0) -> list[TagDetection]:
         corners, ids, rejected = self.aruco.detectMarkers(g)
+        if how == "aruco":
+            self._saw_quads = len(rejected) > 0
         k = corner_order(self.family)
         out = []
         if ids is not None:
@@ -150,7 +153,8 @@ class TagDetector:
         g = _gray(image)
         self.unread_sides = []
         out = self._once(g, "aruco")
-        if not out and self.upsample and max(g.shape) <= 4096:
+        # Upsampled only where aruco saw some square outline (not in a blank image).
+        if not out and self.upsample and self._saw_quads and max(g.shape) <= 4096:
             up = cv2.resize(g, None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC)
             # Pixel centres: upsampled u maps to (u + 0.5) / 2 - 0.5.
             out = [TagDetection(d.tag_id, (d.corners + 0.5) / 2 - 0.5, d.family, "upsampled")
