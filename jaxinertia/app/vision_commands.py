@@ -15,8 +15,11 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from jaxinertia.app.options import positive_float
 from jaxinertia.errors import CameraError, FileFormatError, TagNotFoundError, UsageError
+from jaxinertia.fileio import check_output, replacing
 
 __all__ = ["register"]
 
@@ -25,17 +28,28 @@ DEFAULT_TAG_ID = 0
 FAMILY_NAMES = ("tag36h11", "tag36h10", "tag25h9", "tag16h5")
 
 
+def _vision():
+    """The camera package (OpenCV), imported when a command runs, not to build the parser."""
+    # Local: importing OpenCV would slow every --help.
+    import jaxinertia.vision
+
+    return jaxinertia.vision
+
+
+def _cv2():
+    # Local: importing OpenCV would slow every --help.
+    import cv2
+
+    return cv2
+
+
 def _rot_deg(R) -> list[float]:
     """Rotation vector [deg] of R (axis * angle)."""
-    import cv2
-    import numpy as np
-
+    cv2 = _cv2()
     return (np.rad2deg(cv2.Rodrigues(np.asarray(R, float))[0].ravel())).tolist()
 
 
 def _pose_dict(det, tp, cam) -> dict:
-    import numpy as np
-
     out = {"tag_id": det.tag_id, "family": det.family, "size_px": det.side_px,
            "found_by": det.how, "R_cam_tag": tp.R_cam_tag.tolist(),
            "p_cam_tag": tp.p_cam_tag.tolist(), "reprojection_error_px": tp.reprojection_error,
@@ -54,8 +68,6 @@ def _pose_dict(det, tp, cam) -> dict:
 
 
 def _pose_lines(d: dict, tag_size: float) -> list[str]:
-    import numpy as np
-
     p = np.asarray(d["p_cam_tag"]) * 1e3
     lines = [f"tag {d['tag_id']} ({d['family']}, {tag_size * 1e3:.1f} mm, {d['size_px']:.0f} px) "
              f"in camera: p = [{p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}] mm, rotation vector = "
@@ -78,12 +90,11 @@ def _pose_lines(d: dict, tag_size: float) -> list[str]:
 
 
 def cmd_tag_pose(args) -> int:
-    from jaxinertia.vision.calibration import load_camera_pose
-    from jaxinertia.vision.files import read_image
-    from jaxinertia.vision.intrinsics import load_intrinsics
-    from jaxinertia.vision.pose import solve_tag_pose
-    from jaxinertia.vision.tags import TagDetector, find_tag, no_tag_message, refine_corners_edges
-
+    v = _vision()
+    load_camera_pose, read_image = v.calibration.load_camera_pose, v.files.read_image
+    load_intrinsics, solve_tag_pose = v.intrinsics.load_intrinsics, v.pose.solve_tag_pose
+    TagDetector, find_tag = v.tags.TagDetector, v.tags.find_tag
+    no_tag_message, refine_corners_edges = v.tags.no_tag_message, v.tags.refine_corners_edges
     intr = load_intrinsics(args.intrinsics)
     cam = load_camera_pose(args.camera_pose) if args.camera_pose else None
     img = read_image(args.image)
@@ -113,12 +124,8 @@ def cmd_tag_pose(args) -> int:
 
 
 def cmd_tag_image(args) -> int:
-    import cv2
-
-    from jaxinertia.fileio import check_output, replacing
-    from jaxinertia.vision.families import tag_image
-    from jaxinertia.vision.files import shown
-
+    v = _vision()
+    cv2, tag_image, shown = _cv2(), v.families.tag_image, v.files.shown
     check_output(args.out, overwrite=args.overwrite)
     if args.out.suffix.lower() not in (".png", ".pgm", ".bmp", ".tif", ".tiff"):
         raise UsageError(f"--out {shown(args.out)}: use a lossless image format (.png, .pgm, "
@@ -136,21 +143,18 @@ def cmd_tag_image(args) -> int:
 
 
 def cmd_camera_calibrate(args) -> int:
-    import jax
-    import numpy as np
+    import jax  # local: JAX loads when this command runs, not for --help
 
-    from jaxinertia.fileio import check_output
-    from jaxinertia.kinematics import ee_pose
-    from jaxinertia.robot import open_manipulator_x
-    from jaxinertia.vision.calibration import (
-        calibrate_camera_pose,
-        read_manifest,
-        save_camera_pose,
-    )
-    from jaxinertia.vision.files import read_image, shown
-    from jaxinertia.vision.intrinsics import load_intrinsics
-    from jaxinertia.vision.tags import TagDetector, find_tag, refine_corners_edges
+    from jaxinertia.kinematics import ee_pose  # local: imports JAX
+    from jaxinertia.robot import open_manipulator_x  # local: imports JAX
 
+    v = _vision()
+    calibrate_camera_pose, save_camera_pose = (v.calibration.calibrate_camera_pose,
+                                               v.calibration.save_camera_pose)
+    read_manifest = v.calibration.read_manifest
+    read_image, shown = v.files.read_image, v.files.shown
+    load_intrinsics, TagDetector = v.intrinsics.load_intrinsics, v.tags.TagDetector
+    find_tag, refine_corners_edges = v.tags.find_tag, v.tags.refine_corners_edges
     jax.config.update("jax_enable_x64", True)
     check_output(args.out, overwrite=args.overwrite)
     intr = load_intrinsics(args.intrinsics)

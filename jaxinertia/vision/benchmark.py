@@ -6,7 +6,8 @@ refinement), by :class:`jaxinertia.vision.tags.TagDetector` and, when the
 ``pupil_apriltags`` package is importable (not a dependency), by the AprilTag 3 library.
 ``python -m jaxinertia.vision.benchmark photo --n 30`` measures pose errors on photo-like
 images (:func:`jaxinertia.vision.synthetic.photo_like`) against their ground truth. Both
-print one line per row; nothing here depends on timing.
+print one line per row; nothing here depends on timing. (pupil-apriltags 1.0.4 may crash
+with a segmentation fault when its detector is freed, after the last row is printed.)
 """
 
 from __future__ import annotations
