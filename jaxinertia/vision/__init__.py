@@ -1,9 +1,11 @@
 """Camera: AprilTag detection, tag pose and camera-to-base calibration.
 
-Modules: ``intrinsics`` (camera model files), ``tags`` (tag36h11 detection, corners,
-PnP), ``calibration`` (camera pose in the robot base, calibration manifests), ``source``
-(per-sample tag pose for data collection), ``synthetic`` (rendered test images). The
-commands ``tag-pose`` and ``camera-calibrate`` are in :mod:`jaxinertia.app.vision_commands`.
+Modules: ``intrinsics`` (camera model files), ``families`` (the AprilTag families as the
+AprilTag library draws them), ``tags`` (detection in the official tag frame), ``corners``
+(sub-pixel corners), ``pose`` (PnP and its ambiguity), ``calibration`` (camera pose in the
+robot base, calibration manifests), ``source`` (per-sample tag pose for data collection),
+``synthetic`` (rendered test images). The commands ``tag-pose``, ``tag-image`` and
+``camera-calibrate`` are in :mod:`jaxinertia.app.vision_commands`.
 """
 
 from jaxinertia.errors import TagNotFoundError
@@ -16,15 +18,17 @@ from jaxinertia.vision.calibration import (
     read_manifest,
     save_camera_pose,
 )
+from jaxinertia.vision.families import FAMILIES, get_family, tag_image
 from jaxinertia.vision.intrinsics import (
     CameraIntrinsics,
     IntrinsicsError,
     load_intrinsics,
     save_intrinsics,
 )
+from jaxinertia.vision.pose import TagPose, solve_tag_pose
 from jaxinertia.vision.source import CameraTagSource, opencv_capture
 from jaxinertia.vision.synthetic import render_tag
-from jaxinertia.vision.tags import TagPose, detect_tags, measure_tag
+from jaxinertia.vision.tags import TagDetection, TagDetector, detect_tags, find_tag, measure_tag
 
 __all__ = [
     "CalibrationResult",
@@ -32,11 +36,16 @@ __all__ = [
     "CameraPose",
     "CameraPoseError",
     "CameraTagSource",
+    "FAMILIES",
     "IntrinsicsError",
     "TagNotFoundError",
+    "TagDetection",
+    "TagDetector",
     "TagPose",
     "calibrate_camera_pose",
     "detect_tags",
+    "find_tag",
+    "get_family",
     "load_camera_pose",
     "load_intrinsics",
     "measure_tag",
@@ -45,4 +54,6 @@ __all__ = [
     "render_tag",
     "save_camera_pose",
     "save_intrinsics",
+    "solve_tag_pose",
+    "tag_image",
 ]

@@ -27,6 +27,7 @@ and the parallel pitch joints); that suffices, provided the calibration poses va
 from __future__ import annotations
 
 import csv
+import io
 import json
 import os
 from dataclasses import dataclass
@@ -37,8 +38,9 @@ import numpy as np
 
 from jaxinertia.errors import CameraError, FileFormatError, UsageError
 from jaxinertia.fileio import write_text
+from jaxinertia.vision.files import read_text, shown
 from jaxinertia.vision.intrinsics import CameraIntrinsics
-from jaxinertia.vision.tags import solve_tag_pose, tag_object_points
+from jaxinertia.vision.pose import solve_tag_pose, tag_object_points
 
 __all__ = [
     "CameraPose",
@@ -244,16 +246,16 @@ def save_camera_pose(
 def _rotation(d: dict, key: str, path: Path) -> np.ndarray:
     R = np.asarray(d[key], np.float64)
     if R.shape != (3, 3) or not np.all(np.isfinite(R)):
-        raise CameraPoseError(f"{path}: {key} must be a 3x3 matrix of numbers")
+        raise CameraPoseError(f"{shown(path)}: {key} must be a 3x3 matrix of numbers")
     if np.max(np.abs(R.T @ R - np.eye(3))) > 1e-6 or np.linalg.det(R) < 0:
-        raise CameraPoseError(f"{path}: {key} is not a rotation matrix")
+        raise CameraPoseError(f"{shown(path)}: {key} is not a rotation matrix")
     return R
 
 
 def _vector(d: dict, key: str, path: Path) -> np.ndarray:
     p = np.asarray(d[key], np.float64)
     if p.shape != (3,) or not np.all(np.isfinite(p)):
-        raise CameraPoseError(f"{path}: {key} must be 3 numbers [m]")
+        raise CameraPoseError(f"{shown(path)}: {key} must be 3 numbers [m]")
     return p
 
 
@@ -265,13 +267,15 @@ def load_camera_pose(path: str | os.PathLike) -> CameraPose:
     """
     path = Path(path)
     if not path.is_file():
-        raise CameraPoseError(f"{path}: no such camera-pose file")
+        raise CameraPoseError(f"{shown(path)}: no such camera-pose file")
     try:
-        d = json.loads(path.read_text())
+        d = json.loads(read_text(path, what="camera-pose file"))
+    except FileFormatError as e:
+        raise CameraPoseError(str(e)) from None
     except json.JSONDecodeError as e:
-        raise CameraPoseError(f"{path}: not valid JSON ({e})") from e
+        raise CameraPoseError(f"{shown(path)}: not valid JSON ({e})") from e
     if not isinstance(d, dict) or "R_base_cam" not in d or "p_base_cam" not in d:
-        raise CameraPoseError(f"{path}: needs R_base_cam (3x3) and p_base_cam (3,)")
+        raise CameraPoseError(f"{shown(path)}: needs R_base_cam (3x3) and p_base_cam (3,)")
     try:
         R, p = _rotation(d, "R_base_cam", path), _vector(d, "p_base_cam", path)
         if "R_ee_tag" in d and "p_ee_tag" in d:
@@ -279,7 +283,7 @@ def load_camera_pose(path: str | os.PathLike) -> CameraPose:
     except (TypeError, ValueError) as e:
         if isinstance(e, CameraPoseError):
             raise
-        raise CameraPoseError(f"{path}: bad value ({e})") from e
+        raise CameraPoseError(f"{shown(path)}: bad value ({e})") from e
     return CameraPose(R, p)
 
 
@@ -294,24 +298,25 @@ def read_manifest(path: str | os.PathLike) -> list[tuple[Path, list[float]]]:
     """
     path = Path(path)
     if not path.is_file():
-        raise FileFormatError(path, None, "no such manifest")
+        raise FileFormatError(shown(path), None, "no such manifest")
     rows: list[tuple[Path, list[float]]] = []
+    text = read_text(path, what="manifest")
     try:
         if path.suffix.lower() == ".json":
-            d = json.loads(path.read_text())
+            d = json.loads(text)
             for s in d["samples"]:
                 rows.append((path.parent / s["image"], [float(x) for x in s["q"]]))
         else:
-            with path.open(newline="") as f:
-                for r in csv.DictReader(f):
-                    qs = sorted((k for k in r if k and k.startswith("q")), key=lambda k: int(k[1:]))
-                    rows.append((path.parent / r["image"], [float(r[k]) for k in qs]))
+            for r in csv.DictReader(io.StringIO(text, newline="")):
+                qs = sorted((k for k in r if k and k.startswith("q")), key=lambda k: int(k[1:]))
+                rows.append((path.parent / r["image"], [float(r[k]) for k in qs]))
     except (KeyError, TypeError, ValueError, json.JSONDecodeError) as e:
-        raise FileFormatError(path, None, f"bad manifest ({e!r}); see jaxinertia "
+        raise FileFormatError(shown(path), None, f"bad manifest ({e!r}); see jaxinertia "
                               "camera-calibrate --help") from e
     if not rows:
-        raise FileFormatError(path, None, "the manifest lists no images")
+        raise FileFormatError(shown(path), None, "the manifest lists no images")
     for image, q in rows:
         if not np.all(np.isfinite(q)):
-            raise FileFormatError(path, None, f"{image.name}: joint angles {q} are not finite")
+            raise FileFormatError(shown(path), None,
+                                  f"{shown(image.name)}: joint angles {q} are not finite")
     return rows

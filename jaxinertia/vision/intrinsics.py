@@ -28,6 +28,7 @@ import numpy as np
 
 from jaxinertia.errors import ConfigError, UsageError
 from jaxinertia.fileio import write_text
+from jaxinertia.vision.files import read_text, shown
 
 __all__ = [
     "CameraIntrinsics",
@@ -50,7 +51,7 @@ class CameraIntrinsics:
     :class:`jaxinertia.errors.UsageError` (a file of them, :class:`IntrinsicsError`).
 
     Attributes:
-      fx, fy: focal lengths [px]; cx, cy: principal point [px].
+      fx, fy: focal lengths [px]; cx, cy: principal point [px], within the image.
       width, height: image size [px] the intrinsics belong to.
       distortion: (K,) OpenCV distortion coefficients, K in {0, 4, 5, 8, 12, 14}.
     """
@@ -72,6 +73,12 @@ class CameraIntrinsics:
                              f"fy={self.fy}")
         if not (self.width > 0 and self.height > 0):
             raise UsageError(f"image size must be positive, got {self.width}x{self.height}")
+        # A principal point off the image (intrinsics of another resolution, or cx/cy
+        # swapped) gives confident wrong poses: 2670 mm for a tag at 10 mm was seen.
+        if not (0.0 <= self.cx <= self.width and 0.0 <= self.cy <= self.height):
+            raise UsageError(f"principal point ({self.cx:g}, {self.cy:g}) px is outside the "
+                             f"{self.width}x{self.height} image (intrinsics of another "
+                             "resolution?)")
         if len(self.distortion) not in _N_DIST:
             raise UsageError(f"{len(self.distortion)} distortion coefficients; OpenCV "
                              f"accepts {', '.join(map(str, _N_DIST[1:]))} (or none)")
@@ -116,16 +123,18 @@ class CameraIntrinsics:
 
 
 def _from_json(path: Path) -> CameraIntrinsics:
+    where = shown(path)
+    text = read_text(path, IntrinsicsError, "intrinsics file")
     try:
-        d = json.loads(path.read_text())
+        d = json.loads(text)
     except json.JSONDecodeError as e:
-        raise IntrinsicsError(path, None, f"not valid JSON ({e})") from e
+        raise IntrinsicsError(where, None, f"not valid JSON ({e})") from e
     if not isinstance(d, dict):
-        raise IntrinsicsError(path, None, "expected a JSON object with fx, fy, cx, cy, width, "
+        raise IntrinsicsError(where, None, "expected a JSON object with fx, fy, cx, cy, width, "
                               "height, distortion")
     missing = [k for k in ("fx", "fy", "cx", "cy", "width", "height") if k not in d]
     if missing:
-        raise IntrinsicsError(path, None, f"missing {', '.join(missing)} (expected fx, fy, "
+        raise IntrinsicsError(where, None, f"missing {', '.join(missing)} (expected fx, fy, "
                               "cx, cy [px], width, height [px], distortion [OpenCV order])")
     try:
         dist = tuple(float(x) for x in (d.get("distortion") or []))
@@ -135,29 +144,36 @@ def _from_json(path: Path) -> CameraIntrinsics:
         return CameraIntrinsics(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]),
                                 int(w), int(h), dist)
     except UsageError as e:
-        raise IntrinsicsError(path, None, str(e)) from e
+        raise IntrinsicsError(where, None, str(e)) from e
     except (TypeError, ValueError) as e:
-        raise IntrinsicsError(path, None, f"bad value ({e})") from e
+        raise IntrinsicsError(where, None, f"bad value ({e})") from e
 
 
 def _from_filestorage(path: Path) -> CameraIntrinsics:
+    where = shown(path)
+    # Parsed from memory: OpenCV crashes on a path that is not UTF-8 (vision.files).
+    text = read_text(path, IntrinsicsError, "intrinsics file")
+    xml = path.suffix.lower() == ".xml"
+    fmt = cv2.FileStorage_FORMAT_XML if xml else cv2.FileStorage_FORMAT_YAML
     try:
-        fs = cv2.FileStorage(os.fspath(path), cv2.FileStorage_READ)
-    except cv2.error as e:
-        raise IntrinsicsError(path, None, f"OpenCV cannot parse it ({e.err})") from e
+        fs = cv2.FileStorage(text, cv2.FileStorage_READ | cv2.FileStorage_MEMORY | fmt)
+    except (cv2.error, SystemError) as e:  # the binding raises SystemError on a bad YAML
+        why = getattr(e, "err", None) or getattr(e.__cause__, "err", None) or "malformed"
+        raise IntrinsicsError(where, None, f"not valid OpenCV FileStorage YAML/XML "
+                              f"(OpenCV: {why})") from None
     try:
         if not fs.isOpened():
-            raise IntrinsicsError(path, None, "OpenCV cannot open it as FileStorage YAML/XML")
+            raise IntrinsicsError(where, None, "OpenCV cannot open it as FileStorage YAML/XML")
         K = fs.getNode("camera_matrix").mat()
         dist = fs.getNode("distortion_coefficients").mat()
         w, h = fs.getNode("image_width"), fs.getNode("image_height")
         if K is None or w.empty() or h.empty():
-            raise IntrinsicsError(path, None, "needs camera_matrix, image_width, image_height "
+            raise IntrinsicsError(where, None, "needs camera_matrix, image_width, image_height "
                                   "(and distortion_coefficients)")
         try:
             return CameraIntrinsics.from_matrix(K, dist, int(w.real()), int(h.real()))
         except UsageError as e:
-            raise IntrinsicsError(path, None, str(e)) from e
+            raise IntrinsicsError(where, None, str(e)) from e
     finally:
         fs.release()
 
@@ -170,13 +186,13 @@ def load_intrinsics(path: str | os.PathLike) -> CameraIntrinsics:
     """
     path = Path(path)
     if not path.is_file():
-        raise IntrinsicsError(path, None, "no such intrinsics file")
+        raise IntrinsicsError(shown(path), None, "no such intrinsics file")
     suffix = path.suffix.lower()
     if suffix == ".json":
         return _from_json(path)
     if suffix in (".yaml", ".yml", ".xml"):
         return _from_filestorage(path)
-    raise IntrinsicsError(path, None, f"unknown intrinsics format {suffix!r} (use .json, or "
+    raise IntrinsicsError(shown(path), None, f"unknown intrinsics format {suffix!r} (use .json, or "
                           "OpenCV .yaml/.yml/.xml)")
 
 

@@ -60,7 +60,8 @@ class CameraTagSource:
     Args:
       intrinsics: the camera's intrinsics (must match the capture's image size).
       camera_pose: ``T_base_cam`` (:func:`jaxinertia.vision.load_camera_pose`).
-      tag_size: edge of the black square [m]; tag_id: tag36h11 id on the object.
+      tag_size: edge of the black square [m]; tag_id: the tag's id on the object; family:
+        its AprilTag family (tag36h11 default). The pose is in the official tag frame.
       capture: ``() -> image`` (default: ``opencv_capture(0)``, opened on first use).
       n_frames: frames per sample whose corners are averaged (the scene is static).
       prior: optional ``q -> (R_base_tag, p_base_tag)`` prediction (e.g. forward
@@ -83,6 +84,7 @@ class CameraTagSource:
         capture: Callable[[], np.ndarray] | None = None,
         n_frames: int = 1,
         prior: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
+        family: str = "tag36h11",
     ):
         if not tag_size > 0:
             raise UsageError(f"tag_size must be positive [m], got {tag_size}")
@@ -93,7 +95,7 @@ class CameraTagSource:
         self._capture = capture
         self.n_frames = int(n_frames)
         self.prior = prior
-        self._detector = make_detector()
+        self._detector = make_detector(family=family)
         self.last: TagPose | None = None
 
     def measure(self, image: np.ndarray | None = None) -> TagPose:
