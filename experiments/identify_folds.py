@@ -38,6 +38,7 @@ from jaxinertia.sim.calibration import (  # noqa: E402
     baseline_statistics,
     calibrate_servo_friction,
     fit_link_gravity,
+    real_files,
     real_plan,
 )
 from jaxinertia.sim.identify import (  # noqa: E402
@@ -134,14 +135,15 @@ def main() -> None:
         held = [n for n in names if n != fit_on][0]
         t0 = time.perf_counter()
         params = datasheet_sim_params()
-        robot, _ = fit_link_gravity(params.robot, lbipe, [fit_on])
+        fit, other = real_files(lbipe, [fit_on]), real_files(lbipe, [held])
+        robot, _ = fit_link_gravity(params.robot, fit)
         params = params.replace(robot=robot)
-        params, _ = calibrate_servo_friction(params, lbipe, iterations=args.iterations,
+        params, _ = calibrate_servo_friction(params, fit, iterations=args.iterations,
                                              seed=args.seed, fit_offset=True,
-                                             objects=[fit_on], log=lambda m: None)
+                                             log=lambda m: None)
         t1 = time.perf_counter()
-        _, obj_fit, d_fit = real_plan(params.robot, lbipe, [fit_on])[0]
-        _, obj_held, d_held = real_plan(params.robot, lbipe, [held])[0]
+        _, obj_fit, d_fit = real_plan(params.robot, fit)[0]
+        _, obj_held, d_held = real_plan(params.robot, other)[0]
         key = jax.random.key(args.seed + 7)
         before = _held_out_report(params, obj_held, d_held, key)
         ident, info = identify(params, obj_fit, d_fit, config=ESConfig(

@@ -25,7 +25,7 @@ from jaxinertia.errors import FileFormatError, WeightsError
 from jaxinertia.estimation import ModelPair
 from jaxinertia.features import LBIPE_FEATURES, FeatureConfig
 from jaxinertia.networks import load_released_pair, stack_params
-from jaxinertia.samples import Samples, checked_array, load_lbipe, read_npz
+from jaxinertia.samples import SampleFile, Samples, checked_array, load_lbipe, read_npz
 
 __all__ = [
     "GET_IT",
@@ -36,6 +36,7 @@ __all__ = [
     "load_golden",
     "load_released_models",
     "load_test_files",
+    "read_test_files",
 ]
 
 GET_IT = (
@@ -88,7 +89,19 @@ def find_layout(root: str | os.PathLike) -> LbipeLayout:
 
 def load_test_files(layout: LbipeLayout) -> list[Samples]:
     """Every ``data/data_test_<name>.npz`` of the layout, read and validated."""
-    return [load_lbipe(p, name, missing_hint=GET_IT) for name, p in layout.test_files.items()]
+    return [f.samples for f in read_test_files(layout)]
+
+
+def read_test_files(layout: LbipeLayout) -> list[SampleFile]:
+    """Every ``data/data_test_<name>.npz`` of the layout, each read once, as records with
+    their path and SHA-256 (what training on them records)."""
+    out = []
+    for name, p in layout.test_files.items():
+        digest: dict = {}
+        samples = load_lbipe(p, name, missing_hint=GET_IT, digest=digest)
+        out.append(SampleFile(Path(p), samples, {"format": "lbipe", "objects": [name],
+                                                 "source": "lbipe", **digest}))
+    return out
 
 
 def golden_path(layout: LbipeLayout, name: str) -> Path | None:

@@ -28,6 +28,7 @@ import json
 import os
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from flax import struct
@@ -37,6 +38,7 @@ from jaxinertia.fileio import replacing
 
 __all__ = [
     "FORMAT_VERSION",
+    "SampleFile",
     "Samples",
     "checked_array",
     "lbipe_name",
@@ -45,8 +47,10 @@ __all__ = [
     "load_samples",
     "lbipe_arrays",
     "read_npz",
+    "read_sample_file",
     "save_lbipe",
     "save_native",
+    "write_sample_file",
 ]
 
 FORMAT_VERSION = 1
@@ -317,15 +321,29 @@ def _check_names(names: Sequence[str], path) -> None:
 def save_native(path: str | os.PathLike, samples: Samples, metadata: dict) -> Path:
     """Writes a native sample file atomically (a temporary file, then a rename); the
     object names go into ``metadata["objects"]`` and must be distinct."""
+    return write_sample_file(path, samples, metadata).path
+
+
+def write_sample_file(path: str | os.PathLike, samples: Samples, metadata: dict, *,
+                      only_at_rest: bool = True) -> SampleFile:
+    """:func:`save_native`, returning the file as :func:`read_sample_file` would read it
+    (the same bytes parsed in memory, their SHA-256): whoever made a file need not read it
+    back."""
     path = Path(path)
     _check_names(samples.names, path)
     meta = {"format": "jaxinertia-samples", "format_version": FORMAT_VERSION, **metadata,
             "objects": list(samples.names)}
     fields = {k: (v.astype(np.float64) if np.issubdtype(v.dtype, np.floating) else v)
               for k, v in samples.fields().items()}
+    buf = io.BytesIO()
+    np.savez_compressed(buf, metadata=np.asarray(json.dumps(meta)), **fields)
+    raw = buf.getvalue()
     with replacing(path, suffix=".npz") as tmp:
-        np.savez_compressed(tmp, metadata=np.asarray(json.dumps(meta)), **fields)
-    return path
+        tmp.write_bytes(raw)
+    with np.load(io.BytesIO(raw), allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    back, meta = _native(path, arrays, need_truth=samples.known, only_at_rest=only_at_rest)
+    return SampleFile(path, back, {**meta, "sha256": hashlib.sha256(raw).hexdigest()})
 
 
 def load_native(path: str | os.PathLike, *, need_truth: bool = True,
@@ -404,12 +422,27 @@ def _from_lbipe(d: dict, path: Path, name: str | None) -> Samples:
 
 
 def load_lbipe(path: str | os.PathLike, name: str | None = None, *,
-               missing_hint: str = "") -> Samples:
+               missing_hint: str = "", digest: dict | None = None) -> Samples:
     """One object's file of the authors' layout (``data_test_<name>.npz`` or
     ``data_train_<name>.npz``), validated; the object is called ``name`` (default: from
-    the file name)."""
+    the file name). ``digest``: receives the SHA-256 of the bytes read."""
     path = Path(path)
-    return _from_lbipe(read_npz(path, missing_hint=missing_hint), path, name)
+    return _from_lbipe(read_npz(path, missing_hint=missing_hint, digest=digest), path, name)
+
+
+class SampleFile(NamedTuple):
+    """A sample file as read once: where it was, its samples and its metadata (with the
+    SHA-256 of the bytes read): what a command hands down instead of reading it again."""
+
+    path: Path
+    samples: Samples
+    meta: dict
+
+
+def read_sample_file(path: str | os.PathLike, **kw) -> SampleFile:
+    """:func:`load_samples` as a :class:`SampleFile` (``kw``: its options)."""
+    samples, meta = load_samples(path, **kw)
+    return SampleFile(Path(path), samples, meta)
 
 
 def load_samples(path: str | os.PathLike, *, need_truth: bool = True,

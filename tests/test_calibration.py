@@ -12,7 +12,12 @@ import numpy as np
 import pytest
 
 from jaxinertia.objects import TEST_OBJECTS
-from jaxinertia.sim.calibration import baseline_statistics, real_plan, simulate_real_plan
+from jaxinertia.sim.calibration import (
+    baseline_statistics,
+    real_files,
+    real_plan,
+    simulate_real_plan,
+)
 from jaxinertia.sim.params import default_sim_params
 from jaxinertia.sim.run import simulate_scenario
 
@@ -26,7 +31,7 @@ BANDS = {"pe_mae": 0.25, "k": 0.10, "current_mae": 0.25, "mu": 0.30, "tau_max": 
 @pytest.fixture(scope="module")
 def stats(lbipe_dir, stream_programs):
     params = default_sim_params()
-    plans = real_plan(params.robot, lbipe_dir)
+    plans = real_plan(params.robot, real_files(lbipe_dir))
     sim = simulate_real_plan(params, plans, jax.random.key(123),  # not the fit's key
                              programs=stream_programs)
     real = {k: np.concatenate([getattr(d, k) for _, _, d in plans]) for k in FIELDS}

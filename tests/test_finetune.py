@@ -20,6 +20,7 @@ from jaxinertia.errors import ModelFolderError, UsageError
 from jaxinertia.estimation import ModelPair
 from jaxinertia.networks import AttentionModel, PhysicalTorqueModel, TorqueModel
 from jaxinertia.samples import load_samples, save_native
+from jaxinertia.session import servo_session
 from jaxinertia.sim.params import default_sim_params
 from jaxinertia.sim.randomize import DomainSpread, perturbed, spread_from_samples
 from jaxinertia.training import (
@@ -179,9 +180,16 @@ def test_finetuning_never_returns_worse_than_it_started_and_can_freeze_encoders(
     assert main(["train", "--init", str(tmp / "m0"), "--data", str(real), "--out", str(out),
                  "--trainable", "head", "--torque-epochs", "5", "--torque-lr", "3e-3",
                  "--attention-epochs", "1", "--attention-sets", "6",
-                 "--attention-val-sets", "3", "--set-size", "16"]) == 0
+                 "--attention-val-sets", "3", "--set-size", "16", "--session-of", str(real),
+                 "--session-strength", "0.5"]) == 0
     pair, _, _, config = load_models(out)
     assert config["training"]["trainable"] == "head"
+    # --session-of: the real file's own session is the models' reference (its ratio 1),
+    # recorded with the strength for evaluate and estimate.
+    want = servo_session(load_samples(real)[0]).current_gain
+    np.testing.assert_allclose(config["session"]["current_gain"], want, rtol=1e-12)
+    assert config["session"]["strength"] == 0.5 and config["training"]["session_strength"] == 0.5
+    assert config["data"][0]["session_ratio"] == [1.0] * 4
     assert min(config["best_epoch"]["torque"]) >= 0
     for j in range(4):
         assert_tree_equal(pair.torque_vars["params"][f"joint{j}"],

@@ -12,6 +12,8 @@ import pytest
 from support.layouts import N_REAL
 from support.synthetic import synthetic_samples
 
+from jaxinertia import samples
+from jaxinertia.app import folds
 from jaxinertia.app.cli import main
 from jaxinertia.app.folds import FoldScale, run_folds
 from jaxinertia.app.pipeline import train
@@ -32,14 +34,22 @@ TRAIN = TrainConfig(n_models=2, torque_epochs=3, attention_epochs=2, attention_s
 
 def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir, tmp_path,
                                                                    monkeypatch):
-    seen = []
-    real_files = calibration.real_files
+    seen, reads = [], []
+    def spying(f):
+        def spy(first, data, *args, **kw):
+            seen.append([d.name for d in data])
+            return f(first, data, *args, **kw)
+        return spy
 
-    def spy(lbipe_dir, objects=None):
-        seen.append(None if objects is None else list(objects))
-        return real_files(lbipe_dir, objects)
+    for name in ("fit_link_gravity", "calibrate_servo_friction", "real_plan"):
+        monkeypatch.setattr(folds, name, spying(getattr(folds, name)))
+    read_npz = samples.read_npz
 
-    monkeypatch.setattr(calibration, "real_files", spy)
+    def counted(path, **kw):  # every sample file of the command goes through here
+        reads.append(Path(path).resolve())
+        return read_npz(path, **kw)
+
+    monkeypatch.setattr(samples, "read_npz", counted)
     scale = FoldScale(calibration_iterations=1, random_per_load=N_TRAIN // 4,
                       planning=False, train=TRAIN, finetune_samples=(30,),
                       finetune=TRAIN.replace(trainable="servo", val_fraction=0.2),
@@ -49,10 +59,15 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
     assert set(res["folds"]) == {"cube", "white"}
     # Every look at real samples is restricted: to the fold's object while fitting, to the
     # held-out one for the replay; never all files at once.
-    assert None not in seen
     # (per fold: gravity, calibration, the held-out plan, the identification's plan)
     assert seen == [["cube"], ["cube"], ["white"], ["cube"],
                     ["white"], ["white"], ["cube"], ["white"]], seen
+    # Each real file is read once for the whole protocol, and no sample file twice (the
+    # simulated ones are handed on as written, never read back).
+    real_paths = sorted((small_lbipe_dir / "data").glob("data_test_*.npz"))
+    assert sorted(p for p in reads if p.parent == real_paths[0].parent.resolve()) == [
+        p.resolve() for p in real_paths]
+    assert len(reads) == len(set(reads)), reads
     for fit_on, other in (("cube", "white"), ("white", "cube")):
         f = res["folds"][fit_on]
         assert f["held_out"] == [other]
@@ -113,7 +128,8 @@ def test_fits_refuse_objects_the_folder_does_not_have(small_lbipe_dir, capsys):
     assert "--real-objects" in capsys.readouterr().err
 
 
-def test_training_on_the_authors_layout_gives_the_models_of_the_native_files(tmp_path):
+def test_training_on_the_authors_layout_gives_the_models_of_the_native_files(tmp_path,
+                                                                             monkeypatch):
     """The same samples written natively and in the authors' layout (one file per object)
     train the same models, bit for bit (issue 16 item 3)."""
     d = synthetic_samples(np.random.default_rng(8), n=N_TRAIN, n_obj=4)
@@ -123,8 +139,16 @@ def test_training_on_the_authors_layout_gives_the_models_of_the_native_files(tmp
     assert [p.name for p in lbipe] == [f"data_train_o{i}.npz" for i in range(4)]
     # The authors' layout splits one session into a file per object; with session
     # adaptation each file would be its own session (tests/test_session.py), so it is off.
+    reads, read_npz = [], samples.read_npz
+
+    def counted(p, **kw):
+        reads.append(p)
+        return read_npz(p, **kw)
+
+    monkeypatch.setattr(samples, "read_npz", counted)
     a = train([native], tmp_path / "a", TRAIN.replace(session_strength=0.0), progress=False)
     b = train(lbipe, tmp_path / "b", TRAIN.replace(session_strength=0.0), progress=False)
+    assert [Path(p) for p in reads] == [native, *lbipe]  # each training file read once
     assert a["samples"] == b["samples"] and a["best_epoch"] == b["best_epoch"]
     np.testing.assert_array_equal(a["history"]["torque"], b["history"]["torque"])
     np.testing.assert_array_equal(a["history"]["attention"], b["history"]["attention"])

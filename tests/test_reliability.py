@@ -7,13 +7,14 @@ from __future__ import annotations
 import json
 import pathlib
 import zipfile
+from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
 from support.synthetic import feature_config, synthetic_samples, tiny_pair
 
-from jaxinertia import checkpoints
+from jaxinertia import checkpoints, samples
 from jaxinertia.app.cli import main
 from jaxinertia.app.estimate import estimate
 from jaxinertia.baselines import fit_baselines
@@ -235,9 +236,19 @@ def test_estimate_reports_absurd_answers_as_failed_never_as_numbers(model_folder
             not r["ok"] and r["reason"])
 
 
-def test_estimate_answers_each_object_of_a_multi_object_file(model_folder, tmp_path, capsys):
+def test_estimate_answers_each_object_of_a_multi_object_file(model_folder, tmp_path, capsys,
+                                                             monkeypatch):
     d = synthetic_samples(np.random.default_rng(4), n=3 * S_EST, n_obj=3)
-    res = estimate(model_folder, _write(tmp_path / "multi.npz", d))
+    path = _write(tmp_path / "multi.npz", d)
+    reads, read_npz = [], samples.read_npz
+
+    def counted(p, **kw):
+        reads.append(p)
+        return read_npz(p, **kw)
+
+    monkeypatch.setattr(samples, "read_npz", counted)
+    res = estimate(model_folder, path)
+    assert [Path(p) for p in reads] == [Path(path)]  # the sample file is read once
     assert list(res["objects"]) == ["o0", "o1", "o2"]
     for o, name in enumerate(d.names):
         pe = res["objects"][name]["methods"]["PE"]

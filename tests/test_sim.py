@@ -27,7 +27,7 @@ from jaxinertia.plans import continuous_plan, planning_plan, random_plan
 from jaxinertia.robot import data_path, open_manipulator_x
 from jaxinertia.samples import load_lbipe
 from jaxinertia.sim import lanes, stream
-from jaxinertia.sim.calibration import fit_link_gravity
+from jaxinertia.sim.calibration import fit_link_gravity, real_files
 from jaxinertia.sim.continuous import simulate_continuous, simulate_continuous_run
 from jaxinertia.sim.friction import FrictionParams, friction_bound, solve_box_friction
 from jaxinertia.sim.params import default_sim_params
@@ -188,7 +188,7 @@ def test_shipped_link_gravity_reproduces_the_real_tau_g(lbipe_dir):
         tg0 = jax.vmap(gravity_torques, (None, 0))(urdf, jnp.asarray(ds.q))
         assert np.max(np.abs(np.asarray(tg0) - ds.tau_g)) > 0.01
     # The shipped file is what the fit gives today.
-    fitted, _ = fit_link_gravity(urdf, lbipe_dir)
+    fitted, _ = fit_link_gravity(urdf, real_files(lbipe_dir))
     np.testing.assert_allclose(fitted.mass, robot.mass, rtol=1e-9, err_msg="mismatch: mass")
     np.testing.assert_allclose(fitted.com, robot.com, atol=TOL, err_msg="mismatch: com")
 

@@ -21,6 +21,7 @@ from jaxinertia.app.options import (
     positive_int,
     seed_int,
     write_json_option,
+    zero_to_one,
 )
 from jaxinertia.errors import UsageError
 from jaxinertia.fileio import check_output
@@ -149,8 +150,14 @@ def cmd_train(args) -> int:
     if args.init is not None:
         overrides = {**FINETUNE_DEFAULTS, **overrides}
     cfg = TrainConfig(**overrides)
+    session = None
+    if args.session_of is not None:  # the real files whose servo state the models take
+        from jaxinertia.samples import load_samples  # (as above)
+        from jaxinertia.session import servo_session  # (as above)
+
+        session = servo_session([load_samples(f, need_truth=False)[0] for f in args.session_of])
     info = pipeline.train(args.data, args.out, cfg, overwrite=args.overwrite, init=args.init,
-                          samples_per_object=args.samples_per_object)
+                          samples_per_object=args.samples_per_object, session=session)
     what = "fine-tuned" if args.init is not None else "trained"
     print(f"{what} {info['training']['n_models']} model pairs on {info['samples']['train']} "
           f"samples ({info['samples']['validation']} validation) in "
@@ -237,6 +244,15 @@ def register(sub) -> None:
                    help="what fine-tuning may change: all (default), head (the per-joint "
                    "encoders fixed) or servo (only the physical torque model's stiffness, "
                    "offset and friction; the attention model fixed)")
+    t.add_argument("--session-strength", type=zero_to_one, default=None, metavar="S",
+                   help="each real file's discrepancy read in the models' recording session "
+                   "from its own current gain, this strongly (0: off; default "
+                   f"{defaults.TRAIN['session_strength']:g}); the folder keeps it for "
+                   "evaluate and estimate")
+    t.add_argument("--session-of", type=Path, nargs="+", metavar="REAL.npz",
+                   help="real sample files whose recording session is the models' (e.g. the "
+                   "files the simulator was calibrated on; default: --init's, else the "
+                   "training data's own)")
     t.add_argument("--torque-model", choices=["paper", "physical"], default=None,
                    help="the paper's network (default) or a physics-structured one: per "
                    "joint stiffness, offset, direction and load friction plus the paper's "

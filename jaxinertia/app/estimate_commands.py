@@ -18,6 +18,7 @@ from jaxinertia.app.options import (
     positive_int,
     seed_int,
     write_json_option,
+    zero_to_one,
 )
 from jaxinertia.errors import UsageError
 
@@ -41,10 +42,15 @@ def cmd_estimate(args) -> int:
     from jaxinertia.app.estimate import estimate  # (as above)
 
     res = estimate(args.models, args.samples, set_size=args.set_size, max_mass=args.max_mass,
-                   max_com=args.max_com, max_com_se=args.max_com_se)
+                   max_com=args.max_com, max_com_se=args.max_com_se,
+                   session_strength=args.session_strength)
     floor = res["torque_error_floor"]
     for name, o in res["objects"].items():
         ident = o["identifiability"]
+        ratio = ", ".join(f"{r:.3f}" for r in o["session_ratio"])
+        print(f"{name}: session: discrepancy read in the models' session, x ({ratio}) per "
+              "joint (the file's own current gain against the models'; "
+              "--session-strength 0: off)")
         pc = np.asarray(ident["predicted_com_se_m"]) * 1e3
         print(f"{name}: {o['n_samples']} samples; poses: condition {ident['condition']:.1f}, "
               f"predicted standard error mass {ident['predicted_mass_se_kg'] * 1e3:.1f} g, "
@@ -173,6 +179,10 @@ def register(sub) -> None:
                    help="refuse an object whose COM the poses alone determine worse than this "
                    "(predicted standard error [m] at the estimated mass; default: no limit, "
                    "a singular set of poses is always refused)")
+    m.add_argument("--session-strength", type=zero_to_one, default=None, metavar="S",
+                   help="how strongly the file's discrepancy is read in the models' recording "
+                   "session, from its own current gain (0: off, 1: fully; default: the "
+                   "model folder's)")
     m.add_argument("--json", type=Path,
                    help="write every answer here, with standard errors, 68/95 %% intervals and "
                    "the covariance of x = [m, m p]")

@@ -99,22 +99,26 @@ class _Fold:
     fit_on: str
     held: list[str]
     real: RealData
-    lbipe_dir: Path
     scale: FoldScale
     seed: int
     progress: bool
+
+    def index(self, name: str) -> int:
+        return [o.name for o in self.real.objects].index(name)
+
+    def record(self, name: str):
+        """The real object's samples as the command read them (never read again)."""
+        return self.real.objects[self.index(name)]
 
     @property
     def session(self) -> ServoSession:
         """The session of ``fit_on``'s real file: the servo state its simulator imitates,
         the reference of every model the fold trains."""
-        return servo_session(self.real.objects[[o.name for o in self.real.objects]
-                                                .index(self.fit_on)])
+        return servo_session(self.record(self.fit_on))
 
     @property
     def held_index(self) -> list[int]:
-        names = [o.name for o in self.real.objects]
-        return [names.index(n) for n in self.held]
+        return [self.index(n) for n in self.held]
 
     def judge(self, models: Path) -> dict:
         """The folder on the held-out objects at every strength of
@@ -145,7 +149,7 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
     """Every fold into ``out/fit_<object>/`` (calibration.json, data, models); returns the
     held-out results and the recipe they choose (None when there is no real data, or only
     one object). ``real``: the folder's real data when already loaded."""
-    if not Path(lbipe_dir).is_dir():
+    if real is None and not Path(lbipe_dir).is_dir():
         return None
     real = real or load_real(lbipe_dir, seed=seed)
     names = [o.name for o in real.objects]
@@ -155,7 +159,7 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
     folds = {}
     for fit_on in names:
         fold = _Fold(Path(out) / f"fit_{fit_on}", fit_on, [n for n in names if n != fit_on],
-                     real, Path(lbipe_dir), scale, seed, progress)
+                     real, scale, seed, progress)
         log(f"-- fold: calibrate on {fit_on}, judge on {', '.join(fold.held)}")
         folds[fit_on] = _run_fold(fold)
         folds[fit_on]["released"] = {n: {m: released[n][m] for m in ("T", "T-A")}
@@ -201,12 +205,13 @@ def _calibrate(fold: _Fold):
     to ``calibration.json``; the held-out objects' real plans replayed in it."""
     scale, seed = fold.scale, fold.seed
     params = datasheet_sim_params()
-    robot, gravity = fit_link_gravity(params.robot, fold.lbipe_dir, [fold.fit_on])
+    fit = [fold.record(fold.fit_on)]  # the only real samples the fold's fits look at
+    robot, gravity = fit_link_gravity(params.robot, fit)
     params, info = calibrate_servo_friction(
-        params.replace(robot=robot), fold.lbipe_dir, iterations=scale.calibration_iterations,
-        seed=seed, fit_offset=True, objects=[fold.fit_on], log=lambda m: None, progress=False,
+        params.replace(robot=robot), fit, iterations=scale.calibration_iterations,
+        seed=seed, fit_offset=True, log=lambda m: None, progress=False,
         programs=stream_programs())
-    plans = real_plan(params.robot, fold.lbipe_dir, fold.held)
+    plans = real_plan(params.robot, [fold.record(n) for n in fold.held])
     real_held = _stats({k: np.concatenate([getattr(d, k) for _, _, d in plans])
                         for k in ("q_d", "q", "direction", "tau", "current_tau")})
 
@@ -218,7 +223,7 @@ def _calibrate(fold: _Fold):
     identified = None
     if scale.identify_generations > 0:
         replay_calibrated = replay(params)
-        _, obj_fit, d_fit = real_plan(params.robot, fold.lbipe_dir, [fold.fit_on])[0]
+        _, obj_fit, d_fit = real_plan(params.robot, fit)[0]
         if 0 < scale.identify_samples < d_fit.n_samples:
             d_fit = d_fit.take(np.sort(np.random.default_rng(seed).choice(
                 d_fit.n_samples, scale.identify_samples, replace=False)))
@@ -241,7 +246,7 @@ def _calibrate(fold: _Fold):
 
 def _randomized(fold: _Fold, params, files: list[Path]) -> dict:
     """Models trained on domain-randomized data, judged like the others."""
-    obj = fold.real.objects[[o.name for o in fold.real.objects].index(fold.fit_on)]
+    obj = fold.record(fold.fit_on)
     spread = spread_from_samples(obj.q_d, obj.q, obj.direction, obj.tau)
     dr_files = simulate_files(params, [
         (fold.dir / "data" / "train_random_randomized.npz", "random",
@@ -266,7 +271,7 @@ def _finetuned(fold: _Fold, files: list[Path]) -> tuple[dict | None, dict]:
     fine = {}
     for n in fold.scale.finetune_samples:
         models = fold.dir / f"models_finetuned_{n}"
-        info = train([fold.real.layout.test_files[fold.fit_on]], models,
+        info = train([fold.real.files[fold.index(fold.fit_on)]], models,
                      fold.scale.finetune.replace(seed=fold.seed), overwrite=True,
                      progress=fold.progress, init=start, samples_per_object=n)
         fine[str(n)] = {**fold.judge(models), "samples": info["samples"],

@@ -17,7 +17,8 @@ from jaxinertia.fileio import check_output, write_json
 
 __all__ = ["MEMORY_ENV", "Parser", "check_memory", "check_outputs", "distinct", "enable_x64",
            "finite_float", "fraction", "memory_limit_bytes", "nonnegative_float",
-           "positive_float", "positive_int", "seed_int", "unit_fraction", "write_json_option"]
+           "positive_float", "positive_int", "seed_int", "unit_fraction", "write_json_option",
+           "zero_to_one"]
 
 #: Environment variable: the memory [GB] a request may need before it is refused
 #: (default: half the machine's memory).
@@ -52,6 +53,7 @@ positive_float = _number(float, lambda v: v > 0, "a positive number")
 nonnegative_float = _number(float, lambda v: v >= 0, "a number >= 0")
 fraction = _number(float, lambda v: 0 < v < 1, "a number in (0, 1)")
 unit_fraction = _number(float, lambda v: 0 < v <= 1, "a number in (0, 1]")
+zero_to_one = _number(float, lambda v: 0 <= v <= 1, "a number in [0, 1]")
 finite_float = _number(float, lambda v: True, "a finite number")
 seed_int = _number(int, lambda v: 0 <= v <= SEED_MAX, f"an integer in 0..{SEED_MAX}")
 

@@ -32,10 +32,10 @@ from jaxinertia.lbipe import (
     golden_path,
     load_golden,
     load_released_models,
-    load_test_files,
+    read_test_files,
 )
 from jaxinertia.networks import torque_model_kind
-from jaxinertia.samples import Samples, load_samples
+from jaxinertia.samples import SampleFile, Samples, load_samples, read_sample_file
 from jaxinertia.session import ServoSession, SessionReference, adapt, servo_session
 from jaxinertia.training import (
     TrainConfig,
@@ -52,13 +52,15 @@ __all__ = ["RealData", "adapt_objects", "copy_models", "evaluate_models", "objec
            "sim_to_real", "train"]
 
 
-def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg: TrainConfig,
+def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.PathLike,
+          cfg: TrainConfig,
           *, progress: bool = True, overwrite: bool = False,
           init: str | os.PathLike | None = None,
           samples_per_object: int | None = None,
           session: ServoSession | None = None) -> dict:
     """Trains K model pairs and fits the baselines; writes the model folder ``out``
-    (atomically; an existing one only with ``overwrite``).
+    (atomically; an existing one only with ``overwrite``). ``sample_files``: paths, or
+    records already read (:class:`~jaxinertia.samples.SampleFile`).
 
     ``init``: a model folder to fine-tune instead of training from scratch (e.g.
     simulator-trained models adapted on real samples of known objects): its parameters are
@@ -74,7 +76,10 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
     evaluation and estimation read every file in it.
     """
     check_output(out, overwrite=overwrite, folder=True)
-    parts, metas = zip(*(load_samples(f) for f in sample_files))  # each file read once
+    # Each file read once (a record already read is not read again).
+    files = [f if isinstance(f, SampleFile) else read_sample_file(f) for f in sample_files]
+    parts, metas = [f.samples for f in files], [f.meta for f in files]
+    sample_files = [f.path for f in files]
     # The authors' layout records no robot: it is taken to be the native files' one.
     robots = {m.get("robot") for m in metas} - {None}
     if len(robots) > 1:
@@ -169,6 +174,7 @@ class RealData(NamedTuple):
     sets: list[np.ndarray]
     sources: list[str]  # per object: "golden" or "random (seed s)"
     l_max: list[float]
+    files: list[SampleFile]  # per object: its file as read once (path, SHA-256)
 
 
 def load_real(lbipe_dir: str | os.PathLike, *, seed: int = 0, n_sets: int = 1000,
@@ -177,8 +183,9 @@ def load_real(lbipe_dir: str | os.PathLike, *, seed: int = 0, n_sets: int = 1000
     folder has them, else seeded random sets. An object without a bounding-box diagonal
     is an error (``l_max`` supplies one), never silently left out."""
     layout = find_layout(lbipe_dir)
-    objects = load_test_files(layout)
-    paths = list(layout.test_files.values())
+    files = read_test_files(layout)  # each real file read once, for the whole command
+    objects = [f.samples for f in files]
+    paths = [f.path for f in files]
     diag = [l_max_of([o], l_max, path=p)[0] for o, p in zip(objects, paths)]
 
     def golden(obj: Samples):
@@ -187,7 +194,7 @@ def load_real(lbipe_dir: str | os.PathLike, *, seed: int = 0, n_sets: int = 1000
 
     sets, sources = choose_sets(objects, n_sets=n_sets, set_size=set_size, seed=seed,
                                 golden=golden)
-    return RealData(layout, objects, sets, sources, diag)
+    return RealData(layout, objects, sets, sources, diag, files)
 
 
 def released_benchmark(lbipe_dir: str | os.PathLike, *, seed: int = 0,
@@ -253,12 +260,17 @@ def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
     return res
 
 
-def evaluate_samples(models: str | os.PathLike, sample_file: str | os.PathLike, *,
-                     n_sets: int = 1000, set_size: int = 64, seed: int = 0,
+def evaluate_samples(models: str | os.PathLike, sample_file: str | os.PathLike | SampleFile,
+                     *, n_sets: int = 1000, set_size: int = 64, seed: int = 0,
                      l_max: dict[str, float] | None = None) -> dict:
     """A model folder on every object of a sample file (random sets, seed + i); ``l_max``
-    gives the bounding-box diagonal of objects without a built-in one."""
-    objects, meta = objects_at_rest(sample_file, need_truth=True)
+    gives the bounding-box diagonal of objects without a built-in one. ``sample_file``: a
+    path, or a file already read (its samples at rest)."""
+    if isinstance(sample_file, SampleFile):
+        objects, meta, sample_file = (sample_file.samples.by_object(), sample_file.meta,
+                                      sample_file.path)
+    else:
+        objects, meta = objects_at_rest(sample_file, need_truth=True)
     massless = [o.name for o in objects if not o.mass > 0]
     if massless:
         raise UsageError(f"{sample_file} [{massless[0]}]: mass 0 (the empty gripper): mass and "

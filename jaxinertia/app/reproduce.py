@@ -42,7 +42,7 @@ from jaxinertia.evaluation import choose_sets, continuous_force
 from jaxinertia.fileio import replacing, write_json, write_text
 from jaxinertia.lbipe import default_lbipe_dir
 from jaxinertia.open_manipulator_x import load_calibration
-from jaxinertia.samples import load_samples
+from jaxinertia.samples import SampleFile
 from jaxinertia.session import ServoSession, servo_session
 from jaxinertia.sim.continuous import simulate_continuous_run
 from jaxinertia.sim.params import default_sim_params
@@ -113,7 +113,7 @@ def continuous_lanes() -> int:
     return 1 if jax.default_backend() == "cpu" else ACCELERATOR_CONTINUOUS_LANES
 
 
-def _continuous(params, path: Path, scale: Scale, seed: int) -> Path:
+def _continuous(params, path: Path, scale: Scale, seed: int) -> SampleFile:
     kw = dict(n=scale.continuous_samples, objects=CONTINUOUS_OBJECTS,
               switch_every=scale.switch_every, seed=seed, lanes=continuous_lanes())
 
@@ -121,18 +121,17 @@ def _continuous(params, path: Path, scale: Scale, seed: int) -> Path:
         return simulate_continuous_run(params, **kw)
 
     return cached(path, {"scenario": "continuous", **kw, "simulator": params_digest(params)},
-                  make)
+                  make, only_at_rest=False)  # read without waiting for rest
 
 
-def _coverage(models: Path, test_file: Path, real: RealData | None, *, n_sets: int,
+def _coverage(models: Path, test_file: SampleFile, real: RealData | None, *, n_sets: int,
               set_size: int, seed: int) -> dict:
     """Coverage of the trained models' intervals on the simulated test objects (the sets of
     the evaluate stage) and, when there are real files, on them."""
     pair, _, fc, config = load_models(models)
     floor, why = training_validation_error(config)
     reference = session_reference(config)
-    data, _ = load_samples(test_file)
-    objects, _ = adapt_objects(data.by_object(), reference)
+    objects, _ = adapt_objects(test_file.samples.by_object(), reference)
     sets, _ = choose_sets(objects, n_sets=n_sets, set_size=set_size, seed=seed)
     out = {"floor": {"Nm": None if floor is None else floor.tolist(), "source": why},
            "simulated": calibration(objects, uncertainty_of(objects, sets, pair=pair, fc=fc,
@@ -183,12 +182,12 @@ def _models_real(out: Path, train_files: list[Path], real: RealData, scale: Scal
             train(train_files, start, physical_cfg, overwrite=True, progress=progress,
                   session=session)
             n = recipe.get("finetune_samples") or scale.real_finetune_samples
-            info = train(list(real.layout.test_files.values()), dst,
+            info = train(real.files, dst,
                          TrainConfig(**FINETUNE_DEFAULTS, seed=seed, trainable="servo",
                                      session_strength=strength),
                          overwrite=True, progress=progress, init=start, samples_per_object=n)
     res = evaluate_models(dst, real.objects, real.sets, l_max=real.l_max)
-    return {"objects": res["objects"], "files": [str(f) for f in real.layout.test_files.values()],
+    return {"objects": res["objects"], "files": [str(f.path) for f in real.files],
             "samples": None if info is None else info["samples"], "models": str(dst),
             "recipe": recipe, "session_ratio": res["session_ratio"]}
 
@@ -311,10 +310,10 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
     return results
 
 
-def _continuous_force(models: Path, cont_file: Path) -> tuple[dict, dict]:
+def _continuous_force(models: Path, cont_file: SampleFile) -> tuple[dict, dict]:
     """The switching-load run's vertical force by every method, and what it held."""
     pair, baselines, fc, _ = load_models(models)
-    run, _ = load_samples(cont_file, only_at_rest=False)
+    run = cont_file.samples
     names = [run.names[i] for i in run.object_id]
     return continuous_force(run, pair, baselines, fc), {"n": len(names), "objects": names}
 

@@ -136,7 +136,11 @@ def cmd_calibrate(args) -> int:
     from jaxinertia.app.programs import stream_programs  # (as above)
     from jaxinertia.app.report import calibration_report  # (as above)
     from jaxinertia.fileio import write_json, write_text  # (as above: light, used here only)
-    from jaxinertia.sim.calibration import calibrate_servo_friction, fit_link_gravity  # (above)
+    from jaxinertia.sim.calibration import (  # (as above)
+        calibrate_servo_friction,
+        fit_link_gravity,
+        real_files,
+    )
     from jaxinertia.sim.params import (  # (as above)
         datasheet_sim_params,
         default_sim_params,
@@ -149,12 +153,13 @@ def cmd_calibrate(args) -> int:
         params = datasheet_sim_params()
     else:
         params = default_sim_params(args.start)
-    robot, gravity_info = fit_link_gravity(params.robot, lbipe_dir, args.real_objects)
+    data = real_files(lbipe_dir, args.real_objects)  # read once, handed to both fits
+    robot, gravity_info = fit_link_gravity(params.robot, data)
     params = params.replace(robot=robot)
     params, info = calibrate_servo_friction(
-        params, lbipe_dir, iterations=args.iterations, seed=args.seed,
+        params, data, iterations=args.iterations, seed=args.seed,
         kinetic_ratio=args.kinetic_ratio, fit_offset=args.fit_offset, progress=True,
-        objects=args.real_objects, programs=stream_programs())
+        programs=stream_programs())
     out = args.out
     payload = {"robot": "open_manipulator_x", "link_gravity": gravity_info,
                "servo_friction": params_to_dict(params),

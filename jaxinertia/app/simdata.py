@@ -1,5 +1,7 @@
 """Simulated data files for the pipeline: simulate what is missing, reuse what an earlier
-run made from the same request (scenario, size, seed and simulator parameters)."""
+run made from the same request (scenario, size, seed and simulator parameters). Either way
+the file comes back as a :class:`~jaxinertia.samples.SampleFile` (the samples, as a later
+read would give them, with the file's SHA-256), so that no caller reads it again."""
 
 from __future__ import annotations
 
@@ -13,13 +15,13 @@ import numpy as np
 from jaxinertia import __version__
 from jaxinertia.app.programs import stream_programs
 from jaxinertia.errors import UsageError
-from jaxinertia.samples import Samples, load_native, save_native
+from jaxinertia.samples import SampleFile, Samples, read_sample_file, write_sample_file
 from jaxinertia.sim.params import params_to_dict
 from jaxinertia.sim.randomize import DomainSpread, perturbed
 from jaxinertia.sim.run import ScenarioRequest, native_fields, simulate_scenarios
 from jaxinertia.sim.simulator import SimParams
 
-__all__ = ["cached", "params_digest", "reusable", "save", "simulate_files"]
+__all__ = ["cached", "params_digest", "reused", "save", "simulate_files"]
 
 
 def params_digest(params: SimParams) -> str:
@@ -29,32 +31,38 @@ def params_digest(params: SimParams) -> str:
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def reusable(path: Path, request: dict) -> bool:
-    """Whether the file at ``path`` was made by the same request (a re-run reuses it)."""
+def reused(path: Path, request: dict, *, only_at_rest: bool = True) -> SampleFile | None:
+    """The file at ``path``, read once, when the same request made it (a re-run reuses it);
+    else None."""
+    if not path.exists():
+        return None
     try:
-        return path.exists() and load_native(path)[1].get("request") == request
+        f = read_sample_file(path, only_at_rest=only_at_rest)
     except ValueError:
-        return False
+        return None
+    return f if f.meta.get("request") == request else None
 
 
-def save(path: Path, request: dict, fields: dict, meta: dict) -> Path:
+def save(path: Path, request: dict, fields: dict, meta: dict, *,
+         only_at_rest: bool = True) -> SampleFile:
     meta.update(request=request, version=__version__)
-    save_native(path, Samples.from_fields(fields, meta["objects"], need_truth=True), meta)
-    return path
+    return write_sample_file(path, Samples.from_fields(fields, meta["objects"], need_truth=True),
+                             meta, only_at_rest=only_at_rest)
 
 
-def cached(path: Path, request: dict, make) -> Path:
+def cached(path: Path, request: dict, make, *, only_at_rest: bool = True) -> SampleFile:
     """Writes ``make() -> (fields, meta)`` to ``path`` unless the file there was made by the
     same request."""
-    if reusable(path, request):
+    f = reused(path, request, only_at_rest=only_at_rest)
+    if f is not None:
         print(f"reusing {path}")
-        return path
-    return save(path, request, *make())
+        return f
+    return save(path, request, *make(), only_at_rest=only_at_rest)
 
 
 def simulate_files(params, wanted: list[tuple[Path, str, int | None, int]], *,
                    spread: DomainSpread | None = None, draws: int = 4,
-                   progress: bool = True) -> list[Path]:
+                   progress: bool = True) -> list[SampleFile]:
     """Simulates the scenarios ``(path, scenario, n, seed)`` whose files are not there yet,
     all in one stream (one compiled program, one settling tail).
 
@@ -68,10 +76,12 @@ def simulate_files(params, wanted: list[tuple[Path, str, int | None, int]], *,
     def request(scenario, n, seed):
         return {"scenario": scenario, "seed": seed, "n": n, "simulator": digest, **randomized}
 
-    missing = []
+    missing, done = [], {}
     for path, scenario, n, seed in wanted:
-        if reusable(path, request(scenario, n, seed)):
+        f = reused(path, request(scenario, n, seed))
+        if f is not None:
             print(f"reusing {path}")
+            done[path] = f
         else:
             missing.append((path, scenario, n, seed))
     if missing and spread is None:
@@ -95,8 +105,8 @@ def simulate_files(params, wanted: list[tuple[Path, str, int | None, int]], *,
                                      version=__version__)
         if spread is not None:
             meta["domain_randomization"] = randomized
-        save(path, request(scenario, n, seed), fields, meta)
-    return [w[0] for w in wanted]
+        done[path] = save(path, request(scenario, n, seed), fields, meta)
+    return [done[w[0]] for w in wanted]
 
 
 def _merge(results: list[dict]) -> dict:

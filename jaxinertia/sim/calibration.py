@@ -34,29 +34,33 @@ from jaxinertia.statics import (
 )
 
 __all__ = ["OFFSET_ITERATIONS", "baseline_statistics", "calibrate_servo_friction",
-           "fit_link_gravity", "real_files", "real_plan", "simulate_real_plan"]
+           "fit_link_gravity", "real_files", "real_plan", "select", "simulate_real_plan"]
 
 
 def real_files(lbipe_dir: str | os.PathLike,
                objects: Sequence[str] | None = None) -> list[Samples]:
-    """The real test files of ``lbipe_dir`` that a fit may look at: those of ``objects``
-    (all when None). Held-out protocol: a fit is judged on the objects it did not see."""
-    data = load_test_files(find_layout(lbipe_dir))
+    """The real test files of ``lbipe_dir`` that a fit may look at, read once: those of
+    ``objects`` (all when None). Held-out protocol: a fit is judged on the objects it did
+    not see; the fits below take these records, never the folder."""
+    return select(load_test_files(find_layout(lbipe_dir)), objects, where=lbipe_dir)
+
+
+def select(data: Sequence[Samples], objects: Sequence[str] | None = None, *,
+           where: object = "the real data") -> list[Samples]:
+    """The records of ``objects`` among ``data`` (all when None); an unknown name is an
+    error naming what there is."""
     if objects is None:
-        return data
+        return list(data)
     have = [d.name for d in data]
     unknown = [o for o in objects if o not in have]
     if unknown or not objects:
-        raise UsageError(f"--real-objects {list(objects)}: {lbipe_dir} has real files of "
-                         f"{have}")
+        raise UsageError(f"--real-objects {list(objects)}: {where} has real files of {have}")
     return [d for d in data if d.name in objects]
 
 
-def fit_link_gravity(robot: Robot, lbipe_dir: str | os.PathLike,
-                     objects: Sequence[str] | None = None) -> tuple[Robot, dict]:
-    """Fits link masses/first moments to the real test files' ``tau_g`` (those of
-    ``objects``; all when None)."""
-    data = real_files(lbipe_dir, objects)
+def fit_link_gravity(robot: Robot, data: Sequence[Samples]) -> tuple[Robot, dict]:
+    """Fits link masses/first moments to the real samples' ``tau_g`` (one record per real
+    file)."""
     q = np.concatenate([d.q for d in data])
     tau_g = np.concatenate([d.tau_g for d in data])
     theta, base = identify_gravity_base_parameters(robot, jnp.asarray(q), tau_g)
@@ -107,13 +111,11 @@ def baseline_statistics(q_d, q, direction, tau, current_tau) -> dict[str, np.nda
     return {k: np.asarray(v) for k, v in out.items()}
 
 
-def real_plan(robot: Robot, lbipe_dir,
-              objects: Sequence[str] | None = None) -> list[tuple[str, HeldObject, object]]:
-    """``[(name, object, data)]`` per real test file: the object (mass, COM and a fitted
-    tag pose) and the file's data (goals, directions and the real measurements); only the
-    files of ``objects`` when given."""
+def real_plan(robot: Robot, data: Sequence[Samples]) -> list[tuple[str, HeldObject, Samples]]:
+    """``[(name, object, data)]`` per real file's record: the object (mass, COM and a
+    fitted tag pose) and the file's data (goals, directions and the real measurements)."""
     plans = []
-    for d in real_files(lbipe_dir, objects):
+    for d in data:
         mass, com = d.mass, d.com
         fit = fit_tag_pose(robot, jnp.asarray(d.q), jnp.asarray(d.A))
         side = 0.04
@@ -145,9 +147,9 @@ def _intercept(d: dict, ref: dict) -> np.ndarray:
                    axis=0)
 
 
-def calibrate_servo_friction(params, lbipe_dir, *, iterations: int = 6, seed: int = 0,
-                             kinetic_ratio: float = 0.6, fit_offset: bool = False, log=print,
-                             progress: bool = False, objects: Sequence[str] | None = None,
+def calibrate_servo_friction(params, data: Sequence[Samples], *, iterations: int = 6,
+                             seed: int = 0, kinetic_ratio: float = 0.6,
+                             fit_offset: bool = False, log=print, progress: bool = False,
                              programs: StreamPrograms | None = None):
     """Fixed-point fit of per-joint servo gain, torque constant and friction parameters so
     that the simulated real plan reproduces the real baseline statistics (k, f0, mu,
@@ -156,16 +158,17 @@ def calibrate_servo_friction(params, lbipe_dir, *, iterations: int = 6, seed: in
     load such as cable forces or a gravity-model error) so that the intercept at the real
     PE gain and friction, ``mean(tau - k qe + s f)``, matches the real one; without it the
     simulated arm has the real gains and friction but not the real intercepts, which is
-    most of the sim-to-real gap (docs/results.md). Only the real files of ``objects`` are
-    looked at (all when None). ``programs``: the caller's compiled stream programs (None:
-    this call's own, shared by its iterations). Returns ``(params, history)``."""
+    most of the sim-to-real gap (docs/results.md). ``data``: the real files' records it
+    fits (one per file; a held-out fold hands it one). ``programs``: the caller's compiled
+    stream programs (None: this call's own, shared by its iterations). Returns
+    ``(params, history)``."""
     if programs is None:
         with StreamPrograms() as own:
             return calibrate_servo_friction(
-                params, lbipe_dir, iterations=iterations, seed=seed,
+                params, data, iterations=iterations, seed=seed,
                 kinetic_ratio=kinetic_ratio, fit_offset=fit_offset, log=log, progress=progress,
-                objects=objects, programs=own)
-    plans = real_plan(params.robot, lbipe_dir, objects)
+                programs=own)
+    plans = real_plan(params.robot, data)
     real = baseline_statistics(
         np.concatenate([d.q_d for _, _, d in plans]), np.concatenate([d.q for _, _, d in plans]),
         np.concatenate([d.direction for _, _, d in plans]),
