@@ -9,7 +9,12 @@ import os
 import jax.numpy as jnp
 import numpy as np
 
-from jaxinertia.app.pipeline import adapt_objects, objects_at_rest, session_reference
+from jaxinertia.app.pipeline import (
+    adapt_objects,
+    is_simulated,
+    objects_at_rest,
+    session_reference,
+)
 from jaxinertia.checkpoints import load_models
 from jaxinertia.errors import UsageError
 from jaxinertia.evaluation import choose_sets, evaluate
@@ -103,7 +108,8 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
     objects, meta = objects_at_rest(sample_file, need_truth=False)
     objects = [o.without_truth() for o in objects]
     pair, baselines, fc, config = load_models(models, robot=meta.get("robot"))
-    objects, ratios = adapt_objects(objects, session_reference(config, session_strength))
+    objects, ratios = adapt_objects(objects, session_reference(
+        config, session_strength, simulated=is_simulated(meta)))
     floor, floor_source = training_validation_error(config)
     noise = floor if floor is not None else np.full(objects[0].n_joints,
                                                     DEFAULT_TORQUE_NOISE_NM)

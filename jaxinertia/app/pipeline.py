@@ -48,7 +48,8 @@ from jaxinertia.training import (
 from jaxinertia.uncertainty import validation_torque_error
 
 __all__ = ["RealData", "adapt_objects", "copy_models", "evaluate_models", "objects_at_rest",
-           "evaluate_samples", "load_real", "released_benchmark", "session_reference",
+           "evaluate_samples", "is_simulated", "load_real", "released_benchmark",
+           "session_reference",
            "sim_to_real", "train"]
 
 
@@ -92,8 +93,8 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
         cfg = cfg.replace(n_models=pair0.n_models,
                           torque_model=torque_model_kind(pair0.torque_model))
         start = (pair0, fc0, config0)
-    parts, reference, ratios = _sessions_read(parts, metas, float(cfg.session_strength),
-                                              None if start is None else start[2], session)
+    parts, (reference, sim_reference), ratios = _sessions_read(
+        parts, metas, float(cfg.session_strength), None if start is None else start[2], session)
     data = Samples.concatenate(parts)
     if samples_per_object is not None:
         data = per_object_subset(data, samples_per_object, cfg.seed)
@@ -127,7 +128,8 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
                   "seed": m.get("seed"), "source": m.get("source"),
                   "session_ratio": r}
                  for f, m, r in zip(sample_files, metas, ratios)],
-        "session": None if reference is None else reference.to_dict(),
+        "session": reference.to_dict(),
+        "simulator_session": None if sim_reference is None else sim_reference.to_dict(),
         "samples_per_object": samples_per_object,
         "simulator": metas[0].get("simulator") or (start[2].get("simulator") if start else None),
         "samples": {"train": train_set.n_samples, "validation": val_set.n_samples},
@@ -153,17 +155,26 @@ def _sessions_read(parts, metas, strength: float, init_config: dict | None,
     ``strength`` says: a real file in the models' reference (``session``, else the init
     folder's, else the data's own), a simulated one in the simulator's own (the pooled
     simulated files: the calibration that made them stands for the reference). Returns the
-    files' records, the reference and each file's per-joint ratio."""
-    simulated = [m.get("source") == "simulator" for m in metas]
+    files' records, the two references (real files', simulated files') and each file's
+    per-joint ratio."""
+    simulated = [is_simulated(m) for m in metas]
     sim_ref = (SessionReference(servo_session([p for p, s in zip(parts, simulated) if s])
                                 .current_gain, strength) if any(simulated) else None)
+    if sim_ref is None and init_config is not None:
+        sim_ref = session_reference(init_config, strength, simulated=True)
     reference = None if init_config is None else session_reference(init_config, strength)
     if session is not None:
         reference = SessionReference(session.current_gain, strength)
     if reference is None:
         reference = sim_ref or SessionReference(servo_session(parts).current_gain, strength)
     read = [adapt(p, sim_ref if sim else reference) for p, sim in zip(parts, simulated)]
-    return [r[0] for r in read], reference, [r[1].tolist() for r in read]
+    return [r[0] for r in read], (reference, sim_ref), [r[1].tolist() for r in read]
+
+
+def is_simulated(meta: dict) -> bool:
+    """Whether a sample file's metadata says the simulator made it (its recording session
+    is the simulator's own)."""
+    return meta.get("source") == "simulator"
 
 
 class RealData(NamedTuple):
@@ -224,16 +235,22 @@ def copy_models(src: str | os.PathLike, dst: str | os.PathLike, *,
     standard = ("format", "format_version", "robot", "n_models", "torque_model",
                 "attention_model", "features", "baselines")
     extra = {k: v for k, v in config.items() if k not in standard}
-    ref = session_reference(config, session_strength)
-    extra["session"] = None if ref is None else ref.to_dict()
+    for key, simulated in (("session", False), ("simulator_session", True)):
+        ref = session_reference(config, session_strength, simulated=simulated)
+        extra[key] = None if ref is None else ref.to_dict()
     extra["copied_from"] = str(Path(src).resolve())
     return save_models(dst, pair, baselines, fc, robot=config.get("robot"), extra=extra)
 
 
-def session_reference(config: dict, strength: float | None = None) -> SessionReference | None:
-    """A model folder's session reference (None: the folder predates sessions, or was
-    trained without); ``strength`` overrides the recorded one."""
+def session_reference(config: dict, strength: float | None = None, *,
+                      simulated: bool = False) -> SessionReference | None:
+    """A model folder's session reference for real files (None: the folder predates
+    sessions), or, ``simulated``, for simulated ones: the session of the simulator that
+    made its training data (real ones' when it has none); ``strength`` overrides the
+    recorded one."""
     ref = SessionReference.from_dict(config.get("session"))
+    if simulated:
+        ref = SessionReference.from_dict(config.get("simulator_session")) or ref
     return ref if ref is None or strength is None else ref.replace(strength=float(strength))
 
 
@@ -247,11 +264,14 @@ def adapt_objects(objects: Sequence[Samples], reference: SessionReference | None
 
 def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
                     sets: Sequence[np.ndarray], *, l_max: Sequence[float] | None = None,
-                    robot: str | None = None, session_strength: float | None = None) -> dict:
+                    robot: str | None = None, session_strength: float | None = None,
+                    simulated: bool = False) -> dict:
     """A model folder (its pairs and baselines) on known objects over the given sets, each
-    object adapted to the folder's session (``session_strength``: override, 0 = off)."""
+    object read in the folder's session (``simulated``: objects the simulator made, read in
+    its session; ``session_strength``: override, 0 = off)."""
     pair, baselines, fc, config = load_models(models, robot=robot)
-    objects, ratios = adapt_objects(objects, session_reference(config, session_strength))
+    objects, ratios = adapt_objects(objects, session_reference(config, session_strength,
+                                                               simulated=simulated))
     t = time.perf_counter()
     res = evaluate(objects, sets, pair=pair, baselines=baselines, fc=fc, l_max=l_max)
     res["wall_time_s"] = time.perf_counter() - t
@@ -277,7 +297,8 @@ def evaluate_samples(models: str | os.PathLike, sample_file: str | os.PathLike |
                          "COM errors need a held object; leave it out of the file")
     diag = l_max_of(objects, l_max, path=sample_file)
     sets, _ = choose_sets(objects, n_sets=n_sets, set_size=set_size, seed=seed)
-    return evaluate_models(models, objects, sets, l_max=diag, robot=meta.get("robot"))
+    return evaluate_models(models, objects, sets, l_max=diag, robot=meta.get("robot"),
+                           simulated=is_simulated(meta))
 
 
 def objects_at_rest(sample_file, *, need_truth: bool) -> tuple[list[Samples], dict]:

@@ -130,14 +130,14 @@ def _coverage(models: Path, test_file: SampleFile, real: RealData | None, *, n_s
     the evaluate stage) and, when there are real files, on them."""
     pair, _, fc, config = load_models(models)
     floor, why = training_validation_error(config)
-    reference = session_reference(config)
-    objects, _ = adapt_objects(test_file.samples.by_object(), reference)
+    objects, _ = adapt_objects(test_file.samples.by_object(),
+                               session_reference(config, simulated=True))
     sets, _ = choose_sets(objects, n_sets=n_sets, set_size=set_size, seed=seed)
     out = {"floor": {"Nm": None if floor is None else floor.tolist(), "source": why},
            "simulated": calibration(objects, uncertainty_of(objects, sets, pair=pair, fc=fc,
                                                             floor=floor))}
     if real is not None:
-        real_objects, _ = adapt_objects(real.objects, reference)
+        real_objects, _ = adapt_objects(real.objects, session_reference(config))
         out["real"] = calibration(real_objects, uncertainty_of(
             real_objects, real.sets, pair=pair, fc=fc, floor=floor))
     return out
