@@ -16,6 +16,7 @@ import jax
 import numpy as np
 
 from jaxinertia import __version__
+from jaxinertia.app.arm_options import add_arm_option, arm_name, arm_of, lbipe_arm_only
 from jaxinertia.app.options import (
     check_outputs,
     distinct,
@@ -36,15 +37,13 @@ from jaxinertia.app.pipeline import (
 from jaxinertia.app.plots import plot_calibration, plot_lbipe_estimates
 from jaxinertia.app.report import calibration_report, table1, table2, table3
 from jaxinertia.app.reproduce import reproduce
-from jaxinertia.arms import ARMS, DEFAULT_ARM, get_arm
+from jaxinertia.arms import DEFAULT_ARM, get_arm
 from jaxinertia.design import load_plan
 from jaxinertia.errors import UsageError
 from jaxinertia.fileio import check_output, write_json, write_text
 from jaxinertia.lbipe import default_lbipe_dir
 from jaxinertia.objects import TEST_OBJECTS, TRAINING_LOADS_KG, load_name
-from jaxinertia.open_manipulator_x import (
-    CALIBRATION_FILE,
-)
+from jaxinertia.open_manipulator_x import CALIBRATION_FILE
 from jaxinertia.robot import data_path
 from jaxinertia.samples import Samples, save_lbipe, save_native
 from jaxinertia.sim import params as sim_params
@@ -126,7 +125,7 @@ def cmd_simulate(args) -> int:
         fields, meta = simulate_continuous_run(
             params, n=args.n or 2048, objects=args.objects or ["empty", "cube", "white",
                                                                "black"],
-            switch_every=args.switch_every, seed=args.seed)
+            switch_every=args.switch_every, seed=args.seed, arm=arm)
         meta["version"] = __version__
         samples = Samples.from_fields(fields, meta["objects"], need_truth=True)
         path = save_native(args.out, samples, meta)
@@ -135,7 +134,7 @@ def cmd_simulate(args) -> int:
         return 0
     plan = None
     if args.plan is not None:
-        plan = load_plan(args.plan)
+        plan = load_plan(args.plan, arm=arm.name)
         if plan[0].shape[1] != params.robot.n_joints:
             raise UsageError(f"--plan {args.plan}: {plan[0].shape[1]} joints per pose; the "
                              f"simulated arm has {params.robot.n_joints}")
@@ -162,6 +161,7 @@ def cmd_simulate(args) -> int:
 
 def cmd_calibrate(args) -> int:
     enable_x64()
+    lbipe_arm_only(args, "calibrate fits the simulator to")
     out = args.out or data_path(CALIBRATION_FILE)
     if args.out is not None:
         check_outputs(args, "--out")
@@ -211,7 +211,7 @@ def cmd_train(args) -> int:
         overrides = {**FINETUNE_DEFAULTS, **overrides}
     cfg = TrainConfig(**overrides)
     info = train(args.data, args.out, cfg, overwrite=args.overwrite, init=args.init,
-                 samples_per_object=args.samples_per_object)
+                 samples_per_object=args.samples_per_object, arm=arm_name(args))
     what = "fine-tuned" if args.init is not None else "trained"
     print(f"{what} {info['training']['n_models']} model pairs on {info['samples']['train']} "
           f"samples ({info['samples']['validation']} validation) in "
@@ -224,9 +224,11 @@ def cmd_evaluate(args) -> int:
     check_outputs(args, "--json")
     released = None
     if args.samples:
-        res = evaluate_samples(args.models, args.samples, n_sets=args.sets, seed=args.seed)
+        res = evaluate_samples(args.models, args.samples, n_sets=args.sets, seed=args.seed,
+                               arm=arm_name(args))
         objects, torque = res["objects"], res["torque"]
     else:
+        lbipe_arm_only(args, "without --samples, evaluate reads")
         real = sim_to_real(args.models, args.lbipe_dir, seed=args.seed, n_sets=args.sets)
         if real is None:
             raise UsageError(f"no real data at {args.lbipe_dir}: pass --lbipe-dir or --samples")
@@ -245,7 +247,8 @@ def cmd_evaluate(args) -> int:
 
 def cmd_reproduce(args) -> int:
     enable_x64()
-    reproduce(args.out, full=args.full, seed=args.seed, lbipe_dir=args.lbipe_dir)
+    reproduce(args.out, full=args.full, seed=args.seed, lbipe_dir=args.lbipe_dir,
+              arm=arm_of(args))
     return 0
 
 
@@ -293,9 +296,7 @@ def register(sub) -> None:
     s.add_argument("--switch-every", type=positive_int, default=512,
                    help="continuous: samples between object switches (default 512)")
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--arm", default=DEFAULT_ARM, metavar="NAME|FILE",
-                   help=f"the arm: {', '.join(ARMS)}, or an arm file (.json/.toml) "
-                   "(default: %(default)s)")
+    add_arm_option(s)
     s.add_argument("--calibration", type=Path,
                    help="simulator parameter file (default: the arm's shipped calibration; "
                    "an arm without one is simulated from its datasheet values)")
@@ -314,6 +315,7 @@ def register(sub) -> None:
         "and friction so that the simulated real plan reproduces the real baseline fits.",
     )
     c.add_argument("--lbipe-dir", type=Path, default=default_lbipe_dir())
+    add_arm_option(c)
     c.add_argument("--iterations", type=positive_int, default=6)
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--out", type=Path,
@@ -341,6 +343,7 @@ def register(sub) -> None:
     t.add_argument("--data", nargs="+", required=True, type=Path,
                    help="sample files of known objects (native or the authors' layout)")
     t.add_argument("--out", required=True, type=Path, help="model folder to write")
+    add_arm_option(t, default=None, what="the arm the sample files record")
     t.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
     t.add_argument("--init", type=Path, metavar="MODELS",
                    help="fine-tune this model folder (e.g. simulator-trained models on real "
@@ -374,6 +377,7 @@ def register(sub) -> None:
         description="Evaluates a model folder on every data/data_test_<name>.npz in the lbipe "
         "folder (beside the released models on the same sets), or on a native sample file.")
     e.add_argument("--models", required=True, type=Path)
+    add_arm_option(e, default=None, what="the samples' arm; another's models are refused")
     e.add_argument("--lbipe-dir", type=Path, default=default_lbipe_dir())
     e.add_argument("--samples", type=Path,
                    help="a sample file of known objects instead (native or the authors' layout)")
@@ -384,7 +388,6 @@ def register(sub) -> None:
     e.add_argument("--seed", type=int, default=0)
     e.set_defaults(func=cmd_evaluate)
 
-
     r = sub.add_parser(
         "reproduce", help="simulate, train, evaluate, switching loads, sim-to-real, report",
         description="The paper end to end into a run folder (report.md, tables.json, plots). "
@@ -393,4 +396,5 @@ def register(sub) -> None:
     r.add_argument("--full", action="store_true")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--lbipe-dir", type=Path, default=default_lbipe_dir())
+    add_arm_option(r)
     r.set_defaults(func=cmd_reproduce)

@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxinertia.app.arm_options import LBIPE_ARM, samples_arm
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import file_sha256, load_models, save_models
 from jaxinertia.errors import FileFormatError, UsageError
@@ -65,7 +66,7 @@ __all__ = ["RealData", "adapt_objects", "copy_models", "estimate", "evaluate_mod
 def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg: TrainConfig,
           *, progress: bool = True, overwrite: bool = False,
           init: str | os.PathLike | None = None,
-          samples_per_object: int | None = None) -> dict:
+          samples_per_object: int | None = None, arm: str | None = None) -> dict:
     """Trains K model pairs and fits the baselines; writes the model folder ``out``
     (atomically; an existing one only with ``overwrite``).
 
@@ -75,18 +76,21 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
     normalisation is kept and its model count wins over ``cfg.n_models``; the baselines are
     fitted on the new data. ``samples_per_object``: use only that many samples of each
     object (seeded random choice; all when it has fewer), to measure how many are needed.
+    ``arm``: the arm the samples must come from (the folder records it; default: the one
+    the files record).
     """
     check_output(out, overwrite=overwrite)
     parts, metas = [], []
     for f in sample_files:
         d, meta = load_samples(f)
+        samples_arm(f, meta, arm)  # another arm's file: one line, before any training
         parts.append(d)
         metas.append(meta)
     # The authors' layout records no robot: it is taken to be the native files' one.
     robots = {m.get("robot") for m in metas} - {None}
     if len(robots) > 1:
         raise FileFormatError(sample_files[0], "metadata", f"files of different robots {robots}")
-    robot = robots.pop() if robots else None
+    robot = robots.pop() if robots else arm
     start = None
     if init is not None:
         pair0, _, fc0, config0 = load_models(init, robot=robot)
@@ -151,7 +155,7 @@ def train(sample_files: Sequence[str | os.PathLike], out: str | os.PathLike, cfg
         info["fine_tuned_from"] = {"folder": str(Path(init).resolve()),
                                    "data": start[2].get("data"),
                                    "training": start[2].get("training")}
-    save_models(out, pair, baselines, fc, robot=robot, extra=info)  # atomic
+    save_models(out, pair, baselines, fc, robot=robot, extra=info, arm=arm)  # atomic
     return info
 
 
@@ -234,10 +238,11 @@ def adapt_objects(objects: Sequence[Samples], reference: SessionReference | None
 
 def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
                     sets: Sequence[np.ndarray], *, l_max: Sequence[float] | None = None,
-                    robot: str | None = None, session_strength: float | None = None) -> dict:
+                    robot: str | None = None, session_strength: float | None = None,
+                    arm: str | None = None) -> dict:
     """A model folder (its pairs and baselines) on known objects over the given sets, each
     object adapted to the folder's session (``session_strength``: override, 0 = off)."""
-    pair, baselines, fc, config = load_models(models, robot=robot)
+    pair, baselines, fc, config = load_models(models, robot=robot, arm=arm)
     objects, ratios = adapt_objects(objects, session_reference(config, session_strength))
     t = time.perf_counter()
     res = evaluate(objects, sets, pair=pair, baselines=baselines, fc=fc, l_max=l_max)
@@ -248,13 +253,16 @@ def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
 
 
 def evaluate_samples(models: str | os.PathLike, sample_file: str | os.PathLike, *,
-                     n_sets: int = 1000, set_size: int = 64, seed: int = 0) -> dict:
-    """A model folder on every object of a sample file (random sets, seed + i)."""
+                     n_sets: int = 1000, set_size: int = 64, seed: int = 0,
+                     arm: str | None = None) -> dict:
+    """A model folder on every object of a sample file (random sets, seed + i); ``arm``:
+    the arm the samples must come from."""
     data, meta = load_samples(sample_file)
+    arm = samples_arm(sample_file, meta, arm)
     objects = data.by_object()
     sets, _ = choose_sets(objects, n_sets=n_sets, set_size=set_size, seed=seed)
     return evaluate_models(models, objects, sets, l_max=l_max_of(objects, path=sample_file),
-                           robot=meta.get("robot"))
+                           robot=meta.get("robot"), arm=arm)
 
 
 def sim_to_real(models: str | os.PathLike, lbipe_dir: str | os.PathLike, *, seed: int = 0,
@@ -265,7 +273,8 @@ def sim_to_real(models: str | os.PathLike, lbipe_dir: str | os.PathLike, *, seed
     if real is None and not Path(lbipe_dir).is_dir():
         return None
     real = real or load_real(lbipe_dir, seed=seed, n_sets=n_sets, l_max=l_max)
-    ours = evaluate_models(models, real.objects, real.sets, l_max=real.l_max)
+    ours = evaluate_models(models, real.objects, real.sets, l_max=real.l_max,
+                           arm=LBIPE_ARM)
     names = [o.name for o in real.objects]
     out = {"ours": {"objects": ours["objects"], "torque": ours["torque"]},
            "files": {n: str(p) for n, p in real.layout.test_files.items()},
@@ -326,7 +335,7 @@ def _uncertainty_fields(u, o: int) -> dict:
 def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_size: int = 64,
              n_sets: int = 200, seed: int = 0, max_mass: float = 5.0,
              max_com: float = 0.5, max_com_se: float | None = None,
-             session_strength: float | None = None) -> dict:
+             session_strength: float | None = None, arm: str | None = None) -> dict:
     """Mass and COM of each object in a sample file (ground truth, if any, is not used),
     by every method, with standard errors, intervals and covariance.
 
@@ -350,7 +359,8 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
     :data:`~jaxinertia.uncertainty.DEFAULT_TORQUE_NOISE_NM`).
     """
     data, meta = load_samples(sample_file, need_truth=False)
-    pair, baselines, fc, config = load_models(models, robot=meta.get("robot"))
+    pair, baselines, fc, config = load_models(models, robot=meta.get("robot"),
+                                              arm=samples_arm(sample_file, meta, arm))
     objects, ratios = adapt_objects(data.without_truth().by_object(),
                                     session_reference(config, session_strength))
     floor, floor_source = training_validation_error(pair, fc, config)
