@@ -24,6 +24,7 @@ jax.config.update("jax_enable_x64", True)
 
 from jaxinertia import apply_xla_workarounds  # noqa: E402
 from jaxinertia.design import information, inner_workspace, regressors, select  # noqa: E402
+from jaxinertia.open_manipulator_x import ARM as OMX  # noqa: E402
 from jaxinertia.open_manipulator_x import WORKSPACE_DEG  # noqa: E402
 from jaxinertia.plans import planning_plan  # noqa: E402
 
@@ -81,8 +82,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     L = error_map(args.mass, args.com)
     rng = np.random.default_rng(0)
-    q_all = np.unique(planning_plan(10.0)[0], axis=0)
-    C_all = np.asarray(information(regressors(q_all)))
+    robot, grid = OMX.robot(), dict(clearance=OMX.mount_clearance_m)
+    reg = dict(robot=robot, tag=OMX.tag_in_ee)
+    q_all = np.unique(planning_plan(10.0, robot=robot, workspace=WORKSPACE_DEG, **grid)[0],
+                      axis=0)
+    C_all = np.asarray(information(regressors(q_all, **reg)))
     ref = np.median(predicted(np.stack([C_all[rng.choice(len(C_all), 64, replace=False)].sum(0)
                                         for _ in range(args.draws)]), L), axis=0)
     rand = np.median(predicted(np.stack([C_all[rng.choice(len(C_all), args.n, replace=False)]
@@ -94,9 +98,10 @@ def main(argv=None) -> int:
     print(f"{'random 64':<34} {1.0:6.3f} {1.0:6.3f}")
     print(f"{f'random {args.n}':<34} {rand[0] / ref[0]:6.3f} {rand[1] / ref[1]:6.3f}")
     for margin in args.margins:
-        q = np.unique(planning_plan(10.0, workspace=inner_workspace(WORKSPACE_DEG, margin))[0],
+        q = np.unique(planning_plan(10.0, robot=robot, **grid,
+                                    workspace=inner_workspace(WORKSPACE_DEG, margin))[0],
                       axis=0)
-        C = np.asarray(information(regressors(q)))
+        C = np.asarray(information(regressors(q, **reg)))
         d_idx = np.asarray(select(C, args.n)[0])
         a_idx, swaps = a_exchange(C, d_idx, L)
         for name, idx in ((f"D-optimal, {margin:g} deg inside", d_idx),

@@ -180,14 +180,18 @@ def simulated_plans_section(objects, pair, fc, *, repeats: int, seed: int,
     ``repeats`` random plans of 16 and of 64 poses (uniform in the workspace, as the test
     scenario draws them); Table I metrics over the repeats."""
     from jaxinertia import __version__  # noqa: PLC0415 (the simulator only here)
+    from jaxinertia.design import arm_plan_kwargs  # noqa: PLC0415
     from jaxinertia.objects import paper_object  # noqa: PLC0415
+    from jaxinertia.open_manipulator_x import ARM as OMX  # noqa: PLC0415
     from jaxinertia.plans import random_plan  # noqa: PLC0415
     from jaxinertia.samples import Samples  # noqa: PLC0415
     from jaxinertia.sim.params import default_sim_params  # noqa: PLC0415
     from jaxinertia.sim.run import native_fields, run_plans  # noqa: PLC0415
 
-    plan = plan_poses(16)  # the command's defaults: 10 deg grid, DEFAULT_MARGIN_DEG inside
-    at_limits = plan_poses(16, margin_deg=0.0)  # the same without the margin
+    omx = arm_plan_kwargs(OMX)
+    ws, tag = dict(workspace=OMX.workspace_deg), dict(tag_in_ee=OMX.tag_in_ee)
+    plan = plan_poses(16, **omx)  # the command's defaults: 10 deg grid, DEFAULT_MARGIN_DEG in
+    at_limits = plan_poses(16, **omx, margin_deg=0.0)  # the same without the margin
     params = default_sim_params()
     flip = np.random.default_rng(seed + 3).choice([-1.0, 1.0], plan.direction.shape)
     ablation = {"planned 16, random directions": lambda r: (np.tile(plan.q_d, (r, 1)),
@@ -196,19 +200,19 @@ def simulated_plans_section(objects, pair, fc, *, repeats: int, seed: int,
                                                  np.ones((16 * r, plan.q_d.shape[1])))}
     designs = {"planned 16": lambda r: (np.tile(plan.q_d, (r, 1)), np.tile(plan.direction,
                                                                           (r, 1))),
-               "random 16": lambda r: random_plan(16 * r, seed + 1),
-               "random 64": lambda r: random_plan(64 * r, seed + 2),
+               "random 16": lambda r: random_plan(16 * r, seed + 1, **ws),
+               "random 64": lambda r: random_plan(64 * r, seed + 2, **ws),
                "limits 16": lambda r: (np.tile(at_limits.q_d, (r, 1)),
                                        np.tile(at_limits.direction, (r, 1)))}
     if directions_only:  # the same poses with other approach directions
         designs = {"planned 16": designs["planned 16"], **ablation}
     if joint_weights is not None:  # the criterion weighted as the T-A solve weights joints
-        weighted = plan_poses(16, joint_weights=np.asarray(joint_weights))
+        weighted = plan_poses(16, **omx, joint_weights=np.asarray(joint_weights))
         designs["planned 16, attention-weighted"] = lambda r: (
             np.tile(weighted.q_d, (r, 1)), np.tile(weighted.direction, (r, 1)))
     jobs = [(k, o.name) for k in designs for o in objects]
     key = jax.random.key(seed)
-    plans = [(paper_object(name), *designs[k](repeats), jax.random.fold_in(key, i))
+    plans = [(paper_object(name, **tag), *designs[k](repeats), jax.random.fold_in(key, i))
              for i, (k, name) in enumerate(jobs)]
     t = time.perf_counter()
     results = run_plans(params, plans, descs=[f"{k}/{n}" for k, n in jobs], progress=False)

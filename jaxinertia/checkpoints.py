@@ -2,7 +2,7 @@
 
 A model folder holds ``checkpoint/`` (orbax: the K stacked torque and attention model
 parameters) and ``config.json`` (architecture, feature normalisation, baselines, training
-hyperparameters, seeds, the robot, the simulator calibration and the training data's
+hyperparameters, seeds, the robot and its arm, the simulator calibration and the training data's
 SHA-256). Everything needed to use the models is in the folder.
 
 ``config.json`` records the SHA-256 of every file of ``checkpoint/`` (``checksums``);
@@ -54,8 +54,10 @@ def _arch(model) -> dict:
 
 
 def save_models(directory: str | os.PathLike, pair: ModelPair, baselines: Baselines,
-                features: FeatureConfig, *, robot: str, extra: dict | None = None) -> Path:
-    """Writes ``directory/checkpoint`` (orbax) and ``directory/config.json``."""
+                features: FeatureConfig, *, robot: str, extra: dict | None = None,
+                arm: str | None = None) -> Path:
+    """Writes ``directory/checkpoint`` (orbax) and ``directory/config.json`` (``arm``: the
+    arm record's name, default the robot's: an arm's robot is named after it)."""
     import orbax.checkpoint as ocp  # heavy (~1 s): only when models are written or read
 
     _check_finite(pair, directory)
@@ -63,7 +65,7 @@ def save_models(directory: str | os.PathLike, pair: ModelPair, baselines: Baseli
              "attention": jax.device_get(pair.attention_vars)}
     config = {
         "format": FORMAT, "format_version": FORMAT_VERSION, "robot": robot,
-        "n_models": pair.n_models,
+        "arm": arm or robot, "n_models": pair.n_models,
         "torque_model": {"kind": torque_model_kind(pair.torque_model),
                          **_arch(pair.torque_model)},
         "attention_model": _arch(pair.attention_model),
@@ -113,10 +115,13 @@ def _verify(directory: Path, config: dict) -> None:
                                    "after it was written: corrupt or edited)")
 
 
-def load_models(directory: str | os.PathLike, *, robot: str | None = None):
+def load_models(directory: str | os.PathLike, *, robot: str | None = None,
+                arm: str | None = None):
     """Reads a model folder -> (ModelPair, Baselines, FeatureConfig, config dict).
 
-    ``robot``: the robot the caller's samples come from; another robot is an error.
+    ``robot`` / ``arm``: the robot and the arm the caller's samples come from; models of
+    another are an error (:class:`RobotMismatchError`, one line). A folder that records no
+    arm (trained on files that record none) is taken for any.
     """
     import orbax.checkpoint as ocp  # heavy (~1 s): only when models are written or read
 
@@ -137,9 +142,14 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None):
     if config.get("format_version") != FORMAT_VERSION:
         raise ModelFolderError(f"{cfg_path}: format_version {config.get('format_version')!r}; "
                                f"this version of jaxinertia reads {FORMAT_VERSION}")
-    if robot is not None and config.get("robot") != robot:
-        raise RobotMismatchError(f"{directory}: models trained for robot {config.get('robot')!r}, "
-                              f"the samples come from {robot!r}")
+    trained = config.get("arm") or config.get("robot")
+    if (robot is not None and config.get("robot") != robot) or (
+            arm is not None and trained not in (None, arm)):
+        theirs = arm or robot
+        raise RobotMismatchError(
+            f"{directory}: models trained for robot {config.get('robot')!r} (arm {trained!r}), "
+            f"the samples come from the arm {theirs!r}: use models trained on that arm's "
+            f"samples (jaxinertia train --arm {theirs})")
     try:
         arch = dict(config["torque_model"])
         kind = arch.pop("kind", "paper")  # folders before the option: the paper's network

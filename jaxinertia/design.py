@@ -37,15 +37,15 @@ import numpy as np
 from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.fileio import write_text
 from jaxinertia.linalg import gram, logdet_spd
-from jaxinertia.open_manipulator_x import MOUNT_CLEARANCE_M, TAG_IN_EE, WORKSPACE_DEG
 from jaxinertia.plans import planning_plan
-from jaxinertia.robot import Robot, open_manipulator_x
+from jaxinertia.robot import Robot
 from jaxinertia.statics import load_regressor_fixed_tag
 
 __all__ = [
     "PLAN_FORMAT",
     "Plan",
     "DEFAULT_MARGIN_DEG",
+    "arm_plan_kwargs",
     "balance_directions",
     "inner_workspace",
     "information",
@@ -183,10 +183,10 @@ def _regressors(robot, q, R_ee_tag, p_ee_tag):
     return jax.vmap(lambda qi: load_regressor_fixed_tag(robot, qi, R_ee_tag, p_ee_tag))(q)
 
 
-def regressors(q: np.ndarray, *, robot: Robot | None = None, tag=TAG_IN_EE) -> np.ndarray:
-    """(S, N, 4) load regressors at goals q (S, N) [rad], the tag at ``tag = (R, p)`` in the
-    end-effector frame (any tag gives the same plan; see the module's docstring)."""
-    robot = open_manipulator_x() if robot is None else robot
+def regressors(q: np.ndarray, *, robot: Robot, tag) -> np.ndarray:
+    """(S, N, 4) load regressors of ``robot`` at goals q (S, N) [rad], the tag at
+    ``tag = (R, p)`` in the end-effector frame (the arm record's ``tag_in_ee``; any tag
+    gives the same plan, see the module's docstring)."""
     dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
     R, p = (jnp.asarray(t, dtype) for t in tag)
     return np.asarray(_regressors(robot.astype(dtype), jnp.asarray(q, dtype), R, p))
@@ -224,14 +224,13 @@ def inner_workspace(workspace, margin_deg: float):
     return inner
 
 
-def plan_poses(n: int, *, robot: Robot | None = None, step_deg: float = 10.0,
-               workspace=WORKSPACE_DEG, margin_deg: float = DEFAULT_MARGIN_DEG,
-               clearance: float = MOUNT_CLEARANCE_M, joint_weights=None, tag=TAG_IN_EE,
+def plan_poses(n: int, *, robot: Robot, step_deg: float, workspace, clearance: float, tag,
+               margin_deg: float = DEFAULT_MARGIN_DEG, joint_weights=None,
                n_random: int = 1000, seed: int = 0) -> Plan:
-    """n D-optimal poses from the collision-free planning grid (``step_deg`` over
-    ``workspace`` shrunk by ``margin_deg``), approach directions balanced
+    """n D-optimal poses of ``robot`` from the collision-free planning grid (``step_deg``
+    over ``workspace`` shrunk by ``margin_deg``; ``clearance`` and the ``tag`` mount: the
+    arm record's values, :func:`arm_plan_kwargs`), approach directions balanced
     (:func:`balance_directions`)."""
-    robot = open_manipulator_x() if robot is None else robot
     if len(workspace) != robot.n_joints:
         raise UsageError(f"the workspace has {len(workspace)} joint ranges, the robot "
                          f"{robot.name!r} {robot.n_joints} joints")
@@ -250,6 +249,14 @@ def plan_poses(n: int, *, robot: Robot | None = None, step_deg: float = 10.0,
                 random_logdets(C, n, n_random, seed), len(q), int(k))
 
 
+def arm_plan_kwargs(arm, robot: Robot | None = None) -> dict:
+    """:func:`plan_poses`'s arm-specific arguments from an :class:`jaxinertia.arm.Arm`
+    record (``robot``: its bare robot, default ``arm.robot()``)."""
+    return dict(robot=arm.robot() if robot is None else robot, step_deg=arm.planning_step_deg,
+                workspace=arm.workspace_deg, clearance=arm.mount_clearance_m,
+                tag=arm.tag_in_ee)
+
+
 def save_plan(path: str | os.PathLike, plan: Plan, *, robot: str, extra: dict | None = None,
               ) -> Path:
     """The plan as JSON (atomically): ``q_d`` [rad] and ``direction`` per pose."""
@@ -266,8 +273,10 @@ def save_plan(path: str | os.PathLike, plan: Plan, *, robot: str, extra: dict | 
     return write_text(path, json.dumps(doc, indent=2) + "\n")
 
 
-def load_plan(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """A plan file -> ``(q_d (n, N) [rad], direction (n, N) of +1 / -1)``, checked."""
+def load_plan(path: str | os.PathLike, *, arm: str | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """A plan file -> ``(q_d (n, N) [rad], direction (n, N) of +1 / -1)``, checked;
+    ``arm``: the arm it is for (a plan made for another arm is refused)."""
     path = Path(path)
     try:
         doc = json.loads(path.read_text())
@@ -280,6 +289,10 @@ def load_plan(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     if doc.get("format_version") != PLAN_FORMAT_VERSION:
         raise FileFormatError(path, "format_version", f"{doc.get('format_version')!r}; this "
                               f"version reads {PLAN_FORMAT_VERSION}")
+    planned_for = doc.get("arm") or doc.get("robot")
+    if arm is not None and planned_for is not None and planned_for != arm:
+        raise UsageError(f"{path}: a plan for the arm {planned_for!r}, not for {arm!r} "
+                         f"(make one: jaxinertia plan-poses --arm {arm})")
     out = []
     for key in ("q_d", "direction"):
         try:

@@ -16,7 +16,6 @@ import numpy as np
 from flax import struct
 
 from jaxinertia.errors import UsageError
-from jaxinertia.open_manipulator_x import TAG_IN_EE
 
 __all__ = [
     "EMPTY",
@@ -78,24 +77,24 @@ EMPTY = "empty"
 _EMPTY_ALIASES = ("empty", "none", "0g")
 
 
-def make_object(mass: float, com_tag, *, l_max: float = 0.07, tag_in_ee=None) -> HeldObject:
+def make_object(mass: float, com_tag, *, tag_in_ee, l_max: float = 0.07) -> HeldObject:
     """A held object as a uniform solid cube of diagonal ``l_max`` (for its inertia), its
-    tag mounted at ``tag_in_ee`` = (R, p) in the end-effector frame (default: as on the
-    paper's arm; an arm record's ``tag_in_ee`` for another arm)."""
+    tag mounted at ``tag_in_ee`` = (R, p) in the end-effector frame (the arm record's
+    :attr:`~jaxinertia.arm.Arm.tag_in_ee`)."""
     side = l_max / np.sqrt(3.0)
     inertia = mass * side**2 / 6.0 * np.eye(3)
-    R, p = TAG_IN_EE if tag_in_ee is None else tag_in_ee
+    R, p = tag_in_ee
     return HeldObject(jnp.asarray(mass, float), jnp.asarray(com_tag, float),
                       jnp.asarray(R), jnp.asarray(p), jnp.asarray(inertia))
 
 
-def paper_object(name: str, *, tag_in_ee=None) -> HeldObject:
+def paper_object(name: str, *, tag_in_ee) -> HeldObject:
     """One of :data:`TEST_OBJECTS` by name."""
     t = TEST_OBJECTS[name]
     return make_object(t.mass, t.com_tag, l_max=t.diagonal, tag_in_ee=tag_in_ee)
 
 
-def training_object(mass: float, *, tag_in_ee=None) -> HeldObject:
+def training_object(mass: float, *, tag_in_ee) -> HeldObject:
     """A training load: its COM on the tag axis 20 mm below the tag (as the cube's)."""
     return make_object(mass, (0.0, 0.0, -0.020), tag_in_ee=tag_in_ee)
 
@@ -118,14 +117,15 @@ def known_names() -> list[str]:
     return [*TEST_OBJECTS, EMPTY, *(load_name(m) for m in TRAINING_LOADS_KG[1:]), "<N>g"]
 
 
-def resolve(name: str) -> HeldObject:
+def resolve(name: str, *, tag_in_ee) -> HeldObject:
     """The object called ``name``: a test object, ``empty`` (or ``none``, ``0g``), or a
-    load of N grams written ``Ng``. Raises :class:`UsageError` naming the known ones."""
+    load of N grams written ``Ng``, its tag at ``tag_in_ee`` (the arm's mount). Raises
+    :class:`UsageError` naming the known ones."""
     if name in TEST_OBJECTS:
-        return paper_object(name)
+        return paper_object(name, tag_in_ee=tag_in_ee)
     mass = _load_mass(name)
     if mass is not None:
-        return training_object(mass)
+        return training_object(mass, tag_in_ee=tag_in_ee)
     raise UsageError(f"unknown object {name!r}; known: {', '.join(known_names())}")
 
 

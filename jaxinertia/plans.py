@@ -3,8 +3,9 @@
 A plan is two (S, N) arrays: goals [rad] and directions (+1 / -1 per joint: the joint
 approaches its goal from below / above). The simulator (:mod:`jaxinertia.sim`) and the
 real arm (:mod:`jaxinertia.hardware`) take the same plans. The workspace is a list of
-per-joint ``(lo, hi)`` ranges in degrees (default: the paper's OpenMANIPULATOR-X one), so
-the plans are sized from it, not from four joints.
+per-joint ``(lo, hi)`` ranges in degrees, handed in from the arm's record
+(:attr:`jaxinertia.arm.Arm.workspace_deg`), so the plans are sized from it, not from four
+joints; the robot and the clearance of the collision filter come from the record too.
 """
 
 from __future__ import annotations
@@ -15,8 +16,7 @@ import jax
 import numpy as np
 
 from jaxinertia.kinematics import ee_positions
-from jaxinertia.open_manipulator_x import MOUNT_CLEARANCE_M, WORKSPACE_DEG
-from jaxinertia.robot import Robot, open_manipulator_x
+from jaxinertia.robot import Robot
 
 __all__ = [
     "collides",
@@ -35,11 +35,9 @@ def _bounds(workspace: Workspace) -> tuple[np.ndarray, np.ndarray]:
     return w[:, 0] * _DEG, w[:, 1] * _DEG
 
 
-def collides(q: np.ndarray, *, clearance: float = MOUNT_CLEARANCE_M,
-             robot: Robot | None = None) -> np.ndarray:
+def collides(q: np.ndarray, *, clearance: float, robot: Robot) -> np.ndarray:
     """(S,) True where the end effector at goals ``q`` (S, N) [rad] comes closer than
     ``clearance`` [m] to the mounting surface (z = 0 of the base frame)."""
-    robot = open_manipulator_x() if robot is None else robot
     # A few hundred configurations: the host CPU compiles and runs this in a fraction of
     # the time an accelerator takes to compile it (~0.8 s on an H100).
     cpu = jax.devices("cpu")[0]
@@ -47,14 +45,14 @@ def collides(q: np.ndarray, *, clearance: float = MOUNT_CLEARANCE_M,
     return np.asarray(ee_positions(robot, q))[:, 2] < clearance
 
 
-def planning_plan(step_deg: float = 10.0, *, clearance: float = MOUNT_CLEARANCE_M,
-                  robot: Robot | None = None,
-                  workspace: Workspace = WORKSPACE_DEG) -> tuple[np.ndarray, np.ndarray]:
+def planning_plan(step_deg: float, *, clearance: float, robot: Robot,
+                  workspace: Workspace) -> tuple[np.ndarray, np.ndarray]:
     """The planning grid (``step_deg`` over the workspace) minus the configurations that
     collide with the mounting surface (:func:`collides`), x all 2^N direction patterns.
 
-    Returns goals (S, N) [rad] and directions (S, N): 721 x 16 = 11,536 per load at the
-    defaults, so 46,144 over the four training loads as in the paper.
+    Returns goals (S, N) [rad] and directions (S, N): 721 x 16 = 11,536 per load for the
+    OpenMANIPULATOR-X's record (10 deg), so 46,144 over the four training loads as in the
+    paper.
     """
     axes = [np.arange(lo, hi + 1e-9, step_deg) * _DEG for lo, hi in workspace]
     grid = np.array(list(itertools.product(*axes)))
@@ -66,7 +64,7 @@ def planning_plan(step_deg: float = 10.0, *, clearance: float = MOUNT_CLEARANCE_
 
 
 def random_plan(n: int, seed: int = 0, *,
-                workspace: Workspace = WORKSPACE_DEG) -> tuple[np.ndarray, np.ndarray]:
+                workspace: Workspace) -> tuple[np.ndarray, np.ndarray]:
     """``n`` goals uniform in the workspace with random directions."""
     rng = np.random.default_rng(seed)
     lo, hi = _bounds(workspace)
@@ -74,7 +72,7 @@ def random_plan(n: int, seed: int = 0, *,
 
 
 def continuous_plan(n: int, seed: int = 0, *, step_deg: tuple[float, float] = (0.5, 2.0),
-                    workspace: Workspace = WORKSPACE_DEG) -> tuple[np.ndarray, np.ndarray]:
+                    workspace: Workspace) -> tuple[np.ndarray, np.ndarray]:
     """A random walk of ``n`` nearby goals in the workspace: every joint moves by
     ``step_deg`` (uniform magnitude, random sign, reflected at the workspace bounds) from
     one goal to the next, so every joint has a defined approach direction."""

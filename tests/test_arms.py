@@ -17,8 +17,8 @@ from jaxinertia.arm import Arm, MotionTiming, arm_to_dict
 from jaxinertia.arms import ARMS, DEFAULT_ARM, KOCH_V1_1, SO101, get_arm
 from jaxinertia.errors import ConfigError
 from jaxinertia.hardware import collect
+from jaxinertia.hardware.arm_config import arm_config
 from jaxinertia.hardware.driver import ArmConfig
-from jaxinertia.plans import planning_plan
 from jaxinertia.robot import data_path, open_manipulator_x
 from jaxinertia.servos import STS3215_7V4, XL330_M288, XL430_W250, XM430_W350
 from jaxinertia.sim import lanes, sampling
@@ -49,15 +49,21 @@ def test_open_manipulator_x_record_is_todays_constants():
     assert (t.profile_velocity, t.profile_acceleration, t.settle_time, t.move_timeout) == (
         fields["profile_velocity"], fields["profile_acceleration"], fields["hold_time"],
         fields["timeout"]) == (0.5, 2.0, 0.2, 6.0)
-    cfg = ArmConfig(port="x")
+    cfg, bare = arm_config(arm, "x"), ArmConfig(port="x")
     assert (cfg.profile_velocity, cfg.profile_acceleration, cfg.settle_time,
             cfg.move_timeout, cfg.joint_ids, cfg.gripper_id, cfg.baudrate) == (
         0.5, 2.0, 0.2, 6.0, arm.bus_ids, arm.gripper_id, arm.baudrate)
     assert (cfg.p_gain, cfg.i_gain, cfg.d_gain) == XM430_W350.gains
+    for f in ArmConfig.__dataclass_fields__:  # the bare defaults are the same arm's
+        if f != "joint_limits":
+            assert getattr(bare, f) == getattr(cfg, f), f
+    # The servos' limit registers: the paper's workspace widened by 8 deg, as before.
+    np.testing.assert_array_equal(cfg.joint_limits, (np.asarray(omx.WORKSPACE_DEG)
+                                                     + [-8.0, 8.0]) * (np.pi / 180.0))
     assert arm.pre_position == lanes.DELTA == collect.DELTA
     assert _default(sampling.simulate_samples, "delta") is None  # -> SimParams.pre_position
     assert arm.pre_position == fields["pre_position"]
-    assert arm.planning_step_deg == _default(planning_plan, "step_deg")
+    assert arm.planning_step_deg == 10.0
     # The robot: the embedded description, bit for bit, mounted as in the paper.
     robot, ref = arm.robot(), open_manipulator_x()
     assert robot.name == ref.name == "open_manipulator_x"
@@ -158,3 +164,61 @@ def test_arm_sim_params():
             lo, hi = np.radians(np.asarray(SO101.workspace_deg)).T
             assert q_d.shape == d.shape == (32, 5) and np.all((q_d >= lo) & (q_d <= hi)), name
             np.testing.assert_array_equal(np.asarray(obj.p_ee_tag), SO101.tag_position)
+
+
+def test_files_of_one_arm_refuse_another(tmp_path):
+    from jaxinertia.app.arm_options import samples_arm
+    from jaxinertia.checkpoints import load_models
+    from jaxinertia.design import PLAN_FORMAT, load_plan
+    from jaxinertia.errors import RobotMismatchError, UsageError
+
+    # A model folder records its arm; the check comes before the checkpoint is read.
+    folder = tmp_path / "models"
+    folder.mkdir()
+    (folder / "config.json").write_text(json.dumps({
+        "format": "jaxinertia-models", "format_version": 1, "robot": "so101", "arm": "so101"}))
+    with pytest.raises(RobotMismatchError, match="arm 'so101'.*the arm 'koch_v1_1'") as e:
+        load_models(folder, robot="koch_v1_1", arm="koch_v1_1")
+    assert "\n" not in str(e.value)
+    with pytest.raises(RobotMismatchError, match="train --arm open_manipulator_x"):
+        load_models(folder, arm="open_manipulator_x")
+    # Sample files: the recorded arm against --arm; a file that records none takes --arm's.
+    with pytest.raises(RobotMismatchError, match="samples of the arm 'so101', not of --arm "
+                       "'koch_v1_1'"):
+        samples_arm("s.npz", {"robot": "so101", "arm": "so101"}, "koch_v1_1")
+    assert samples_arm("s.npz", {"format": "lbipe"}, "so101") == "so101"
+    assert samples_arm("s.npz", {"robot": "open_manipulator_x"}) == "open_manipulator_x"
+    # Plans.
+    plan = tmp_path / "plan.json"
+    plan.write_text(json.dumps({"format": PLAN_FORMAT, "format_version": 1, "robot": "so101",
+                                "arm": "so101", "q_d": [[0.0] * 5], "direction": [[1] * 5]}))
+    assert load_plan(plan, arm="so101")[0].shape == (1, 5)
+    with pytest.raises(UsageError, match="a plan for the arm 'so101', not for "
+                       "'open_manipulator_x'"):
+        load_plan(plan, arm="open_manipulator_x")
+
+
+def test_arm_option_on_the_commands(tmp_path, capsys):
+    from jaxinertia.app.cli import main
+
+    out = tmp_path / "plan.json"
+    assert main(["plan-poses", "--arm", "so101", "--n", "8", "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["arm"] == doc["robot"] == "so101" and doc["grid_step_deg"] == 20.0
+    q = np.degrees(np.asarray(doc["q_d"]))
+    lo, hi = np.asarray(SO101.workspace_deg).T
+    assert q.shape == (8, 5) and np.all((q >= lo) & (q <= hi))
+    capsys.readouterr()
+    # Refused in one line before anything is opened or read.
+    for argv, said in [
+            (["collect", "--arm", "so101", "--port", "/dev/null", "--plan", "random",
+              "--object", "cube", "--out", str(tmp_path / "c.npz")], "DYNAMIXEL"),
+            (["virtual-robot", "--arm", "koch_v1_1", "--q0", "0", "0"], "--q0 needs 5"),
+            (["calibrate", "--arm", "so101"], "lbipe files, which are the open_manipulator_x"),
+            (["evaluate", "--arm", "koch_v1_1", "--models", str(tmp_path)], "lbipe files"),
+            (["collect", "--arm", "open_manipulator_x", "--port", "/dev/null", "--plan",
+              str(out), "--object", "cube", "--out", str(tmp_path / "c.npz")],
+             "a plan for the arm 'so101'")]:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert said in err and "\n" not in err, (argv, err)

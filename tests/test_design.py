@@ -14,6 +14,7 @@ from support.compiles import compile_counter
 from jaxinertia.app.cli import main
 from jaxinertia.design import (
     DEFAULT_MARGIN_DEG,
+    arm_plan_kwargs,
     balance_directions,
     information,
     load_plan,
@@ -26,9 +27,15 @@ from jaxinertia.design import (
 )
 from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.linalg import logdet_spd
+from jaxinertia.open_manipulator_x import ARM as OMX
 from jaxinertia.open_manipulator_x import WORKSPACE_DEG
 from jaxinertia.plans import planning_plan, random_plan
 from jaxinertia.robot import OPEN_MANIPULATOR_X_XML, data_path
+
+#: The OpenMANIPULATOR-X's planning grid and regressor arguments (its record's values).
+GRID = dict(step_deg=OMX.planning_step_deg, clearance=OMX.mount_clearance_m,
+            robot=OMX.robot(), workspace=OMX.workspace_deg)
+REG = dict(robot=GRID["robot"], tag=OMX.tag_in_ee)
 
 # numpy's slogdet of the same (well-conditioned) matrices.
 LOGDET_RTOL = 1e-10
@@ -37,7 +44,7 @@ LOGDET_RTOL = 1e-10
 def _candidates(rng, S=40):
     q = rng.uniform(np.radians([w[0] for w in WORKSPACE_DEG]),
                     np.radians([w[1] for w in WORKSPACE_DEG]), (S, 4))
-    return q, np.asarray(information(regressors(q)))
+    return q, np.asarray(information(regressors(q, **REG)))
 
 
 def _scaled_logdet(C_all, idx):
@@ -94,29 +101,30 @@ def test_plan_is_independent_of_the_tag_pose():
     q, _ = _candidates(rng, S=50)
     R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
     R *= np.sign(np.linalg.det(R))
-    a, _, _ = select(information(regressors(q)), 8)
-    b, _, _ = select(information(regressors(q, tag=(R, np.array([0.03, -0.01, 0.05])))), 8)
+    a, _, _ = select(information(regressors(q, **REG)), 8)
+    b, _, _ = select(information(regressors(q, robot=REG["robot"],
+                                             tag=(R, np.array([0.03, -0.01, 0.05])))), 8)
     assert sorted(np.asarray(a).tolist()) == sorted(np.asarray(b).tolist())
 
 
 @pytest.mark.parametrize("margin", [0.0, DEFAULT_MARGIN_DEG])
 def test_plan_poses_beats_random_plans_on_log_det(margin):
-    plan = plan_poses(16, n_random=1000, margin_deg=margin)
+    plan = plan_poses(16, **arm_plan_kwargs(OMX), n_random=1000, margin_deg=margin)
     assert plan.q_d.shape == (16, 4) and plan.direction.shape == (16, 4)
     assert plan.logdet > np.max(plan.random_logdet)  # 1000 random 16-pose subsets of its grid
     # ... and 20 random plans over the whole workspace, all scored with one scaling.
-    q_grid, _ = planning_plan()
+    q_grid, _ = planning_plan(**GRID)
     q_grid = np.unique(q_grid, axis=0)
-    C_grid = np.asarray(information(regressors(q_grid)))
+    C_grid = np.asarray(information(regressors(q_grid, **REG)))
     d = np.sqrt(np.mean(np.diagonal(C_grid, axis1=-2, axis2=-1), axis=0))
 
     def logdet(q):
-        return np.linalg.slogdet(np.asarray(information(regressors(q))).sum(0)
+        return np.linalg.slogdet(np.asarray(information(regressors(q, **REG))).sum(0)
                                  / np.outer(d, d))[1]
 
     planned = logdet(plan.q_d)
     for seed in range(20):
-        assert logdet(random_plan(16, seed)[0]) < planned, seed
+        assert logdet(random_plan(16, seed, workspace=OMX.workspace_deg)[0]) < planned, seed
     # Every planned pose is a collision-free grid configuration inside the margin, none twice.
     grid = {tuple(np.round(v, 9)) for v in q_grid}
     assert all(tuple(np.round(v, 9)) in grid for v in plan.q_d)
@@ -128,7 +136,7 @@ def test_plan_poses_beats_random_plans_on_log_det(margin):
 
 def test_a_margin_that_leaves_no_workspace_is_refused():
     with pytest.raises(UsageError, match="leaves no room"):
-        plan_poses(4, margin_deg=25.0)
+        plan_poses(4, **arm_plan_kwargs(OMX), margin_deg=25.0)
 
 
 def test_balanced_directions_cancel_a_friction_like_error():
@@ -136,7 +144,7 @@ def test_balanced_directions_cancel_a_friction_like_error():
     than with almost any random pattern (median of 200)."""
     rng = np.random.default_rng(5)
     q, _ = _candidates(rng, S=16)
-    A = regressors(q)
+    A = regressors(q, **REG)
     f = np.array([0.02, 0.05, 0.03, 0.01])
     G = np.einsum("snp,snq->pq", A, A)
 
@@ -151,7 +159,7 @@ def test_balanced_directions_cancel_a_friction_like_error():
 
 
 def test_plan_file_round_trip_and_refusals(tmp_path):
-    plan = plan_poses(6, n_random=50)
+    plan = plan_poses(6, **arm_plan_kwargs(OMX), n_random=50)
     path = save_plan(tmp_path / "plan.json", plan, robot="open_manipulator_x")
     q_d, direction = load_plan(path)
     np.testing.assert_array_equal(q_d, plan.q_d)

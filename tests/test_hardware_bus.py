@@ -25,6 +25,7 @@ import numpy as np
 import pytest
 from support.hardware import RETRIES, journal_indices, one_line, running, wait_for_samples
 
+from jaxinertia.open_manipulator_x import ARM as OMX
 from jaxinertia.plans import random_plan
 from jaxinertia.samples import load_native
 from jaxinertia.virtual.testing import VirtualRobotProcess
@@ -63,7 +64,8 @@ def test_a_faulty_bus_completes_the_plan_without_a_false_alarm(tmp_path, faults)
     assert retried > 0, "the injected faults must have been met and retried"
     samples, _ = load_native(out, only_at_rest=False)
     fields = samples.fields()
-    q_d, d = random_plan(N, SEED)  # what the fault-free collection records
+    # what the fault-free collection records
+    q_d, d = random_plan(N, SEED, workspace=OMX.workspace_deg)
     np.testing.assert_array_equal(fields["q_d"], q_d, err_msg="q_d")
     np.testing.assert_array_equal(fields["direction"], d, err_msg="direction")
     np.testing.assert_array_equal(fields["plan_index"], np.arange(N), err_msg="plan_index")

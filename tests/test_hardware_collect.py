@@ -21,6 +21,7 @@ from support.hardware import RETRIES
 
 from jaxinertia import objects
 from jaxinertia.design import PLAN_FORMAT, PLAN_FORMAT_VERSION
+from jaxinertia.open_manipulator_x import ARM as OMX
 from jaxinertia.plans import random_plan
 from jaxinertia.samples import load_native
 from jaxinertia.sim.params import default_sim_params
@@ -62,9 +63,10 @@ def reference():
     out = {}
 
     def run():
-        q_d, d = random_plan(N, 0)
+        q_d, d = random_plan(N, 0, workspace=OMX.workspace_deg)
         for seed in (1, 2):  # the second: the simulator's own sample-to-sample spread
-            s = simulate_samples(default_sim_params(), objects.paper_object(OBJECT), q_d, d,
+            s = simulate_samples(default_sim_params(),
+                                 objects.paper_object(OBJECT, tag_in_ee=OMX.tag_in_ee), q_d, d,
                                  jax.random.key(seed))
             out.setdefault("samples", []).append(jax.tree.map(np.asarray, s))
 
@@ -80,7 +82,7 @@ def collected(tmp_path_factory, reference):
     with VirtualRobotProcess(["--object", OBJECT, "--speed", SPEED, "--seed", "3"],
                              stderr=tmp / "virtual.log") as robot:
         # The plan as a plan file (``collect --plan PLAN.json``, as ``plan-poses`` writes).
-        q_d, d = random_plan(N, 0)
+        q_d, d = random_plan(N, 0, workspace=OMX.workspace_deg)
         plan = tmp / "plan.json"
         plan.write_text(json.dumps({"format": PLAN_FORMAT, "format_version": PLAN_FORMAT_VERSION,
                                     "q_d": q_d.tolist(), "direction": d.tolist()}))
@@ -106,7 +108,7 @@ def test_collected_file_loads_like_a_simulated_one(collected):
               "voltage": (N, 4), "object_id": (N,), "x": (1, 4)}
     for k, shape in shapes.items():
         assert fields[k].shape == shape, k
-    q_d, d = random_plan(N, 0)
+    q_d, d = random_plan(N, 0, workspace=OMX.workspace_deg)
     # plan order, none lost or repeated
     np.testing.assert_array_equal(fields["q_d"], q_d, err_msg="q_d")
     np.testing.assert_array_equal(fields["direction"], d, err_msg="direction")
@@ -117,7 +119,8 @@ def test_collected_file_loads_like_a_simulated_one(collected):
     steps = fields["current_tau"] / (2.69e-3 * 4.1 / 2.3)
     np.testing.assert_allclose(steps, np.round(steps), atol=TOL["current_steps"],
                                err_msg="current_tau [LSB]")
-    np.testing.assert_allclose(fields["x"][0], np.asarray(objects.paper_object(OBJECT).x),
+    np.testing.assert_allclose(fields["x"][0],
+                               np.asarray(objects.paper_object(OBJECT, tag_in_ee=OMX.tag_in_ee).x),
                                err_msg="x")
     # tau = tau_g + A x with A at the measured q and the kinematic tag pose.
     np.testing.assert_allclose(fields["tau"], fields["tau_g"] + fields["A"] @ fields["x"][0],

@@ -30,6 +30,7 @@ from support.hardware import RETRIES, journal_indices, one_line, running, wait_f
 from jaxinertia.app.cli import main
 from jaxinertia.design import PLAN_FORMAT, PLAN_FORMAT_VERSION
 from jaxinertia.hardware.collect import DELTA, RECORD_FIELDS, plan_digest
+from jaxinertia.open_manipulator_x import ARM as OMX
 from jaxinertia.plans import random_plan
 from jaxinertia.samples import load_native
 from jaxinertia.virtual.testing import VirtualRobotProcess
@@ -66,7 +67,7 @@ def collect_cmd(port: str, out, *extra: str, n: int = N) -> list[str]:
 def check_complete(out, n: int = N) -> None:
     samples, _ = load_native(out, only_at_rest=False)
     fields = samples.fields()
-    q_d, d = random_plan(n, 4)
+    q_d, d = random_plan(n, 4, workspace=OMX.workspace_deg)
     np.testing.assert_array_equal(fields["plan_index"], np.arange(n), err_msg="plan_index")
     np.testing.assert_array_equal(fields["q_d"], q_d, err_msg="q_d")
     np.testing.assert_array_equal(fields["direction"], d, err_msg="direction")
@@ -182,7 +183,7 @@ def test_bad_options_are_refused_before_the_port_is_opened(tmp_path, capsys, arg
 
 
 def test_a_plan_file_with_an_unsafe_pose_is_refused_before_the_port_is_opened(tmp_path, capsys):
-    q_d, d = random_plan(3, 4)
+    q_d, d = random_plan(3, 4, workspace=OMX.workspace_deg)
     q_d[1, 1] = np.radians(170.0)  # joint 2 far outside the workspace
     plan = tmp_path / "plan.json"
     plan.write_text(json.dumps({"format": PLAN_FORMAT, "format_version": PLAN_FORMAT_VERSION,
@@ -199,7 +200,7 @@ def test_a_plan_file_with_an_unsafe_pose_is_refused_before_the_port_is_opened(tm
 
 
 def header_for(out) -> dict:
-    q_d, d = random_plan(N, 4)
+    q_d, d = random_plan(N, 4, workspace=OMX.workspace_deg)
     return {"kind": "header", "plan": "random", "seed": 4, "n_samples": N, "object": "50g",
             "plan_digest": plan_digest(q_d, d), "port": NO_PORT,
             "servo_ids": [11, 12, 13, 14], "delta": DELTA}

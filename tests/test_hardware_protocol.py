@@ -31,7 +31,8 @@ from support.compiles import compile_counter
 from support.hardware import RETRIES
 
 from jaxinertia.hardware import control_table as ct
-from jaxinertia.hardware.driver import ArmConfig, DynamixelArm, HardwareError
+from jaxinertia.hardware.arm_config import arm_config, safety_limits
+from jaxinertia.hardware.driver import DynamixelArm, HardwareError
 from jaxinertia.hardware.protocol import (
     Instruction,
     PacketParser,
@@ -44,6 +45,7 @@ from jaxinertia.hardware.protocol import (
 from jaxinertia.hardware.safety import SafetyError, SafetyLimits
 from jaxinertia.hardware.transport import LockedPortHandler, MatchingPacketHandler, PortInUse
 from jaxinertia.objects import resolve
+from jaxinertia.open_manipulator_x import ARM as OMX
 from jaxinertia.open_manipulator_x import calibrated_robot
 from jaxinertia.sim.params import default_sim_params
 from jaxinertia.virtual.bus import open_pty
@@ -89,7 +91,8 @@ def wait_for_bytes(port, n: int) -> int:
 
 @pytest.fixture(scope="module")
 def bus():
-    b = VirtualServoBus(default_sim_params(), resolve("cube"), q0=Q0, speed=5.0)
+    b = VirtualServoBus(default_sim_params(), resolve("cube", tag_in_ee=OMX.tag_in_ee),
+                        q0=Q0, speed=5.0)
     with b:
         yield b
 
@@ -195,8 +198,8 @@ def test_overload_sets_the_alert_bit_and_reboot_clears_it(bus, sdk):
 
 def test_a_goal_outside_the_limits_is_refused_before_anything_moves(bus):
     robot = calibrated_robot()
-    arm = DynamixelArm(ArmConfig(port=bus.path, retries=RETRIES), robot=robot,
-                       safety=SafetyLimits.around_workspace(robot))
+    arm = DynamixelArm(arm_config(OMX, bus.path, retries=RETRIES), robot=robot,
+                       safety=safety_limits(OMX, robot))
     with arm:
         before = bus.goal_position_writes
         goals = {i: bus.servos[i].get("goal_position") for i in IDS}
@@ -214,7 +217,7 @@ def test_a_goal_outside_the_limits_is_refused_before_anything_moves(bus):
         lo = [bus.servos[i].get("min_position_limit") for i in IDS]
         assert lo[1] == 2048 + round(np.radians(-58.0) / (2 * np.pi / 4096)), (
             "min_position_limit of ID 12")
-        arm.safety = SafetyLimits.around_workspace(robot)
+        arm.safety = safety_limits(OMX, robot)
         state, at_rest, _ = arm.move_and_settle(np.radians([5.0, -30.0, 30.0, 0.0]))
         assert bus.goal_position_writes == before + len(IDS), "Goal Position writes"
         assert at_rest, "at_rest after the move"
@@ -317,7 +320,7 @@ def test_the_port_is_locked_while_open(wire):
 
 
 def test_a_hardware_error_reading_is_confirmed_before_it_is_reported(bus, monkeypatch):
-    arm = DynamixelArm(ArmConfig(port=bus.path, gripper_id=None, retries=RETRIES))
+    arm = DynamixelArm(arm_config(OMX, bus.path, gripper_id=None, retries=RETRIES))
     with arm:
         real = arm._sync_read
 
@@ -349,7 +352,8 @@ def test_a_hardware_error_reading_is_confirmed_before_it_is_reported(bus, monkey
 def stepped():
     """A virtual servo bus whose physics the test steps itself, in this process (no
     physics process, no threads): the bus answers through ``handle``."""
-    b = VirtualServoBus(default_sim_params(), resolve("cube"), q0=Q0, speed=1.0)
+    b = VirtualServoBus(default_sim_params(), resolve("cube", tag_in_ee=OMX.tag_in_ee),
+                        q0=Q0, speed=1.0)
     arm = ArmPhysics(b._spec.params, q0=Q0, chunk=b._spec.chunk, seed=0)
     loop = PhysicsLoop(arm, [b.servos[i] for i in IDS], b._lock, b._events_in,
                        b._shared_goal_writes)

@@ -16,6 +16,7 @@ import pytest
 
 from jaxinertia.errors import UsageError
 from jaxinertia.objects import paper_object
+from jaxinertia.open_manipulator_x import ARM as OMX
 from jaxinertia.plans import random_plan
 from jaxinertia.samples import Samples
 from jaxinertia.sim.identify import (
@@ -106,8 +107,8 @@ def test_identification_brings_a_wrong_simulator_closer_to_the_one_that_made_the
     true = np.zeros((len(PARAMETERS), N))
     true[0] = np.log(1.08)
     true[5] = [0.01, -0.02, 0.01, 0.005]
-    obj = paper_object("white")
-    q_d, direction = random_plan(24, 3)
+    obj = paper_object("white", tag_in_ee=OMX.tag_in_ee)
+    q_d, direction = random_plan(24, 3, workspace=OMX.workspace_deg)
     key = jax.random.key(0)  # ESConfig.seed's key
 
     def replayed(theta):  # as the search replays a candidate (population 2: 3 replays)

@@ -22,6 +22,7 @@ from jaxinertia.errors import SimulationError, UsageError
 from jaxinertia.features import LBIPE_FEATURES
 from jaxinertia.kinematics import ee_pose, gravity_torques
 from jaxinertia.objects import HeldObject
+from jaxinertia.open_manipulator_x import ARM as OMX
 from jaxinertia.open_manipulator_x import MOUNT_CLEARANCE_M, WORKSPACE_DEG, calibrated_robot
 from jaxinertia.plans import continuous_plan, planning_plan, random_plan
 from jaxinertia.robot import data_path, open_manipulator_x
@@ -36,6 +37,11 @@ from jaxinertia.sim.sampling import simulate_samples
 from jaxinertia.sim.servo import RAD_PER_TICK, ServoParams
 from jaxinertia.sim.simulator import SimParams, SimState, attach_payload, hold, move_and_settle
 from jaxinertia.statics import load_regressor
+
+#: The OpenMANIPULATOR-X's planning grid (its record's values).
+WS, TAG = dict(workspace=OMX.workspace_deg), dict(tag_in_ee=OMX.tag_in_ee)
+GRID = dict(step_deg=OMX.planning_step_deg, clearance=OMX.mount_clearance_m,
+            robot=OMX.robot(), **WS)
 
 #: Agreement with a float64 reference computation (the statics identity, the exact box
 #: solution, the vmapped protocol ``simulate_samples``): rounding only. Checks against
@@ -201,8 +207,8 @@ def stream_case():
     compiled program; what is tested does not depend on the sizes: 10 samples refill 3
     lanes three times over, and on 8 lanes the last two wait for a lane to free."""
     p = default_sim_params()
-    plans = [(objects.paper_object("cube"), *random_plan(5, 0), jax.random.key(3)),
-             (objects.paper_object("white"), *random_plan(5, 1), jax.random.key(4))]
+    plans = [(objects.paper_object("cube", **TAG), *random_plan(5, 0, **WS), jax.random.key(3)),
+             (objects.paper_object("white", **TAG), *random_plan(5, 1, **WS), jax.random.key(4))]
     refs = [jax.tree.map(np.asarray, simulate_samples(
         p, obj, jnp.asarray(q_d), jnp.asarray(d), jax.random.split(key, len(q_d)))._asdict())
         for obj, q_d, d, key in plans]
@@ -256,12 +262,12 @@ def test_the_stream_runs_the_stepping_program_precompiled_before_its_plans():
     with stream.StreamPrograms() as programs:
         p = default_sim_params()
         before = steps_programs()
-        programs.precompile(p, objects.paper_object("red"), lanes=3, batch_last=True)
+        programs.precompile(p, objects.paper_object("red", **TAG), lanes=3, batch_last=True)
         precompiled = steps_programs() - before
         assert len(precompiled) == 1
         # 9 samples: the sample table (padded to 16) is the other stream tests' one, so that
         # the record program compiled for them serves (the session's compilation cache).
-        out, = run_plans(p, [(objects.paper_object("cube"), *random_plan(9, 2),
+        out, = run_plans(p, [(objects.paper_object("cube", **TAG), *random_plan(9, 2, **WS),
                               jax.random.key(1))],
                          lanes=3, tail_lanes=0, batch_last=True, programs=programs,
                          progress=False)
@@ -290,7 +296,8 @@ def test_a_failed_compilation_leaves_the_other_stream_programs_usable():
 
     p, stub = default_sim_params(), StubCompiler()
     programs = stream.StreamPrograms(stub)
-    plan = stream.LanePlan(objects.paper_object("cube"), *random_plan(9, 2), jax.random.key(1))
+    plan = stream.LanePlan(objects.paper_object("cube", **TAG), *random_plan(9, 2, **WS),
+                           jax.random.key(1))
     args, sizes = stream._assemble(p, [plan], 3, keys=False)
     table, carry = jax.eval_shape(partial(stream._prepare, sizes=sizes, lanes=3), *args)
     first = programs.programs(p, table, carry, 0, 32, True)
@@ -308,7 +315,7 @@ def test_a_failed_compilation_leaves_the_other_stream_programs_usable():
 def test_planning_grid_drops_configurations_at_the_mounting_surface():
     """The paper's 46,144 planning samples = 721 of the 875 grid configurations x 16
     directions x 4 loads; the end-effector positions that decide come from MuJoCo C."""
-    q, d = planning_plan()
+    q, d = planning_plan(**GRID)
     assert q.shape == (11536, 4) and 4 * len(q) == 46144
     kept = np.unique(q, axis=0)
     assert len(kept) == 721
@@ -331,8 +338,8 @@ def test_planning_grid_drops_configurations_at_the_mounting_surface():
 
 def test_bad_plans_and_diverging_integration_name_the_scenario_and_sample(stream_programs):
     params = default_sim_params()
-    q, d = random_plan(4, seed=0)
-    cube = objects.paper_object("cube")
+    q, d = random_plan(4, seed=0, **WS)
+    cube = objects.paper_object("cube", **TAG)
 
     def run(p, qq, dd):
         return run_plan(p, cube, qq, dd, jax.random.key(0), desc="test/cube",
@@ -371,7 +378,7 @@ def test_continuous_run_switches_objects_and_keeps_the_statics_of_each():
     f, meta = simulate_continuous_run(default_sim_params(), n=24,
                                       objects=["empty", "cube", "white"], switch_every=8,
                                       seed=3, progress=False)
-    q_plan, d_plan = continuous_plan(24, 3)
+    q_plan, d_plan = continuous_plan(24, 3, **WS)
     planned = {"object_id": np.repeat([0, 1, 2], 8), "q_d": q_plan, "direction": d_plan}
     for k in planned:
         _assert_field(f, planned, k)
@@ -402,9 +409,9 @@ def test_continuous_walk_in_lanes_is_the_single_walk():
     tick = 2 * np.pi / 4096
 
     def lanes(warmup):
-        objs = jax.tree.map(lambda *a: jnp.stack(a), *[objects.resolve(o) for o in
+        objs = jax.tree.map(lambda *a: jnp.stack(a), *[objects.resolve(o, **TAG) for o in
                                                        kw["objects"]])
-        q, d = continuous_plan(24, 3)
+        q, d = continuous_plan(24, 3, **WS)
         rec = simulate_continuous(params, objs, np.repeat([0, 1, 2], 8), q, d,
                                   jax.random.key(3 + 99), lanes=3, warmup=warmup,
                                   progress=False)
@@ -478,7 +485,7 @@ def test_simulate_visits_the_poses_of_a_plan_file(tmp_path, capsys):
     """``simulate --plan`` (a ``plan-poses`` file): every object visits the plan's goals
     with its approach directions, in order, repeated cyclically to ``--n``; the file names
     the plan. (32 samples of black: the shapes the stream compiled for the test above.)"""
-    q_d, d = random_plan(12, 5)
+    q_d, d = random_plan(12, 5, **WS)
     plan = _write_plan(tmp_path / "plan.json", q_d, d)
     out = tmp_path / "planned.npz"
     assert cli_main(["simulate", "--scenario", "test", "--n", "32", "--objects", "black",
@@ -524,7 +531,8 @@ def test_the_stream_traces_and_compiles_its_programs_once_for_new_data(monkeypat
     lanes_n = 13  # a lane count no other test uses: its programs are new here
 
     def run(seed, names):
-        plans = [(objects.paper_object(o), *random_plan(n, seed + i), jax.random.key(seed + i))
+        plans = [(objects.paper_object(o, **TAG), *random_plan(n, seed + i, **WS),
+                  jax.random.key(seed + i))
                  for i, (o, n) in enumerate(zip(names, (5, 4)))]
         return run_plans(p, plans, lanes=lanes_n, tail_lanes=0, batch_last=True,
                          programs=programs, progress=False)

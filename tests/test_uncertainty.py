@@ -19,6 +19,7 @@ from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import save_models
 from jaxinertia.design import regressors
 from jaxinertia.errors import UsageError
+from jaxinertia.open_manipulator_x import ARM as OMX
 from jaxinertia.samples import Samples, save_native
 from jaxinertia.uncertainty import (
     SetUncertainty,
@@ -45,7 +46,7 @@ def _problem(rng, M=24, N=4):
     """A realistic set: the OMX regressors at M random poses, a 60 g object, per-joint
     noise levels and attention-like weights (fixed, unequal across joints)."""
     q = rng.uniform([-0.5, -0.85, 0.2, -0.35], [0.5, -0.2, 0.85, 0.35], (M, N))
-    A = regressors(q)
+    A = regressors(q, robot=OMX.robot(), tag=OMX.tag_in_ee)
     x = np.array([0.060, 0.060 * 0.004, 0.060 * -0.002, 0.060 * 0.020])
     sigma = np.array([0.010, 0.025, 0.015, 0.008])
     w = rng.uniform(0.2, 1.0, (M, N)) * np.array([0.15, 0.05, 0.05, 0.75])
@@ -228,7 +229,7 @@ def _omx_samples(q: np.ndarray) -> Samples:
     """Samples at goals q (S, 4) whose A is the arm's regressor there (a 60 g object)."""
     rng = np.random.default_rng(6)
     S = len(q)
-    A = regressors(q)
+    A = regressors(q, robot=OMX.robot(), tag=OMX.tag_in_ee)
     x = np.array([[0.060, 0.060 * 0.004, 0.060 * -0.002, 0.060 * 0.020]])
     tau_g = rng.normal(size=(S, 4)) * 0.2
     tau = tau_g + np.einsum("snp,p->sn", A, x[0]) + rng.normal(size=(S, 4)) * 0.005

@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from jaxinertia.app import defaults
+from jaxinertia.app.arm_options import add_arm_option, arm_name, arm_of, lbipe_arm_only
 from jaxinertia.app.options import (
     check_outputs,
     enable_x64,
@@ -157,7 +158,8 @@ def cmd_train(args) -> int:
 
         session = servo_session([load_samples(f, need_truth=False)[0] for f in args.session_of])
     info = pipeline.train(args.data, args.out, cfg, overwrite=args.overwrite, init=args.init,
-                          samples_per_object=args.samples_per_object, session=session)
+                          samples_per_object=args.samples_per_object, session=session,
+                          arm=arm_name(args))
     what = "fine-tuned" if args.init is not None else "trained"
     print(f"{what} {info['training']['n_models']} model pairs on {info['samples']['train']} "
           f"samples ({info['samples']['validation']} validation) in "
@@ -175,9 +177,10 @@ def cmd_evaluate(args) -> int:
     released = None
     if args.samples:
         res = pipeline.evaluate_samples(args.models, args.samples, n_sets=args.sets,
-                                        seed=args.seed, l_max=l_max)
+                                        seed=args.seed, l_max=l_max, arm=arm_name(args))
         objects, torque = res["objects"], res["torque"]
     else:
+        lbipe_arm_only(args, "without --samples, evaluate reads")
         lbipe_dir = lbipe_dir_of(args)
         real = pipeline.sim_to_real(args.models, lbipe_dir, seed=args.seed, n_sets=args.sets,
                                     l_max=l_max)
@@ -201,7 +204,8 @@ def cmd_reproduce(args) -> int:
     # The work's modules (JAX, flax, optax): imported when the command runs, not for --help.
     from jaxinertia.app.reproduce import reproduce
 
-    reproduce(args.out, full=args.full, seed=args.seed, lbipe_dir=lbipe_dir_of(args))
+    reproduce(args.out, full=args.full, seed=args.seed, lbipe_dir=lbipe_dir_of(args),
+              arm=arm_of(args))
     return 0
 
 
@@ -231,6 +235,7 @@ def register(sub) -> None:
     t.add_argument("--data", nargs="+", required=True, type=Path,
                    help="sample files of known objects (native or the authors' layout)")
     t.add_argument("--out", required=True, type=Path, help="model folder to write")
+    add_arm_option(t, default=None, what="the arm the sample files record")
     t.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
     t.add_argument("--init", type=Path, metavar="MODELS",
                    help="fine-tune this model folder (e.g. simulator-trained models on real "
@@ -274,6 +279,7 @@ def register(sub) -> None:
         description="Evaluates a model folder on every data/data_test_<name>.npz in the lbipe "
         "folder (beside the released models on the same sets), or on a native sample file.")
     e.add_argument("--models", required=True, type=Path)
+    add_arm_option(e, default=None, what="the samples' arm; another's models are refused")
     e.add_argument("--lbipe-dir", type=Path, help=LBIPE_DIR_HELP)
     e.add_argument("--samples", type=Path,
                    help="a sample file of known objects instead (native or the authors' layout)")
@@ -286,7 +292,6 @@ def register(sub) -> None:
                    help="bounding-box diagonal of an object without a built-in one")
     e.set_defaults(func=cmd_evaluate)
 
-
     r = sub.add_parser(
         "reproduce", help="simulate, train, evaluate, switching loads, sim-to-real, report",
         description="The paper end to end into a run folder (report.md, tables.json, plots). "
@@ -295,4 +300,5 @@ def register(sub) -> None:
     r.add_argument("--full", action="store_true")
     r.add_argument("--seed", type=seed_int, default=0)
     r.add_argument("--lbipe-dir", type=Path, help=LBIPE_DIR_HELP)
+    add_arm_option(r)
     r.set_defaults(func=cmd_reproduce)

@@ -9,6 +9,7 @@ import os
 import jax.numpy as jnp
 import numpy as np
 
+from jaxinertia.app.arm_options import samples_arm
 from jaxinertia.app.pipeline import (
     adapt_objects,
     is_simulated,
@@ -82,7 +83,7 @@ def _uncertainty_fields(u, o: int) -> dict:
 def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_size: int = 64,
              n_sets: int = 200, seed: int = 0, max_mass: float = 5.0,
              max_com: float = 0.5, max_com_se: float | None = None,
-             session_strength: float | None = None) -> dict:
+             session_strength: float | None = None, arm: str | None = None) -> dict:
     """Mass and COM of each object in a sample file (ground truth, if any, is not used),
     by every method, with standard errors, intervals and covariance.
 
@@ -107,7 +108,8 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
     """
     objects, meta = objects_at_rest(sample_file, need_truth=False)
     objects = [o.without_truth() for o in objects]
-    pair, baselines, fc, config = load_models(models, robot=meta.get("robot"))
+    pair, baselines, fc, config = load_models(models, robot=meta.get("robot"),
+                                              arm=samples_arm(sample_file, meta, arm))
     objects, ratios = adapt_objects(objects, session_reference(
         config, session_strength, simulated=is_simulated(meta)))
     floor, floor_source = training_validation_error(config)

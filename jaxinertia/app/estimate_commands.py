@@ -9,6 +9,7 @@ import math
 from pathlib import Path
 
 from jaxinertia.app import defaults
+from jaxinertia.app.arm_options import add_arm_option, arm_name, arm_of
 from jaxinertia.app.options import (
     check_memory,
     check_outputs,
@@ -43,7 +44,7 @@ def cmd_estimate(args) -> int:
 
     res = estimate(args.models, args.samples, set_size=args.set_size, max_mass=args.max_mass,
                    max_com=args.max_com, max_com_se=args.max_com_se,
-                   session_strength=args.session_strength)
+                   session_strength=args.session_strength, arm=arm_name(args))
     floor = res["torque_error_floor"]
     for name, o in res["objects"].items():
         ident = o["identifiability"]
@@ -93,31 +94,35 @@ def cmd_plan_poses(args) -> int:
     # The work's modules (JAX): imported when the command runs, not for --help.
     import numpy as np
 
-    from jaxinertia.design import plan_poses, save_plan  # (as above)
-    from jaxinertia.open_manipulator_x import TAG_IN_EE, WORKSPACE_DEG  # (as above)
-    from jaxinertia.robot import load_robot, open_manipulator_x  # (as above)
+    from jaxinertia.design import arm_plan_kwargs, plan_poses, save_plan  # (as above)
+    from jaxinertia.robot import load_robot  # (as above)
 
-    workspace = WORKSPACE_DEG if args.workspace is None else tuple(args.workspace)
-    n_grid = _grid_size(workspace, args.margin_deg, args.step_deg)
-    check_memory(n_grid * PLAN_BYTES_PER_CONFIGURATION,
-                 f"--step-deg {args.step_deg:g} (a planning grid of {n_grid:.3g} configurations)")
+    arm = arm_of(args)
     if args.robot is not None:
         robot = load_robot(args.robot)
-    else:
-        robot = open_manipulator_x()
+        kw = dict(robot=robot, step_deg=arm.planning_step_deg, workspace=args.workspace,
+                  clearance=arm.mount_clearance_m, tag=(np.eye(3), np.zeros(3)))
+    else:  # the arm's record: its robot, planning grid, workspace, clearance, tag mount
+        kw = arm_plan_kwargs(arm)
+        robot = kw["robot"]
+    kw.update({k: v for k, v in (("step_deg", args.step_deg), ("clearance", args.clearance),
+                                 ("workspace", args.workspace)) if v is not None})
+    workspace = tuple(kw["workspace"])
+    n_grid = _grid_size(workspace, args.margin_deg, kw["step_deg"])
+    check_memory(n_grid * PLAN_BYTES_PER_CONFIGURATION,
+                 f"--step-deg {kw['step_deg']:g} (a planning grid of {n_grid:.3g} "
+                 "configurations)")
     if args.joint_weights is not None and len(args.joint_weights) != robot.n_joints:
         raise UsageError(f"--joint-weights: {len(args.joint_weights)} values for "
                          f"{robot.n_joints} joints")
-    tag = TAG_IN_EE if args.robot is None else (np.eye(3), np.zeros(3))
-    plan = plan_poses(args.n, robot=robot, step_deg=args.step_deg, workspace=workspace,
-                      margin_deg=args.margin_deg, clearance=args.clearance,
-                      joint_weights=args.joint_weights, tag=tag, seed=args.seed)
+    plan = plan_poses(args.n, **kw, margin_deg=args.margin_deg,
+                      joint_weights=args.joint_weights, seed=args.seed)
     if not np.isfinite(plan.logdet):
         raise UsageError(f"--n {args.n}: the best {args.n} poses of the grid do not determine "
                          "mass and COM (singular information matrix): ask for more poses")
     gain = plan.logdet - np.median(plan.random_logdet)
     print(f"{args.n} poses chosen from {plan.n_candidates} collision-free grid configurations "
-          f"({args.step_deg:g} deg; greedy + {plan.exchanges} exchange(s))")
+          f"({kw['step_deg']:g} deg; greedy + {plan.exchanges} exchange(s))")
     print(f"log det information {plan.logdet:.2f}; random {args.n}-pose subsets of the grid: "
           f"median {np.median(plan.random_logdet):.2f}, best of {len(plan.random_logdet)} "
           f"{np.max(plan.random_logdet):.2f} (the plan's confidence ellipsoid of x is "
@@ -128,7 +133,8 @@ def cmd_plan_poses(args) -> int:
         print(f"{i:>4} " + " ".join(f"{v:>9.1f}" for v in np.degrees(q)) + "  "
               + " ".join("+" if v > 0 else "-" for v in d))
     save_plan(args.out, plan, robot=robot.name,
-              extra={"grid_step_deg": args.step_deg, "margin_deg": args.margin_deg,
+              extra={"arm": None if args.robot is not None else arm.name,
+                     "grid_step_deg": kw["step_deg"], "margin_deg": args.margin_deg,
                      "workspace_deg": [list(w) for w in workspace],
                      "joint_weights": args.joint_weights})
     print(f"wrote {args.out}")
@@ -167,6 +173,8 @@ def register(sub) -> None:
     m = sub.add_parser("estimate", help="mass and COM of an unknown object from a sample file")
     m.add_argument("--models", required=True, type=Path)
     m.add_argument("--samples", required=True, type=Path)
+    add_arm_option(m, default=None, what="the arm the samples record; models of another "
+                   "arm are refused")
     m.add_argument("--set-size", type=positive_int, default=64,
                    help="samples per set for the spread over sample sets (default 64); a "
                    "file needs at least this many samples per object")
@@ -199,22 +207,24 @@ def register(sub) -> None:
                     help="poses (default 16; at least 2: one pose cannot determine mass and "
                     "COM)")
     pp.add_argument("--out", required=True, type=Path, help="plan file to write (JSON)")
-    pp.add_argument("--step-deg", type=positive_float, default=10.0,
-                    help="grid step over the workspace (default 10)")
+    add_arm_option(pp)
+    pp.add_argument("--step-deg", type=positive_float,
+                    help="grid step over the workspace (default: the arm's, 10 for the "
+                    "OpenMANIPULATOR-X)")
     pp.add_argument("--margin-deg", type=nonnegative_float, default=defaults.MARGIN_DEG,
                     help="keep the poses this far inside every joint range: the torque models "
                     "are least accurate at the limits (default %(default)s)")
-    pp.add_argument("--clearance", type=positive_float, default=defaults.MOUNT_CLEARANCE_M,
+    pp.add_argument("--clearance", type=positive_float,
                     help="minimum end-effector height over the mounting surface [m] "
-                    "(default %(default)s)")
+                    "(default: the arm's, 0.1 for the OpenMANIPULATOR-X)")
     pp.add_argument("--joint-weights", type=positive_float, nargs="+",
                     help="W's weight per joint (e.g. 1/sigma_j^2 of the torque error; default "
                     "equal)")
     pp.add_argument("--robot", type=Path, help="an MJCF (.xml) or URDF of another serial arm "
-                    "(default: the embedded OpenMANIPULATOR-X)")
+                    "without an arm record (default: the --arm's description)")
     pp.add_argument("--workspace", type=_ranges_deg, metavar="LO:HI,...",
                     help="joint ranges in degrees, one per joint, e.g. "
-                    "--workspace=-30:30,-50:-10,10:50,-20:20 (default: the paper's)")
+                    "--workspace=-30:30,-50:-10,10:50,-20:20 (default: the arm's)")
     pp.add_argument("--seed", type=seed_int, default=0,
                     help="seed of the random reference plans")
     pp.add_argument("--overwrite", action="store_true", help="replace an existing --out")

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from jaxinertia.app import defaults
-from jaxinertia.app.defaults import ARM_NAMES, DEFAULT_ARM
+from jaxinertia.app.arm_options import add_arm_option, arm_of
 from jaxinertia.app.options import (
     check_memory,
     finite_float,
@@ -59,9 +59,9 @@ def _ids(text: str) -> tuple[int, ...]:
     return ids
 
 
-def _gripper(text: str) -> int | None:
+def _gripper(text: str) -> int | str:
     if text.lower() == "none":
-        return None
+        return "none"  # no gripper (None: the option left out, the arm's)
     (dxl_id,) = _ids(text)
     return dxl_id
 
@@ -94,6 +94,35 @@ def _register(limit: int):
     return parse
 
 
+def _arm(args):
+    """The ``--arm`` record, its values filling the options left out (IDs, gripper ID,
+    baud rate, position gains, motion timing, initial pose); only DYNAMIXEL arms here."""
+    import numpy as np  # (light; with the arm's records, which load JAX: at run time)
+
+    from jaxinertia.hardware.arm_config import arm_config  # (as above)
+
+    arm = arm_of(args)
+    if any(m.protocol != "dynamixel2" for m in arm.servo_models):
+        raise UsageError(f"--arm {args.arm}: its servos speak {arm.servo_models[0].protocol}; "
+                         "this command drives DYNAMIXEL (Protocol 2.0) servos only")
+    cfg = arm_config(arm, "")
+    given = {"ids": cfg.joint_ids, "gripper_id": cfg.gripper_id, "baudrate": cfg.baudrate,
+                "p_gain": cfg.p_gain, "d_gain": cfg.d_gain,
+                "profile_velocity": cfg.profile_velocity,
+                "profile_acceleration": cfg.profile_acceleration,
+                "settle_time": cfg.settle_time, "timeout": cfg.move_timeout,
+                "q0": [float(np.mean(w)) for w in arm.workspace_deg]}
+    for k, v in given.items():
+        if getattr(args, k, v) is None:
+            setattr(args, k, v)
+    if args.gripper_id == "none":
+        args.gripper_id = None
+    if hasattr(args, "q0") and len(args.q0) != arm.n_joints:
+        raise UsageError(f"--q0 needs {arm.n_joints} angles (one per joint of {arm.name}), "
+                         f"got {len(args.q0)}")
+    return arm
+
+
 def _check_ids(args, n_joints: int) -> None:
     """One servo ID per joint, all distinct, the gripper's apart (before anything moves)."""
     ids = tuple(args.ids)
@@ -114,8 +143,7 @@ def cmd_virtual_robot(args) -> int:
 
     from jaxinertia import objects  # (as above)
     from jaxinertia.app.feetech_commands import is_feetech, virtual_sts_robot  # (as above)
-    from jaxinertia.arms import get_arm  # (as above)
-    from jaxinertia.sim.params import default_sim_params  # (as above)
+    from jaxinertia.sim.params import arm_sim_params  # (as above)
     from jaxinertia.virtual.bus import Faults  # (as above)
     from jaxinertia.virtual.robot import VirtualServoBus  # (as above)
 
@@ -124,21 +152,18 @@ def cmd_virtual_robot(args) -> int:
                     delay_rate=args.delay_rate, delay_s=args.delay_ms / 1000.0,
                     overload_id=args.overload_id, overload_after=args.overload_after,
                     seed=args.fault_seed)
-    arm = get_arm(args.arm)
-    if is_feetech(arm):  # the arm record names the servo family
-        return virtual_sts_robot(args, arm, faults, _serve)
-    if arm.name != DEFAULT_ARM:
-        raise UsageError(f"--arm {args.arm}: the virtual DYNAMIXEL robot simulates the "
-                         f"{DEFAULT_ARM} only so far")
-    obj = objects.resolve(args.object)
-    params = default_sim_params(args.calibration)
+    if is_feetech(arm_of(args)):  # the arm record names the servo family
+        return virtual_sts_robot(args, arm_of(args), faults, _serve)
+    arm = _arm(args)
+    obj = objects.resolve(args.object, tag_in_ee=arm.tag_in_ee)
+    params = arm_sim_params(arm, args.calibration)
     _check_ids(args, params.robot.n_joints)
     bus = VirtualServoBus(params, obj, ids=args.ids,
                           extra_ids=() if args.gripper_id is None else (args.gripper_id,),
                           q0=np.radians(args.q0), speed=args.speed, faults=faults,
                           seed=args.seed)
     bus.compile()  # every physics path, so that no reply waits on a compilation
-    return _serve(bus, f"virtual XM430-W350 servos {list(bus.servos)} on {bus.path}, object "
+    return _serve(bus, f"virtual {arm.name} servos {list(bus.servos)} on {bus.path}, object "
                        f"{args.object}, {args.speed:g}x real time")
 
 
@@ -176,21 +201,24 @@ def _check_collect_options(args) -> None:
                          f"{args.settle_time:g} s")
 
 
-def _collect_plan(args) -> tuple[np.ndarray, np.ndarray]:
-    """The goals and approach directions of ``--plan`` (planning, random or a plan file of
-    ``jaxinertia plan-poses``; ``--n`` cuts the planning grid or a file's plan)."""
+def _collect_plan(args, arm, robot) -> tuple[np.ndarray, np.ndarray]:
+    """The goals and approach directions of ``--plan`` (the arm's planning grid, random
+    goals in its workspace, or a plan file of ``jaxinertia plan-poses`` for that arm;
+    ``--n`` cuts the planning grid or a file's plan)."""
     # The work's modules (JAX): imported when the command runs, not for --help.
     from jaxinertia import plans
     from jaxinertia.design import load_plan  # (as above)
 
     if args.plan == "planning":
-        q_d, direction = plans.planning_plan()
+        q_d, direction = plans.planning_plan(arm.planning_step_deg, robot=robot,
+                                             clearance=arm.mount_clearance_m,
+                                             workspace=arm.workspace_deg)
     elif args.plan == "random":
         n = 1000 if args.n is None else args.n
         check_memory(n * PLAN_BYTES_PER_POSE, f"--n {n} (random goals, each checked)")
-        return plans.random_plan(n, args.seed)
+        return plans.random_plan(n, args.seed, workspace=arm.workspace_deg)
     else:
-        q_d, direction = load_plan(args.plan)
+        q_d, direction = load_plan(args.plan, arm=arm.name)
     if args.n is not None:
         q_d, direction = q_d[: args.n], direction[: args.n]
     return q_d, direction
@@ -202,8 +230,8 @@ def cmd_collect(args) -> int:
     import numpy as np  # (as above)
 
     from jaxinertia import __version__, objects  # (as above)
+    from jaxinertia.hardware.arm_config import arm_config, safety_limits  # (as above)
     from jaxinertia.hardware.collect import (  # (as above)
-        DELTA,
         Journal,
         KinematicTagPose,
         collect,
@@ -211,49 +239,54 @@ def cmd_collect(args) -> int:
         plan_digest,
         samples_from_records,
     )
-    from jaxinertia.hardware.driver import ArmConfig, DynamixelArm, PortError  # (as above)
-    from jaxinertia.hardware.safety import SafetyError, SafetyLimits  # (as above)
-    from jaxinertia.open_manipulator_x import TAG_IN_EE, calibrated_robot  # (as above)
+    from jaxinertia.hardware.driver import DynamixelArm, PortError  # (as above)
+    from jaxinertia.hardware.safety import SafetyError  # (as above)
+    from jaxinertia.open_manipulator_x import calibrated_robot  # (as above)
     from jaxinertia.samples import save_native  # (as above)
+    from jaxinertia.sim.params import arm_sim_params  # (as above)
 
     jax.config.update("jax_enable_x64", True)
     # Everything that can be refused is refused before the port is opened (exit code 2).
+    arm = _arm(args)
     _check_collect_options(args)
-    obj = None if args.object == UNKNOWN else objects.resolve(args.object)
-    q_d, direction = _collect_plan(args)
+    obj = None if args.object == UNKNOWN else objects.resolve(args.object,
+                                                            tag_in_ee=arm.tag_in_ee)
     # The calibrated bare arm: A and tau_g (as the simulator records them) and the FK of
-    # the kinematic tag pose.
-    robot = calibrated_robot(args.calibration)
+    # the kinematic tag pose (an arm without a calibration: its description's links).
+    robot = (calibrated_robot(args.calibration) if arm.calibration_file is not None
+             else arm_sim_params(arm, args.calibration).robot)
+    q_d, direction = _collect_plan(args, arm, robot)
     _check_ids(args, robot.n_joints)
     if q_d.shape[1] != robot.n_joints:
         raise UsageError(f"--plan {args.plan}: {q_d.shape[1]} joints per pose; the arm has "
                          f"{robot.n_joints}")
-    safety = SafetyLimits.around_workspace(robot)
+    safety = safety_limits(arm, robot)
+    delta = arm.pre_position
     for i, (goal, d) in enumerate(zip(q_d, direction)):  # every goal before the port opens
         try:
-            for q in (goal, goal - d * DELTA):
+            for q in (goal, goal - d * delta):
                 safety.check(q, robot)
         except UsageError as e:
             raise UsageError(f"--plan {args.plan}: pose {i}: {e}") from None
     out = check_output(args.out, overwrite=args.overwrite)
-    config = ArmConfig(
-        port=args.port, baudrate=args.baudrate, joint_ids=args.ids, gripper_id=args.gripper_id,
+    config = arm_config(
+        arm, args.port, baudrate=args.baudrate, joint_ids=args.ids, gripper_id=args.gripper_id,
         p_gain=args.p_gain, d_gain=args.d_gain, profile_velocity=args.profile_velocity,
         profile_acceleration=args.profile_acceleration, settle_time=args.settle_time,
         move_timeout=args.timeout, retries=args.retries, on_stop=args.on_stop,
         reboot_on_error=args.clear_errors)
     header = {"kind": "header", "plan": args.plan, "seed": args.seed, "n_samples": len(q_d),
               "object": args.object, "plan_digest": plan_digest(q_d, direction),
-              "port": args.port, "servo_ids": list(args.ids), "delta": DELTA}
+              "port": args.port, "servo_ids": list(args.ids), "delta": delta}
     journal = Journal.open(journal_path(out), header, resume=args.resume,
                            plan=(q_d, direction))
     done = len(journal.records)
     if done:
         print(f"resuming: {done} of {len(q_d)} samples already in {journal.path}",
               file=sys.stderr)
-    R_ee_tag, p_ee_tag = TAG_IN_EE
+    R_ee_tag, p_ee_tag = arm.tag_in_ee
     tag_source = KinematicTagPose(robot, R_ee_tag, p_ee_tag)
-    arm = DynamixelArm(config, robot=robot, safety=safety)
+    dxl = DynamixelArm(config, robot=robot, safety=safety)
 
     def where() -> str:
         if not journal.path.exists():
@@ -262,9 +295,9 @@ def cmd_collect(args) -> int:
                 "continue with --resume")
 
     try:
-        arm.open()  # locked for this collection: a second collect on the port is refused
-        with arm:
-            collect(arm, q_d, direction, journal, tag_pose=tag_source, delta=DELTA,
+        dxl.open()  # locked for this collection: a second collect on the port is refused
+        with dxl:
+            collect(dxl, q_d, direction, journal, tag_pose=tag_source, delta=delta,
                     progress=not args.no_progress)
     except SafetyError as e:
         raise SafetyError(f"refused: {e}") from e
@@ -278,17 +311,18 @@ def cmd_collect(args) -> int:
         return EXIT_INTERRUPTED
     finally:
         journal.close()
-        arm.close()
-    print(f"bus: {arm.bus_report()}", file=sys.stderr)
+        dxl.close()
+    print(f"bus: {dxl.bus_report()}", file=sys.stderr)
     x = None if obj is None else np.asarray(obj.x)
     samples = samples_from_records(journal.records, robot, x, args.object)
     meta = {"version": __version__, "source": "dynamixel", "port": args.port,
             "plan": args.plan, "object": args.object,
             "scenario": args.plan if args.plan in ("planning", "random") else "plan",
             "objects": [args.object], "seed": args.seed, "servo_ids": list(args.ids),
-            "gripper_id": args.gripper_id, "robot": robot.name, "delta": DELTA,
+            "gripper_id": args.gripper_id, "robot": robot.name, "arm": arm.name,
+            "delta": delta,
             "journal": str(journal.path), "plan_digest": header["plan_digest"],
-            "tag_pose": "kinematic (open_manipulator_x.TAG_IN_EE)",
+            "tag_pose": f"kinematic (the {arm.name} record's tag_in_ee)",
             "servo": {"p_gain": args.p_gain, "i_gain": 0, "d_gain": args.d_gain,
                       "profile_velocity": args.profile_velocity,
                       "profile_acceleration": args.profile_acceleration,
@@ -305,23 +339,23 @@ def register(sub) -> None:
     names = ", ".join(defaults.OBJECT_NAMES)
     v = sub.add_parser(
         "virtual-robot",
-        help="a simulated chain of XM430-W350-T servos on a pseudo-terminal",
+        help="a simulated chain of DYNAMIXEL servos on a pseudo-terminal",
         description="Opens a pseudo-terminal, prints its path as the first line of stdout "
-        "and answers there as DYNAMIXEL servos (Protocol 2.0) whose joints are the "
-        "simulated OpenMANIPULATOR-X. Runs until SIGTERM or Ctrl-C.",
+        "and answers there as DYNAMIXEL servos (Protocol 2.0, the XM430's control table) "
+        "whose joints are the simulated arm (default: the OpenMANIPULATOR-X). Runs until "
+        "SIGTERM or Ctrl-C.",
     )
-    v.add_argument("--arm", default=DEFAULT_ARM, metavar="NAME|FILE",
-                   help=f"the arm: {', '.join(ARM_NAMES)}, or an arm file; Feetech servos "
-                   "(so101) are served by the STS bus model")
+    add_arm_option(v)  # Feetech servos (so101) are served by the STS bus model
     v.add_argument("--object", default="none",
                    help=f"held object: {names} (none: the empty gripper)")
     v.add_argument("--speed", type=positive_float, default=1.0,
                    help="simulated seconds per second")
-    v.add_argument("--ids", type=_ids, default=defaults.JOINT_IDS, help="joint servo IDs")
-    v.add_argument("--gripper-id", type=_gripper, default=defaults.GRIPPER_ID,
-                   help="gripper ID or none")
-    v.add_argument("--q0", type=finite_float, nargs=4, default=(0.0, -30.0, 30.0, 0.0),
-                   metavar="DEG", help="initial joint angles [deg]")
+    v.add_argument("--ids", type=_ids, help="joint servo IDs (default: the arm's)")
+    v.add_argument("--gripper-id", type=_gripper,
+                   help="gripper ID or none (default: the arm's)")
+    v.add_argument("--q0", type=finite_float, nargs="+", metavar="DEG",
+                   help="initial joint angles [deg], one per joint (default: the middle of "
+                   "the arm's workspace, 0 -30 30 0 for the OpenMANIPULATOR-X)")
     v.add_argument("--seed", type=seed_int, default=0, help="friction draws and current noise")
     v.add_argument("--calibration", type=Path, help="simulator parameter file")
     g = v.add_argument_group("fault injection")
@@ -341,7 +375,8 @@ def register(sub) -> None:
     c = sub.add_parser(
         "collect",
         help="collect samples on the arm (or a virtual robot) into a native sample file",
-        description="Runs a plan with the paper's protocol (pre-position q_d - s*3 deg, then "
+        description="Runs a plan with the paper's protocol (pre-position q_d - s*3 deg (the "
+        "arm's pre-position), then "
         "q_d, record at rest). Every sample is appended to OUT.journal.jsonl and flushed; "
         "an interrupted collection continues with --resume.",
     )
@@ -359,21 +394,25 @@ def register(sub) -> None:
     c.add_argument("--n", type=positive_int,
                    help="samples (random: default 1000; planning: the first N)")
     c.add_argument("--seed", type=seed_int, default=0, help="seed of the random plan")
-    c.add_argument("--baudrate", type=int, default=1_000_000)
-    c.add_argument("--ids", type=_ids, default=defaults.JOINT_IDS, help="joint servo IDs")
-    c.add_argument("--gripper-id", type=_gripper, default=defaults.GRIPPER_ID,
-                   help="gripper ID (pinged) or none")
-    c.add_argument("--p-gain", type=_register(16383), default=800,
-                   help="Position P Gain register")
-    c.add_argument("--d-gain", type=_register(16383), default=0,
-                   help="Position D Gain register (I is 0)")
-    c.add_argument("--profile-velocity", type=positive_float, default=0.5, help="[rad/s]")
-    c.add_argument("--profile-acceleration", type=positive_float, default=2.0,
-                   help="[rad/s^2]")
-    c.add_argument("--settle-time", type=positive_float, default=0.2,
-                   help="no tick may change for this long to count as at rest [s, servo clock]")
-    c.add_argument("--timeout", type=positive_float, default=6.0,
-                   help="per move [s, servo clock]")
+    add_arm_option(c)
+    c.add_argument("--baudrate", type=int, help="(default: the arm's, 1000000)")
+    c.add_argument("--ids", type=_ids, help="joint servo IDs (default: the arm's)")
+    c.add_argument("--gripper-id", type=_gripper,
+                   help="gripper ID (pinged) or none (default: the arm's)")
+    c.add_argument("--p-gain", type=_register(16383),
+                   help="Position P Gain register (default: the arm's servo's, 800 on the "
+                   "OpenMANIPULATOR-X)")
+    c.add_argument("--d-gain", type=_register(16383),
+                   help="Position D Gain register (I is 0; default: the arm's servo's)")
+    c.add_argument("--profile-velocity", type=positive_float,
+                   help="[rad/s] (default: the arm's, 0.5)")
+    c.add_argument("--profile-acceleration", type=positive_float,
+                   help="[rad/s^2] (default: the arm's, 2.0)")
+    c.add_argument("--settle-time", type=positive_float,
+                   help="no tick may change for this long to count as at rest [s, servo "
+                   "clock] (default: the arm's, 0.2)")
+    c.add_argument("--timeout", type=positive_float,
+                   help="per move [s, servo clock] (default: the arm's, 6.0)")
     c.add_argument("--retries", type=_count, default=defaults.BUS_RETRIES,
                    help="per bus transaction (each after the bus has gone quiet, about 70 ms "
                    "a try: a dead bus is reported within a second)")

@@ -19,6 +19,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
+from jaxinertia.app.arm_options import LBIPE_ARM, samples_arm
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import load_models, save_models
 from jaxinertia.errors import FileFormatError, UsageError
@@ -58,7 +59,7 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
           *, progress: bool = True, overwrite: bool = False,
           init: str | os.PathLike | None = None,
           samples_per_object: int | None = None,
-          session: ServoSession | None = None) -> dict:
+          session: ServoSession | None = None, arm: str | None = None) -> dict:
     """Trains K model pairs and fits the baselines; writes the model folder ``out``
     (atomically; an existing one only with ``overwrite``). ``sample_files``: paths, or
     records already read (:class:`~jaxinertia.samples.SampleFile`).
@@ -74,18 +75,21 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
     files a simulator was calibrated on, whose servo state the simulated data imitate;
     default: the init folder's, else the training data's own (pooled). Every real training
     file is read in it (simulated files in the simulator's own); the folder records it, and
-    evaluation and estimation read every file in it.
+    evaluation and estimation read every file in it. ``arm``: the arm the samples must
+    come from (the folder records it; default: the one the files record).
     """
     check_output(out, overwrite=overwrite, folder=True)
     # Each file read once (a record already read is not read again).
     files = [f if isinstance(f, SampleFile) else read_sample_file(f) for f in sample_files]
+    for f in files:
+        samples_arm(f.path, f.meta, arm)  # another arm's file: one line, before any training
     parts, metas = [f.samples for f in files], [f.meta for f in files]
     sample_files = [f.path for f in files]
     # The authors' layout records no robot: it is taken to be the native files' one.
     robots = {m.get("robot") for m in metas} - {None}
     if len(robots) > 1:
         raise FileFormatError(sample_files[0], "metadata", f"files of different robots {robots}")
-    robot = robots.pop() if robots else None
+    robot = robots.pop() if robots else arm
     start = None
     if init is not None:
         pair0, _, fc0, config0 = load_models(init, robot=robot)
@@ -145,7 +149,7 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
         info["fine_tuned_from"] = {"folder": str(Path(init).resolve()),
                                    "data": start[2].get("data"),
                                    "training": start[2].get("training")}
-    save_models(out, pair, baselines, fc, robot=robot, extra=info)  # atomic
+    save_models(out, pair, baselines, fc, robot=robot, extra=info, arm=arm)  # atomic
     return info
 
 
@@ -232,14 +236,15 @@ def copy_models(src: str | os.PathLike, dst: str | os.PathLike, *,
     """A model folder written anew at ``dst`` (replacing it), with the session strength
     changed when given; the weights, baselines and the rest of its record unchanged."""
     pair, baselines, fc, config = load_models(src)
-    standard = ("format", "format_version", "robot", "n_models", "torque_model",
+    standard = ("format", "format_version", "robot", "arm", "n_models", "torque_model",
                 "attention_model", "features", "baselines")
     extra = {k: v for k, v in config.items() if k not in standard}
     for key, simulated in (("session", False), ("simulator_session", True)):
         ref = session_reference(config, session_strength, simulated=simulated)
         extra[key] = None if ref is None else ref.to_dict()
     extra["copied_from"] = str(Path(src).resolve())
-    return save_models(dst, pair, baselines, fc, robot=config.get("robot"), extra=extra)
+    return save_models(dst, pair, baselines, fc, robot=config.get("robot"), extra=extra,
+                       arm=config.get("arm"))
 
 
 def session_reference(config: dict, strength: float | None = None, *,
@@ -265,11 +270,11 @@ def adapt_objects(objects: Sequence[Samples], reference: SessionReference | None
 def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
                     sets: Sequence[np.ndarray], *, l_max: Sequence[float] | None = None,
                     robot: str | None = None, session_strength: float | None = None,
-                    simulated: bool = False) -> dict:
+                    simulated: bool = False, arm: str | None = None) -> dict:
     """A model folder (its pairs and baselines) on known objects over the given sets, each
     object read in the folder's session (``simulated``: objects the simulator made, read in
     its session; ``session_strength``: override, 0 = off)."""
-    pair, baselines, fc, config = load_models(models, robot=robot)
+    pair, baselines, fc, config = load_models(models, robot=robot, arm=arm)
     objects, ratios = adapt_objects(objects, session_reference(config, session_strength,
                                                                simulated=simulated))
     t = time.perf_counter()
@@ -282,15 +287,17 @@ def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
 
 def evaluate_samples(models: str | os.PathLike, sample_file: str | os.PathLike | SampleFile,
                      *, n_sets: int = 1000, set_size: int = 64, seed: int = 0,
-                     l_max: dict[str, float] | None = None) -> dict:
+                     l_max: dict[str, float] | None = None, arm: str | None = None) -> dict:
     """A model folder on every object of a sample file (random sets, seed + i); ``l_max``
     gives the bounding-box diagonal of objects without a built-in one. ``sample_file``: a
-    path, or a file already read (its samples at rest)."""
+    path, or a file already read (its samples at rest); ``arm``: the arm the samples must
+    come from."""
     if isinstance(sample_file, SampleFile):
         objects, meta, sample_file = (sample_file.samples.by_object(), sample_file.meta,
                                       sample_file.path)
     else:
         objects, meta = objects_at_rest(sample_file, need_truth=True)
+    arm = samples_arm(sample_file, meta, arm)
     massless = [o.name for o in objects if not o.mass > 0]
     if massless:
         raise UsageError(f"{sample_file} [{massless[0]}]: mass 0 (the empty gripper): mass and "
@@ -298,7 +305,7 @@ def evaluate_samples(models: str | os.PathLike, sample_file: str | os.PathLike |
     diag = l_max_of(objects, l_max, path=sample_file)
     sets, _ = choose_sets(objects, n_sets=n_sets, set_size=set_size, seed=seed)
     return evaluate_models(models, objects, sets, l_max=diag, robot=meta.get("robot"),
-                           simulated=is_simulated(meta))
+                           simulated=is_simulated(meta), arm=arm)
 
 
 def objects_at_rest(sample_file, *, need_truth: bool) -> tuple[list[Samples], dict]:
@@ -328,7 +335,8 @@ def sim_to_real(models: str | os.PathLike, lbipe_dir: str | os.PathLike, *, seed
     if real is None and not Path(lbipe_dir).is_dir():
         return None
     real = real or load_real(lbipe_dir, seed=seed, n_sets=n_sets, l_max=l_max)
-    ours = evaluate_models(models, real.objects, real.sets, l_max=real.l_max)
+    ours = evaluate_models(models, real.objects, real.sets, l_max=real.l_max,
+                           arm=LBIPE_ARM)
     names = [o.name for o in real.objects]
     out = {"ours": {"objects": ours["objects"], "torque": ours["torque"]},
            "files": {n: str(p) for n, p in real.layout.test_files.items()},

@@ -189,7 +189,8 @@ def reproduce_report(results: dict, figs: dict, *, full: bool, seed: int, scale,
     sim, cov = results["simulated"], results["coverage"]
     lines = [
         "# jaxinertia reproduce", "",
-        f"{'Full (paper-scale)' if full else 'Quick'} run, seed {seed}, on "
+        f"{'Full (paper-scale)' if full else 'Quick'} run of the "
+        f"{results.get('arm', 'open_manipulator_x')}, seed {seed}, on "
         f"{results['machine']}.",
         f"Total {t['total']:.0f} s: " + ", ".join(
             f"{k} {v:.0f} s" for k, v in t.items() if k != "total") + ".", "",
@@ -221,7 +222,9 @@ def reproduce_report(results: dict, figs: dict, *, full: bool, seed: int, scale,
         "## Sim-to-real", "",
     ]
     real = results["real"]
-    if real is None:
+    if real is None and results.get("real_skipped"):
+        lines += [f"Skipped: {results['real_skipped']}"]
+    elif real is None:
         lines += [f"Skipped: no real data at {lbipe_dir} (see README: shared/lbipe)."]
     else:
         lines += [real_note or "", "",

@@ -37,6 +37,8 @@ from jaxinertia.app.pipeline import (
 )
 from jaxinertia.app.report import reproduce_report
 from jaxinertia.app.simdata import cached, params_digest, simulate_files
+from jaxinertia.arm import Arm
+from jaxinertia.arms import DEFAULT_ARM, get_arm
 from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import choose_sets, continuous_force
 from jaxinertia.fileio import replacing, write_json, write_text
@@ -45,7 +47,7 @@ from jaxinertia.open_manipulator_x import load_calibration
 from jaxinertia.samples import SampleFile
 from jaxinertia.session import ServoSession, servo_session
 from jaxinertia.sim.continuous import simulate_continuous_run
-from jaxinertia.sim.params import default_sim_params
+from jaxinertia.sim.params import arm_sim_params
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
 from jaxinertia.uncertainty import (
     calibration,
@@ -113,15 +115,17 @@ def continuous_lanes() -> int:
     return 1 if jax.default_backend() == "cpu" else ACCELERATOR_CONTINUOUS_LANES
 
 
-def _continuous(params, path: Path, scale: Scale, seed: int) -> SampleFile:
+def _continuous(params, path: Path, scale: Scale, seed: int,
+                arm: Arm | None = None) -> SampleFile:
     kw = dict(n=scale.continuous_samples, objects=CONTINUOUS_OBJECTS,
               switch_every=scale.switch_every, seed=seed, lanes=continuous_lanes())
+    other = {} if arm is None or arm.name == DEFAULT_ARM else {"arm": arm.name}
 
     def make():
-        return simulate_continuous_run(params, **kw)
+        return simulate_continuous_run(params, **kw, arm=arm)
 
-    return cached(path, {"scenario": "continuous", **kw, "simulator": params_digest(params)},
-                  make, only_at_rest=False)  # read without waiting for rest
+    return cached(path, {"scenario": "continuous", **kw, "simulator": params_digest(params),
+                         **other}, make, only_at_rest=False)  # read without waiting for rest
 
 
 def _coverage(models: Path, test_file: SampleFile, real: RealData | None, *, n_sets: int,
@@ -242,38 +246,49 @@ class _Stages:
 
 def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
               lbipe_dir: str | os.PathLike | None = None, scale: Scale | None = None,
-              progress: bool = True) -> dict:
+              progress: bool = True, arm: Arm | str | None = None) -> dict:
     """Runs every stage into the folder ``out``; returns the results (also in tables.json).
-    The real-data folder is read once, here, and handed down."""
+    The real-data folder is read once, here, and handed down. ``arm``: the simulated arm
+    (default the OpenMANIPULATOR-X); the real-data stages (sim-to-real, held-out folds,
+    models for a new real object) are the OpenMANIPULATOR-X's only and are skipped, with a
+    note, for another arm."""
     scale = scale or (FULL if full else QUICK)
     out = Path(out)
     data_dir = out / "data"
     stage = _Stages()
-    params = default_sim_params()
+    arm = get_arm(arm)
+    params = arm_sim_params(arm)
     lbipe_dir = Path(lbipe_dir) if lbipe_dir else default_lbipe_dir()
-    real = load_real(lbipe_dir, seed=seed, n_sets=scale.n_sets) if lbipe_dir.is_dir() else None
+    real_skipped = None if arm.name == DEFAULT_ARM else (
+        f"the real lbipe files are the {DEFAULT_ARM}'s; this run simulates the {arm.name} "
+        "(sim-to-real, held-out folds and the models for a new real object need its real "
+        "samples)")
+    real = (load_real(lbipe_dir, seed=seed, n_sets=scale.n_sets)
+            if lbipe_dir.is_dir() and real_skipped is None else None)
 
     with stage("simulate"):
         wanted = [(data_dir / "test.npz", "test", scale.test_per_object, seed + 1000),
                   (data_dir / "train_random.npz", "random", scale.random_per_load, seed)]
         if scale.planning:
             wanted.append((data_dir / "train_planning.npz", "planning", None, seed))
-        test_file, *train_files = simulate_files(params, wanted, progress=progress)
+        test_file, *train_files = simulate_files(params, wanted, progress=progress, arm=arm)
     with stage("simulate continuous"):
-        cont_file = _continuous(params, data_dir / "continuous.npz", scale, seed)
+        cont_file = _continuous(params, data_dir / "continuous.npz", scale, seed, arm)
     session = calibration_session(real)
     with stage("train"):
         info = train(train_files, out / "models", scale.train.replace(seed=seed), overwrite=True,
-                     progress=progress, session=session)
+                     progress=progress, session=session, arm=arm.name)
     with stage("evaluate"):
-        sim = evaluate_samples(out / "models", test_file, n_sets=scale.n_sets, seed=seed)
+        sim = evaluate_samples(out / "models", test_file, n_sets=scale.n_sets, seed=seed,
+                               arm=arm.name)
     with stage("uncertainty"):
         coverage = _coverage(out / "models", test_file, real, n_sets=scale.n_sets,
                              set_size=scale.train.set_size, seed=seed)
     with stage("continuous"):
         cres, cont = _continuous_force(out / "models", cont_file)
     with stage("sim-to-real"):
-        s2r = sim_to_real(out / "models", lbipe_dir, seed=seed, real=real)
+        s2r = None if real_skipped else sim_to_real(out / "models", lbipe_dir, seed=seed,
+                                                    real=real)
     folds = None
     if real is not None and scale.fold_calibration_iterations > 0:
         with stage("held-out folds"):
@@ -290,7 +305,8 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
             real_ft = _models_real(out, train_files, real, scale, recipe, seed, progress,
                                    session)
     results = {
-        "machine": _machine(), "scale": dataclasses.asdict(scale), "timings_s": stage.total(),
+        "machine": _machine(), "arm": arm.name, "real_skipped": real_skipped,
+        "scale": dataclasses.asdict(scale), "timings_s": stage.total(),
         "training": {k: info[k] for k in ("samples", "best_epoch", "wall_time_s", "data")},
         "simulated": {"objects": sim["objects"], "torque": sim["torque"],
                       "diagnostics": sim["diagnostics"]},

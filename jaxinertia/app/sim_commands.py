@@ -11,8 +11,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from jaxinertia.app.arm_options import add_arm_option, lbipe_arm_only
 from jaxinertia.app.commands import LBIPE_DIR_HELP, lbipe_dir_of
-from jaxinertia.app.defaults import ARM_NAMES, DEFAULT_ARM
+from jaxinertia.app.defaults import DEFAULT_ARM
 from jaxinertia.app.options import (
     check_memory,
     check_outputs,
@@ -83,7 +84,7 @@ def cmd_simulate(args) -> int:
         fields, meta = continuous.simulate_continuous_run(
             params, n=args.n or 2048, objects=args.objects or ["empty", "cube", "white",
                                                                "black"],
-            switch_every=args.switch_every, seed=args.seed)
+            switch_every=args.switch_every, seed=args.seed, arm=arm)
         meta["version"] = __version__
         data = samples.Samples.from_fields(fields, meta["objects"], need_truth=True)
         path = samples.save_native(args.out, data, meta)
@@ -92,7 +93,7 @@ def cmd_simulate(args) -> int:
         return 0
     plan = None
     if args.plan is not None:
-        plan = design.load_plan(args.plan)
+        plan = design.load_plan(args.plan, arm=arm.name)
         if plan[0].shape[1] != params.robot.n_joints:
             raise UsageError(f"--plan {args.plan}: {plan[0].shape[1]} joints per pose; the "
                              f"simulated arm has {params.robot.n_joints}")
@@ -122,6 +123,7 @@ def cmd_calibrate(args) -> int:
     # Nothing shipped is written by a command: the fit goes where --out says (the shipped
     # data/open_manipulator_x_sim.json is replaced by hand, after review, if at all).
     distinct(args.real_objects, "--real-objects")
+    lbipe_arm_only(args, "calibrate fits the simulator to")
     if args.out is None:
         raise UsageError("--out FILE.json is required: a fit is written where you say, never "
                          "over the shipped calibration (pass it to simulate --calibration)")
@@ -210,9 +212,7 @@ def register(sub) -> None:
     s.add_argument("--switch-every", type=positive_int, default=512,
                    help="continuous: samples between object switches (default 512)")
     s.add_argument("--seed", type=seed_int, default=0)
-    s.add_argument("--arm", default=DEFAULT_ARM, metavar="NAME|FILE",
-                   help=f"the arm: {', '.join(ARM_NAMES)}, or an arm file (.json/.toml) "
-                   "(default: %(default)s)")
+    add_arm_option(s)
     s.add_argument("--calibration", type=Path,
                    help="simulator parameter file (default: the arm's shipped calibration; "
                    "an arm without one is simulated from its datasheet values)")
@@ -250,4 +250,5 @@ def register(sub) -> None:
                    help="after the servo and friction, fit a constant torque per joint "
                    "(unmodelled loads such as cables) to the real torque intercept at the "
                    "real PE gain (default: on)")
+    add_arm_option(c)
     c.set_defaults(func=cmd_calibrate)

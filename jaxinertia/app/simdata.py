@@ -14,6 +14,7 @@ import numpy as np
 
 from jaxinertia import __version__
 from jaxinertia.app.programs import stream_programs
+from jaxinertia.arms import DEFAULT_ARM
 from jaxinertia.errors import UsageError
 from jaxinertia.samples import SampleFile, Samples, read_sample_file, write_sample_file
 from jaxinertia.sim.params import params_to_dict
@@ -62,19 +63,23 @@ def cached(path: Path, request: dict, make, *, only_at_rest: bool = True) -> Sam
 
 def simulate_files(params, wanted: list[tuple[Path, str, int | None, int]], *,
                    spread: DomainSpread | None = None, draws: int = 4,
-                   progress: bool = True) -> list[SampleFile]:
+                   progress: bool = True, arm=None) -> list[SampleFile]:
     """Simulates the scenarios ``(path, scenario, n, seed)`` whose files are not there yet,
     all in one stream (one compiled program, one settling tail).
 
     ``spread``: domain randomization: the samples of every file come from ``draws``
     simulated arms drawn around ``params`` (:func:`jaxinertia.sim.randomize.perturbed`),
     ``n / draws`` random-scenario samples each (one stream per arm). ``progress``: the
-    stream's progress bar."""
+    stream's progress bar. ``arm``: the :class:`jaxinertia.arm.Arm` simulated (its
+    workspace, planning grid and tag mount; default the OpenMANIPULATOR-X), ``params``
+    its simulator."""
     digest = params_digest(params)
     randomized = {} if spread is None else {"spread": spread.to_dict(), "draws": draws}
+    other = {} if arm is None or arm.name == DEFAULT_ARM else {"arm": arm.name}
 
     def request(scenario, n, seed):
-        return {"scenario": scenario, "seed": seed, "n": n, "simulator": digest, **randomized}
+        return {"scenario": scenario, "seed": seed, "n": n, "simulator": digest, **randomized,
+                **other}
 
     missing, done = [], {}
     for path, scenario, n, seed in wanted:
@@ -87,19 +92,20 @@ def simulate_files(params, wanted: list[tuple[Path, str, int | None, int]], *,
     if missing and spread is None:
         results = simulate_scenarios(
             params, [ScenarioRequest(scenario, n, None, seed) for _, scenario, n, seed in missing],
-            programs=stream_programs(), progress=progress)
+            programs=stream_programs(), progress=progress, arm=arm)
     elif missing:
         if any(scenario != "random" or n is None for _, scenario, n, _ in missing):
             raise UsageError("domain randomization splits random-scenario files over the "
                              "simulated arms: give n, scenario 'random'")
         per_arm = []
         for r in range(draws):
-            arm = perturbed(params, jax.random.fold_in(jax.random.key(missing[0][3]), r), spread)
-            per_arm.append(simulate_scenarios(arm, [
+            drawn = perturbed(params, jax.random.fold_in(jax.random.key(missing[0][3]), r),
+                              spread)
+            per_arm.append(simulate_scenarios(drawn, [
                 ScenarioRequest(scenario, -(-n // draws), None, seed + 7919 * (r + 1))
                 for _, scenario, n, seed in missing], programs=stream_programs(),
-                progress=progress))
-        results = [_merge([arm[i] for arm in per_arm]) for i in range(len(missing))]
+                progress=progress, arm=arm))
+        results = [_merge([one[i] for one in per_arm]) for i in range(len(missing))]
     for (path, scenario, n, seed), res in zip(missing, results):
         fields, meta = native_fields(res, params, scenario=scenario, seed=seed,
                                      version=__version__)

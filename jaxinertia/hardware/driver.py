@@ -31,7 +31,7 @@ import itertools
 import os
 import termios
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -39,7 +39,7 @@ from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite
 
 from jaxinertia import errors
 from jaxinertia.hardware import control_table as ct
-from jaxinertia.hardware.safety import SafetyLimits, default_joint_limits
+from jaxinertia.hardware.safety import SafetyLimits
 from jaxinertia.hardware.transport import (
     LockedPortHandler,
     MatchingPacketHandler,
@@ -81,9 +81,12 @@ class HardwareError(errors.HardwareError):
 
 @dataclass(frozen=True)
 class ArmConfig:
-    """Bus, servo registers and the motion protocol. Defaults: OpenMANIPULATOR-X, as the
+    """Bus, servo registers and the motion protocol.
+    :func:`jaxinertia.hardware.arm_config.arm_config` takes every value from an arm's
+    record; the field defaults are the OpenMANIPULATOR-X's registers as the
     paper ran it (PD position loop: I = 0; ROBOTIS' own configuration sets I = 100, which
-    would integrate the very discrepancy the method measures)."""
+    would integrate the very discrepancy the method measures). ``joint_limits`` None: the
+    safety limits' (:class:`DynamixelArm` is then given them)."""
 
     port: str
     baudrate: int = 1_000_000
@@ -95,7 +98,7 @@ class ArmConfig:
     pwm_limit: int = 885
     profile_velocity: float = 0.5  # [rad/s], the simulator's profile
     profile_acceleration: float = 2.0  # [rad/s^2]
-    joint_limits: np.ndarray = field(default_factory=default_joint_limits)  # (N, 2) [rad]
+    joint_limits: np.ndarray | None = None  # (N, 2) [rad]
     settle_time: float = 0.2  # no tick may change for this long [s]
     move_timeout: float = 6.0  # per move [s]
     poll_period: float = 0.002  # [s]
@@ -136,7 +139,13 @@ class DynamixelArm:
                  safety: SafetyLimits | None = None) -> None:
         self.config = config
         self.robot = robot
+        if safety is None and config.joint_limits is None:
+            raise errors.UsageError("ArmConfig without joint_limits needs SafetyLimits "
+                                    "(hardware.arm_config gives an arm's)")
         self.safety = safety or SafetyLimits(np.asarray(config.joint_limits, np.float64))
+        #: What the servos' own Min/Max Position Limit registers are set to.
+        self.joint_limits = np.asarray(self.safety.joint_limits if config.joint_limits is None
+                                       else config.joint_limits, np.float64)
         self.port = LockedPortHandler(config.port)
         self.packet = MatchingPacketHandler()
         self._connected = False
@@ -283,7 +292,7 @@ class DynamixelArm:
         self._write_all("torque_enable", 0)  # EEPROM is writable only with the torque off
         self._write_all("operating_mode", 3)  # position control
         self._write_all("drive_mode", 0)  # velocity-based profile, normal direction
-        limits = ct.rad_to_ticks(np.asarray(c.joint_limits))
+        limits = ct.rad_to_ticks(self.joint_limits)
         self._write_all("min_position_limit", limits[:, 0])
         self._write_all("max_position_limit", limits[:, 1])
         self._write_all("pwm_limit", c.pwm_limit)

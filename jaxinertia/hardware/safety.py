@@ -9,7 +9,6 @@ import numpy as np
 
 from jaxinertia.errors import UsageError
 from jaxinertia.kinematics import ee_pose, ee_positions
-from jaxinertia.open_manipulator_x import WORKSPACE_DEG
 from jaxinertia.robot import Robot
 
 __all__ = ["SafetyError", "SafetyLimits", "default_joint_limits"]
@@ -22,10 +21,11 @@ class SafetyError(UsageError):
     (exit code 2: the request is refused, the arm has not moved)."""
 
 
-def default_joint_limits(margin_deg: float = 8.0) -> np.ndarray:
-    """(N, 2) [rad]: the paper's workspace (``open_manipulator_x.WORKSPACE_DEG``) widened
-    by ``margin_deg`` (which covers the 3 deg pre-positions with room to spare)."""
-    w = np.asarray(WORKSPACE_DEG, np.float64)
+def default_joint_limits(workspace_deg, margin_deg: float = 8.0) -> np.ndarray:
+    """(N, 2) [rad]: the arm's workspace ``workspace_deg`` (``(lo, hi)`` per joint [deg],
+    :attr:`jaxinertia.arm.Arm.workspace_deg`) widened by ``margin_deg`` (the record's
+    ``safety_margin_deg``; 8 deg covers the 3 deg pre-positions with room to spare)."""
+    w = np.asarray(workspace_deg, np.float64)
     return (w + np.array([-margin_deg, margin_deg])) * _DEG
 
 
@@ -38,11 +38,11 @@ class SafetyLimits:
     ee_box: np.ndarray | None = None
 
     @classmethod
-    def around_workspace(cls, robot: Robot, *, margin_deg: float = 8.0,
+    def around_workspace(cls, robot: Robot, *, workspace, margin_deg: float = 8.0,
                          box_margin: float = 0.03) -> SafetyLimits:
-        """Joint limits around the paper's workspace; the end-effector box is what those
-        joint limits reach (corners and a grid) plus ``box_margin`` on every side."""
-        limits = default_joint_limits(margin_deg)
+        """Joint limits around the arm's ``workspace`` [deg]; the end-effector box is what
+        those joint limits reach (corners and a grid) plus ``box_margin`` on every side."""
+        limits = default_joint_limits(workspace, margin_deg)
         axes = [np.linspace(lo, hi, 5) for lo, hi in limits]
         grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(limits))
         p = np.asarray(ee_positions(robot, grid))

@@ -27,7 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from jaxinertia.arm import Arm
 from jaxinertia.objects import HeldObject, resolve
+from jaxinertia.open_manipulator_x import ARM as OMX_ARM
 from jaxinertia.plans import continuous_plan, switching_schedule
 from jaxinertia.sim.sampling import Record, jitter_friction, record
 from jaxinertia.sim.servo import goal_ticks
@@ -119,13 +121,17 @@ def simulate_continuous(
 
 def simulate_continuous_run(params: SimParams, *, n: int, objects: list[str],
                             switch_every: int, seed: int = 0, lanes: int = 1,
-                            progress: bool = True) -> tuple[dict, dict]:
+                            progress: bool = True, arm: Arm | None = None
+                            ) -> tuple[dict, dict]:
     """The switching-load run as native-format fields and metadata (``object_id`` is the
     object held at each sample, ``x`` per object; ``objects``: names as
-    :func:`jaxinertia.objects.resolve` takes them, ``empty`` for the empty gripper)."""
-    objs = [resolve(o) for o in objects]
+    :func:`jaxinertia.objects.resolve` takes them, ``empty`` for the empty gripper;
+    ``arm``: the record whose workspace and tag mount the walk uses, default the
+    OpenMANIPULATOR-X's; ``params`` must be that arm's)."""
+    arm = OMX_ARM if arm is None else arm
+    objs = [resolve(o, tag_in_ee=arm.tag_in_ee) for o in objects]
     stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *objs)
-    q, d = continuous_plan(n, seed)
+    q, d = continuous_plan(n, seed, workspace=arm.workspace_deg)
     schedule = switching_schedule(n, len(objs), switch_every)
     rec = simulate_continuous(params, stacked, schedule, q, d, jax.random.key(seed + 99),
                               lanes=lanes, progress=progress)
@@ -133,7 +139,7 @@ def simulate_continuous_run(params: SimParams, *, n: int, objects: list[str],
     fields["object_id"] = schedule
     fields["x"] = np.stack([np.asarray(o.x) for o in objs])
     meta = {"scenario": "continuous", "seed": seed, "source": "simulator", "objects": objects,
-            "switch_every": switch_every, "robot": params.robot.name,
+            "switch_every": switch_every, "robot": params.robot.name, "arm": arm.name,
             "simulator": {"precision": str(jnp.dtype(jnp.result_type(float))),
                           "lanes": lanes},
             "request": {"scenario": "continuous", "seed": seed, "n": n,

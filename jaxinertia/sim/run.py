@@ -19,6 +19,7 @@ from jaxinertia.objects import (
     paper_object,
     training_object,
 )
+from jaxinertia.open_manipulator_x import ARM as OMX_ARM
 from jaxinertia.plans import planning_plan, random_plan
 from jaxinertia.sim.params import params_to_dict
 from jaxinertia.sim.simulator import SimParams
@@ -158,7 +159,9 @@ def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
                                       batch_last=batch_last, programs=own, progress=progress,
                                       arm=arm)
     # The stepping program needs no plans: it compiles while they are built.
-    programs.precompile(params, training_object(0.0), lanes=lanes, batch_last=batch_last)
+    arm = OMX_ARM if arm is None else arm
+    programs.precompile(params, training_object(0.0, tag_in_ee=arm.tag_in_ee), lanes=lanes,
+                        batch_last=batch_last)
     jobs, descs, plans = [], [], []
     for r in requests:
         named = _scenario_jobs(r.scenario, r.n, r.objects, r.seed, r.plan, arm=arm,
@@ -191,11 +194,10 @@ def _scenario_jobs(scenario: str, n: int | None, objects: list[str] | None, seed
     for every object, repeated cyclically to ``n`` samples; ``arm``: its workspace,
     planning grid and tag mount, ``robot`` its bare robot; default the OpenMANIPULATOR-X)."""
     _check_request(scenario, objects)
-    tag, ws, grid_kw = {}, {}, {}
-    if arm is not None:
-        tag, ws = {"tag_in_ee": arm.tag_in_ee}, {"workspace": arm.workspace_deg}
-        grid_kw = dict(step_deg=arm.planning_step_deg, clearance=arm.mount_clearance_m,
-                       robot=robot if robot is not None else arm.robot(), **ws)
+    arm = OMX_ARM if arm is None else arm
+    tag, ws = {"tag_in_ee": arm.tag_in_ee}, {"workspace": arm.workspace_deg}
+    grid_kw = dict(step_deg=arm.planning_step_deg, clearance=arm.mount_clearance_m,
+                   robot=robot if robot is not None else arm.robot(), **ws)
     if given is not None:
         q_d, d = (np.asarray(a, np.float64) for a in given)
         reps = np.arange(n or len(q_d)) % len(q_d)
