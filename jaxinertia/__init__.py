@@ -34,7 +34,30 @@ _NAMES = {
     "load_regressor": "statics", "tag_pose": "statics",
 }
 
-__all__ = sorted([*_NAMES, "apply_xla_workarounds"])
+__all__ = [
+    "HeldObject",
+    "JaxinertiaError",
+    "ModelPair",
+    "Robot",
+    "Samples",
+    "WLSResult",
+    "apply_xla_workarounds",
+    "ee_jacobian",
+    "ee_pose",
+    "estimate_sets",
+    "evaluate",
+    "forward_kinematics",
+    "gravity_torques",
+    "load_regressor",
+    "load_robot",
+    "load_samples",
+    "mass_and_com",
+    "open_manipulator_x",
+    "point_jacobian",
+    "solve_sets",
+    "tag_pose",
+    "wls",
+]
 
 
 def __getattr__(name: str):

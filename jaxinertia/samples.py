@@ -321,15 +321,12 @@ def _check_names(names: Sequence[str], path) -> None:
 def save_native(path: str | os.PathLike, samples: Samples, metadata: dict) -> Path:
     """Writes a native sample file atomically (a temporary file, then a rename); the
     object names go into ``metadata["objects"]`` and must be distinct."""
-    return write_sample_file(path, samples, metadata).path
+    _write_native(Path(path), samples, metadata)
+    return Path(path)
 
 
-def write_sample_file(path: str | os.PathLike, samples: Samples, metadata: dict, *,
-                      only_at_rest: bool = True) -> SampleFile:
-    """:func:`save_native`, returning the file as :func:`read_sample_file` would read it
-    (the same bytes parsed in memory, their SHA-256): whoever made a file need not read it
-    back."""
-    path = Path(path)
+def _write_native(path: Path, samples: Samples, metadata: dict) -> bytes:
+    """The file's bytes, written atomically."""
     _check_names(samples.names, path)
     meta = {"format": "jaxinertia-samples", "format_version": FORMAT_VERSION, **metadata,
             "objects": list(samples.names)}
@@ -340,6 +337,16 @@ def write_sample_file(path: str | os.PathLike, samples: Samples, metadata: dict,
     raw = buf.getvalue()
     with replacing(path, suffix=".npz") as tmp:
         tmp.write_bytes(raw)
+    return raw
+
+
+def write_sample_file(path: str | os.PathLike, samples: Samples, metadata: dict, *,
+                      only_at_rest: bool = True) -> SampleFile:
+    """:func:`save_native`, returning the file as :func:`read_sample_file` would read it
+    (the same bytes parsed in memory, their SHA-256): whoever made a file need not read it
+    back."""
+    path = Path(path)
+    raw = _write_native(path, samples, metadata)
     with np.load(io.BytesIO(raw), allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
     back, meta = _native(path, arrays, need_truth=samples.known, only_at_rest=only_at_rest)

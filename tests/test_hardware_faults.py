@@ -215,7 +215,7 @@ def record(index: int) -> dict:
 
 def planned(index: int, **change) -> dict:
     """A record at the plan's goal and direction, with ``change``."""
-    q_d, d = random_plan(N, 4)
+    q_d, d = random_plan(N, 4, workspace=OMX.workspace_deg)
     return {**record(index), "q_d": q_d[index].tolist(), "direction": d[index].tolist(),
             **change}
 

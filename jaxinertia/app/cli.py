@@ -46,10 +46,11 @@ COMMANDS = {
     "estimate": ("estimate_commands", "mass and COM of an unknown object from a sample file"),
     "plan-poses": ("estimate_commands", "choose the N most informative poses (D-optimal) for "
                    "an estimate"),
-    "virtual-robot": ("hardware_commands", "a simulated chain of XM430-W350-T servos on a "
+    "virtual-robot": ("hardware_commands", "a simulated chain of DYNAMIXEL servos on a "
                       "pseudo-terminal"),
     "collect": ("hardware_commands", "collect samples on the arm (or a virtual robot) into a "
                 "native sample file"),
+    "tag-image": ("vision_commands", "write an official AprilTag image to print"),
     "tag-pose": ("vision_commands", "pose of an AprilTag in one image (camera frame, and base "
                  "frame)"),
     "camera-calibrate": ("vision_commands", "camera pose in the robot base from images of the "
@@ -106,17 +107,6 @@ def _compilation_cache() -> None:
         compilation_cache.enable(where)  # LRU beyond compilation_cache.MAX_BYTES
 
 
-def _not_utf8(argv: list[str]) -> str | None:
-    """The first argument that is not valid UTF-8 (its bytes reach Python as surrogate
-    escapes, which OpenCV and the JSON readers cannot take): refused before any work."""
-    for a in argv:
-        try:
-            a.encode("utf-8")
-        except UnicodeEncodeError:
-            return a
-    return None
-
-
 def _quiet_closed_loops(unraisable) -> None:
     """``sys.unraisablehook`` without orbax's "Event loop is closed": its asyncio objects,
     collected at exit after a command's error or Ctrl-C, report their closed loop as an
@@ -132,12 +122,6 @@ def main(argv: list[str] | None = None) -> int:
     _xla_workarounds.apply()  # before any command starts JAX's backend
     argv = sys.argv[1:] if argv is None else list(argv)
     command = _command_of(argv)
-    bad = _not_utf8(argv)
-    if bad is not None:
-        prog = "jaxinertia" + (f" {command}" if command in COMMANDS else "")
-        print(f"{prog}: error: the argument {ascii(bad)} is not valid UTF-8: rename the file "
-              "(or folder)", file=sys.stderr)
-        return 2
     try:
         args = build_parser(command).parse_args(argv)
     except SystemExit as e:  # --help (0) or a bad option (2, one line printed)

@@ -9,6 +9,9 @@ or a servo (a port that cannot be opened, is in use by another ``collect`` or
 disappears; a collection stopped by the bus or a servo: the journal is kept and
 ``--resume`` continues; with nothing collected no journal is left). Ctrl-C during a
 collection is not an error: the command says where the journal is and returns 130.
+
+One module for both: they share the bus options, the arm record's defaults for them
+(``_arm``) and the serving loop; the Feetech bus is served from ``feetech_commands``.
 """
 
 from __future__ import annotations

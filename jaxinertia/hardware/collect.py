@@ -216,7 +216,11 @@ class Journal:
                 records[index] = rec
                 numbers[index] = number
             # Then the values, once every line is known to be a record.
-            n_joints = len(old.get("servo_ids") or header["servo_ids"])
+            # The joint count: the header's servo IDs, else the plan's, else the first
+            # record's (a library caller's header may name no IDs).
+            ids = old.get("servo_ids") or header.get("servo_ids")
+            n_joints = (len(ids) if ids else np.shape(plan[0])[1] if plan is not None else
+                        len(next(iter(records.values()), {}).get("q") or ()))
             for index, rec in records.items():
                 _check_values(path, numbers[index], rec, n_joints, plan)
             if tail:
