@@ -17,7 +17,8 @@ from jaxinertia.errors import RobotMismatchError, UsageError
 if TYPE_CHECKING:
     from jaxinertia.arm import Arm
 
-__all__ = ["LBIPE_ARM", "add_arm_option", "arm_name", "arm_of", "lbipe_arm_only", "samples_arm"]
+__all__ = ["LBIPE_ARM", "add_arm_option", "arm_name", "arm_of", "dynamixel_arm_options",
+           "lbipe_arm_only", "samples_arm"]
 
 #: The arm of the authors' real files (the lbipe folder).
 LBIPE_ARM = DEFAULT_ARM
@@ -59,3 +60,32 @@ def lbipe_arm_only(args, what: str) -> None:
     if args.arm is not None and arm_of(args).name != LBIPE_ARM:
         raise UsageError(f"--arm {args.arm}: {what} the real lbipe files, which are the "
                          f"{LBIPE_ARM}'s")
+
+
+def dynamixel_arm_options(args):
+    """The ``--arm`` record, its values filling the options left out (IDs, gripper ID,
+    baud rate, position gains, motion timing, initial pose); only DYNAMIXEL arms here."""
+    import numpy as np  # (light; with the arm's records, which load JAX: at run time)
+
+    from jaxinertia.hardware.arm_config import arm_config  # (as above)
+
+    arm = arm_of(args)
+    if any(m.protocol != "dynamixel2" for m in arm.servo_models):
+        raise UsageError(f"--arm {args.arm}: its servos speak {arm.servo_models[0].protocol}; "
+                         "this command drives DYNAMIXEL (Protocol 2.0) servos only")
+    cfg = arm_config(arm, "")
+    given = {"ids": cfg.joint_ids, "gripper_id": cfg.gripper_id, "baudrate": cfg.baudrate,
+                "p_gain": cfg.p_gain, "d_gain": cfg.d_gain,
+                "profile_velocity": cfg.profile_velocity,
+                "profile_acceleration": cfg.profile_acceleration,
+                "settle_time": cfg.settle_time, "timeout": cfg.move_timeout,
+                "q0": [float(np.mean(w)) for w in arm.workspace_deg]}
+    for k, v in given.items():
+        if getattr(args, k, v) is None:
+            setattr(args, k, v)
+    if args.gripper_id == "none":
+        args.gripper_id = None
+    if hasattr(args, "q0") and len(args.q0) != arm.n_joints:
+        raise UsageError(f"--q0 needs {arm.n_joints} angles (one per joint of {arm.name}), "
+                         f"got {len(args.q0)}")
+    return arm

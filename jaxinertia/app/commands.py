@@ -227,7 +227,39 @@ def register(sub) -> None:
                    "(.png, .pdf, .svg, ...)")
     b.add_argument("--overwrite", action="store_true", help="replace an existing --json/--plot")
     b.set_defaults(func=cmd_lbipe_benchmark)
+    _register_train(sub)
 
+    e = sub.add_parser(
+        "evaluate", help="Tables I-III of trained models on real (default) or simulated data",
+        description="Evaluates a model folder on every data/data_test_<name>.npz in the lbipe "
+        "folder (beside the released models on the same sets), or on a native sample file.")
+    e.add_argument("--models", required=True, type=Path)
+    add_arm_option(e, default=None, what="the samples' arm; another's models are refused")
+    e.add_argument("--lbipe-dir", type=Path, help=LBIPE_DIR_HELP)
+    e.add_argument("--samples", type=Path,
+                   help="a sample file of known objects instead (native or the authors' layout)")
+    e.add_argument("--json", type=Path, help="write Table I/III (lbipe-benchmark schema)")
+    e.add_argument("--sets", type=positive_int, default=1000,
+                   help="random sets per object (no golden)")
+    e.add_argument("--overwrite", action="store_true", help="replace an existing --json")
+    e.add_argument("--seed", type=seed_int, default=0)
+    e.add_argument("--l-max", action="append", metavar="NAME=METRES",
+                   help="bounding-box diagonal of an object without a built-in one")
+    e.set_defaults(func=cmd_evaluate)
+
+    r = sub.add_parser(
+        "reproduce", help="simulate, train, evaluate, switching loads, sim-to-real, report",
+        description="The paper end to end into a run folder (report.md, tables.json, plots). "
+        "Default: a quick run (minutes on a laptop CPU); --full: the paper's scale.")
+    r.add_argument("--out", type=Path, default=Path("runs/reproduce"))
+    r.add_argument("--full", action="store_true")
+    r.add_argument("--seed", type=seed_int, default=0)
+    r.add_argument("--lbipe-dir", type=Path, help=LBIPE_DIR_HELP)
+    add_arm_option(r)
+    r.set_defaults(func=cmd_reproduce)
+
+
+def _register_train(sub) -> None:
     t = sub.add_parser(
         "train", help="train torque and attention models (K seeds) and fit the baselines",
         description="Trains on native sample files of known objects (jaxinertia simulate or "
@@ -273,32 +305,3 @@ def register(sub) -> None:
         t.add_argument("--" + name.replace("_", "-"), dest=name, type=typ,
                        help=f"(default {defaults.TRAIN[name]})")
     t.set_defaults(func=cmd_train)
-
-    e = sub.add_parser(
-        "evaluate", help="Tables I-III of trained models on real (default) or simulated data",
-        description="Evaluates a model folder on every data/data_test_<name>.npz in the lbipe "
-        "folder (beside the released models on the same sets), or on a native sample file.")
-    e.add_argument("--models", required=True, type=Path)
-    add_arm_option(e, default=None, what="the samples' arm; another's models are refused")
-    e.add_argument("--lbipe-dir", type=Path, help=LBIPE_DIR_HELP)
-    e.add_argument("--samples", type=Path,
-                   help="a sample file of known objects instead (native or the authors' layout)")
-    e.add_argument("--json", type=Path, help="write Table I/III (lbipe-benchmark schema)")
-    e.add_argument("--sets", type=positive_int, default=1000,
-                   help="random sets per object (no golden)")
-    e.add_argument("--overwrite", action="store_true", help="replace an existing --json")
-    e.add_argument("--seed", type=seed_int, default=0)
-    e.add_argument("--l-max", action="append", metavar="NAME=METRES",
-                   help="bounding-box diagonal of an object without a built-in one")
-    e.set_defaults(func=cmd_evaluate)
-
-    r = sub.add_parser(
-        "reproduce", help="simulate, train, evaluate, switching loads, sim-to-real, report",
-        description="The paper end to end into a run folder (report.md, tables.json, plots). "
-        "Default: a quick run (minutes on a laptop CPU); --full: the paper's scale.")
-    r.add_argument("--out", type=Path, default=Path("runs/reproduce"))
-    r.add_argument("--full", action="store_true")
-    r.add_argument("--seed", type=seed_int, default=0)
-    r.add_argument("--lbipe-dir", type=Path, help=LBIPE_DIR_HELP)
-    add_arm_option(r)
-    r.set_defaults(func=cmd_reproduce)

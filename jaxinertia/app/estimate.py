@@ -62,6 +62,41 @@ def _identifiable(obj: Samples, noise: np.ndarray, where: str) -> None:
                          "configurations that vary joints 2-4 (jaxinertia plan-poses)")
 
 
+def _refuse_unanswerable(objects, sample_file, set_size: int, noise) -> None:
+    """Refuses, object by object, samples no estimate can come from."""
+    for obj in objects:
+        where = f"{sample_file}" + (f" [{obj.name}]" if len(objects) > 1 else "")
+        if obj.n_samples < set_size:
+            raise UsageError(f"{where}: {obj.n_samples} sample(s); an estimate needs at least "
+                             f"one set of --set-size {set_size}")
+        if np.all(obj.q_d == obj.q):
+            raise UsageError(f"{where}: q_d - q is zero on every sample: no discrepancy to "
+                             "read a load from (torque off, or q_d recorded as q?)")
+        _identifiable(obj, noise, where)
+
+
+def _method_answer(x_all, x_sets, unc, *, set_size: int, max_mass: float,
+                   max_com: float) -> dict:
+    """One method's answer for one object: from all its samples (``x_all``, per model
+    pair), the spread over the random sets (``x_sets``), the uncertainty; or why not."""
+    x_models = np.asarray(x_all).reshape(-1, 4)  # (K, 4) or (1, 4)
+    x = np.mean(x_models, axis=0)
+    why = _gate(x, max_mass=max_mass, max_com=max_com)
+    if why is not None:
+        return {"ok": False, "reason": why}
+    xs = np.asarray(x_sets).reshape(-1, 4)
+    good = np.array([_gate(v, max_mass=max_mass, max_com=max_com) is None for v in xs])
+    return {
+        "ok": True, "mass_kg": float(x[0]), "com_tag_m": (x[1:] / x[0]).tolist(),
+        **_uncertainty_fields(unc, 0),
+        "mass_std_across_models_kg": float(np.std(x_models[:, 0])),
+        f"mass_std_over_{set_size}_sample_sets_kg": float(np.std(xs[good, 0])),
+        f"com_std_over_{set_size}_sample_sets_m":
+            np.std(xs[good, 1:] / xs[good, :1], axis=0).tolist(),
+        "failed_sets": int(np.sum(~good)), "n_sets": int(len(xs)),
+    }
+
+
 def _uncertainty_fields(u, o: int) -> dict:
     """One object's answer of one method: standard errors, intervals, covariance."""
     x, cov = np.asarray(u.x[o, 0]), np.asarray(u.cov[o, 0])
@@ -117,15 +152,7 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
                                                     DEFAULT_TORQUE_NOISE_NM)
     noise_source = ("torque models' validation error" if floor is not None else
                     f"nominal {DEFAULT_TORQUE_NOISE_NM * 1e3:.0f} N mm per joint")
-    for obj in objects:  # every refusal before any estimate
-        where = f"{sample_file}" + (f" [{obj.name}]" if len(objects) > 1 else "")
-        if obj.n_samples < set_size:
-            raise UsageError(f"{where}: {obj.n_samples} sample(s); an estimate needs at least "
-                             f"one set of --set-size {set_size}")
-        if np.all(obj.q_d == obj.q):
-            raise UsageError(f"{where}: q_d - q is zero on every sample: no discrepancy to "
-                             "read a load from (torque off, or q_d recorded as q?)")
-        _identifiable(obj, noise, where)
+    _refuse_unanswerable(objects, sample_file, set_size, noise)  # before any estimate
     out: dict = {"file": str(sample_file), "objects": {},
                  "torque_error_floor": {"Nm": None if floor is None else floor.tolist(),
                                         "source": floor_source}}
@@ -137,25 +164,9 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
                              floor=floor)
         sets, _ = choose_sets([obj], n_sets=n_sets, set_size=set_size, seed=seed)
         spread = evaluate([obj], sets, pair=pair, baselines=baselines, fc=fc, l_max=[np.nan])
-        methods = {}
-        for m, x_all in res["estimates"].items():
-            x_models = np.asarray(x_all).reshape(-1, 4)  # (K, 4) or (1, 4)
-            x = np.mean(x_models, axis=0)
-            why = _gate(x, max_mass=max_mass, max_com=max_com)
-            if why is not None:
-                methods[m] = {"ok": False, "reason": why}
-                continue
-            xs = np.asarray(spread["estimates"][m]).reshape(-1, 4)
-            good = np.array([_gate(v, max_mass=max_mass, max_com=max_com) is None for v in xs])
-            methods[m] = {
-                "ok": True, "mass_kg": float(x[0]), "com_tag_m": (x[1:] / x[0]).tolist(),
-                **_uncertainty_fields(unc[m], 0),
-                "mass_std_across_models_kg": float(np.std(x_models[:, 0])),
-                f"mass_std_over_{set_size}_sample_sets_kg": float(np.std(xs[good, 0])),
-                f"com_std_over_{set_size}_sample_sets_m":
-                    np.std(xs[good, 1:] / xs[good, :1], axis=0).tolist(),
-                "failed_sets": int(np.sum(~good)), "n_sets": int(len(xs)),
-            }
+        methods = {m: _method_answer(x_all, spread["estimates"][m], unc[m], set_size=set_size,
+                                     max_mass=max_mass, max_com=max_com)
+                   for m, x_all in res["estimates"].items()}
         if not any(r["ok"] for r in methods.values()):
             raise UsageError(f"{sample_file} [{obj.name}]: no method gives a physically possible "
                              "estimate (" + "; ".join(f"{m}: {r['reason']}"

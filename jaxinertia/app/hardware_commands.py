@@ -11,7 +11,8 @@ disappears; a collection stopped by the bus or a servo: the journal is kept and
 collection is not an error: the command says where the journal is and returns 130.
 
 One module for both: they share the bus options, the arm record's defaults for them
-(``_arm``) and the serving loop; the Feetech bus is served from ``feetech_commands``.
+(``arm_options.dynamixel_arm_options``) and the serving loop; the Feetech bus is served
+from ``feetech_commands``.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from jaxinertia.app import defaults
-from jaxinertia.app.arm_options import add_arm_option, arm_of
+from jaxinertia.app.arm_options import add_arm_option, arm_of, dynamixel_arm_options
 from jaxinertia.app.options import (
     check_memory,
     finite_float,
@@ -97,35 +98,6 @@ def _register(limit: int):
     return parse
 
 
-def _arm(args):
-    """The ``--arm`` record, its values filling the options left out (IDs, gripper ID,
-    baud rate, position gains, motion timing, initial pose); only DYNAMIXEL arms here."""
-    import numpy as np  # (light; with the arm's records, which load JAX: at run time)
-
-    from jaxinertia.hardware.arm_config import arm_config  # (as above)
-
-    arm = arm_of(args)
-    if any(m.protocol != "dynamixel2" for m in arm.servo_models):
-        raise UsageError(f"--arm {args.arm}: its servos speak {arm.servo_models[0].protocol}; "
-                         "this command drives DYNAMIXEL (Protocol 2.0) servos only")
-    cfg = arm_config(arm, "")
-    given = {"ids": cfg.joint_ids, "gripper_id": cfg.gripper_id, "baudrate": cfg.baudrate,
-                "p_gain": cfg.p_gain, "d_gain": cfg.d_gain,
-                "profile_velocity": cfg.profile_velocity,
-                "profile_acceleration": cfg.profile_acceleration,
-                "settle_time": cfg.settle_time, "timeout": cfg.move_timeout,
-                "q0": [float(np.mean(w)) for w in arm.workspace_deg]}
-    for k, v in given.items():
-        if getattr(args, k, v) is None:
-            setattr(args, k, v)
-    if args.gripper_id == "none":
-        args.gripper_id = None
-    if hasattr(args, "q0") and len(args.q0) != arm.n_joints:
-        raise UsageError(f"--q0 needs {arm.n_joints} angles (one per joint of {arm.name}), "
-                         f"got {len(args.q0)}")
-    return arm
-
-
 def _check_ids(args, n_joints: int) -> None:
     """One servo ID per joint, all distinct, the gripper's apart (before anything moves)."""
     ids = tuple(args.ids)
@@ -157,7 +129,7 @@ def cmd_virtual_robot(args) -> int:
                     seed=args.fault_seed)
     if is_feetech(arm_of(args)):  # the arm record names the servo family
         return virtual_sts_robot(args, arm_of(args), faults, _serve)
-    arm = _arm(args)
+    arm = dynamixel_arm_options(args)
     obj = objects.resolve(args.object, tag_in_ee=arm.tag_in_ee)
     params = arm_sim_params(arm, args.calibration)
     _check_ids(args, params.robot.n_joints)
@@ -227,30 +199,15 @@ def _collect_plan(args, arm, robot) -> tuple[np.ndarray, np.ndarray]:
     return q_d, direction
 
 
-def cmd_collect(args) -> int:
-    # The work's modules (JAX, dynamixel-sdk): imported when the command runs, not for --help.
-    import jax
-    import numpy as np  # (as above)
-
-    from jaxinertia import __version__, objects  # (as above)
-    from jaxinertia.hardware.arm_config import arm_config, safety_limits  # (as above)
-    from jaxinertia.hardware.collect import (  # (as above)
-        Journal,
-        KinematicTagPose,
-        collect,
-        journal_path,
-        plan_digest,
-        samples_from_records,
-    )
-    from jaxinertia.hardware.driver import DynamixelArm, PortError  # (as above)
-    from jaxinertia.hardware.safety import SafetyError  # (as above)
+def _collect_request(args):
+    """The arm, object, robot, safety limits and plan of a collection, every goal checked
+    against the limits: all that can be refused, before the port is opened."""
+    from jaxinertia import objects  # the work's modules: imported when the command runs
+    from jaxinertia.hardware.arm_config import safety_limits  # (as above)
     from jaxinertia.open_manipulator_x import calibrated_robot  # (as above)
-    from jaxinertia.samples import save_native  # (as above)
     from jaxinertia.sim.params import arm_sim_params  # (as above)
 
-    jax.config.update("jax_enable_x64", True)
-    # Everything that can be refused is refused before the port is opened (exit code 2).
-    arm = _arm(args)
+    arm = dynamixel_arm_options(args)
     _check_collect_options(args)
     obj = None if args.object == UNKNOWN else objects.resolve(args.object,
                                                             tag_in_ee=arm.tag_in_ee)
@@ -264,13 +221,37 @@ def cmd_collect(args) -> int:
         raise UsageError(f"--plan {args.plan}: {q_d.shape[1]} joints per pose; the arm has "
                          f"{robot.n_joints}")
     safety = safety_limits(arm, robot)
-    delta = arm.pre_position
     for i, (goal, d) in enumerate(zip(q_d, direction)):  # every goal before the port opens
         try:
-            for q in (goal, goal - d * delta):
+            for q in (goal, goal - d * arm.pre_position):
                 safety.check(q, robot)
         except UsageError as e:
             raise UsageError(f"--plan {args.plan}: pose {i}: {e}") from None
+    return arm, obj, robot, safety, (q_d, direction)
+
+
+def cmd_collect(args) -> int:
+    # The work's modules (JAX, dynamixel-sdk): imported when the command runs, not for --help.
+    import jax
+    import numpy as np  # (as above)
+
+    from jaxinertia.hardware.arm_config import arm_config  # (as above)
+    from jaxinertia.hardware.collect import (  # (as above)
+        Journal,
+        KinematicTagPose,
+        collect,
+        journal_path,
+        plan_digest,
+        samples_from_records,
+    )
+    from jaxinertia.hardware.driver import DynamixelArm, PortError  # (as above)
+    from jaxinertia.hardware.safety import SafetyError  # (as above)
+    from jaxinertia.samples import save_native  # (as above)
+
+    jax.config.update("jax_enable_x64", True)
+    # Everything that can be refused is refused before the port is opened (exit code 2).
+    arm, obj, robot, safety, (q_d, direction) = _collect_request(args)
+    delta = arm.pre_position
     out = check_output(args.out, overwrite=args.overwrite)
     config = arm_config(
         arm, args.port, baudrate=args.baudrate, joint_ids=args.ids, gripper_id=args.gripper_id,
@@ -318,28 +299,39 @@ def cmd_collect(args) -> int:
     print(f"bus: {dxl.bus_report()}", file=sys.stderr)
     x = None if obj is None else np.asarray(obj.x)
     samples = samples_from_records(journal.records, robot, x, args.object)
-    meta = {"version": __version__, "source": "dynamixel", "port": args.port,
-            "plan": args.plan, "object": args.object,
-            "scenario": args.plan if args.plan in ("planning", "random") else "plan",
-            "objects": [args.object], "seed": args.seed, "servo_ids": list(args.ids),
-            "gripper_id": args.gripper_id, "robot": robot.name, "arm": arm.name,
-            "delta": delta,
-            "journal": str(journal.path), "plan_digest": header["plan_digest"],
-            "tag_pose": f"kinematic (the {arm.name} record's tag_in_ee)",
-            "servo": {"p_gain": args.p_gain, "i_gain": 0, "d_gain": args.d_gain,
-                      "profile_velocity": args.profile_velocity,
-                      "profile_acceleration": args.profile_acceleration,
-                      "settle_time": args.settle_time, "timeout": args.timeout}}
-    path = save_native(out, samples, meta)
+    path = save_native(out, samples, _collected_meta(args, arm, robot, journal, header))
     bad = int(np.sum(~samples.at_rest))
     print(f"wrote {path} ({samples.n_samples} samples" + (
         f", {bad} timed out: at_rest = False)" if bad else ")"))
     return 0
 
 
+def _collected_meta(args, arm, robot, journal, header) -> dict:
+    """What a collected sample file records of its collection."""
+    from jaxinertia import __version__  # (light; the package's own version)
+
+    return {"version": __version__, "source": "dynamixel", "port": args.port,
+            "plan": args.plan, "object": args.object,
+            "scenario": args.plan if args.plan in ("planning", "random") else "plan",
+            "objects": [args.object], "seed": args.seed, "servo_ids": list(args.ids),
+            "gripper_id": args.gripper_id, "robot": robot.name, "arm": arm.name,
+            "delta": arm.pre_position,
+            "journal": str(journal.path), "plan_digest": header["plan_digest"],
+            "tag_pose": f"kinematic (the {arm.name} record's tag_in_ee)",
+            "servo": {"p_gain": args.p_gain, "i_gain": 0, "d_gain": args.d_gain,
+                      "profile_velocity": args.profile_velocity,
+                      "profile_acceleration": args.profile_acceleration,
+                      "settle_time": args.settle_time, "timeout": args.timeout}}
+
+
 def register(sub) -> None:
     """Adds this module's subcommands to the ``jaxinertia`` argparse subparsers."""
     names = ", ".join(defaults.OBJECT_NAMES)
+    _register_virtual_robot(sub, names)
+    _register_collect(sub, names)
+
+
+def _register_virtual_robot(sub, names: str) -> None:
     v = sub.add_parser(
         "virtual-robot",
         help="a simulated chain of DYNAMIXEL servos on a pseudo-terminal",
@@ -375,6 +367,8 @@ def register(sub) -> None:
     g.add_argument("--fault-seed", type=seed_int, default=0)
     v.set_defaults(func=cmd_virtual_robot)
 
+
+def _register_collect(sub, names: str) -> None:
     c = sub.add_parser(
         "collect",
         help="collect samples on the arm (or a virtual robot) into a native sample file",

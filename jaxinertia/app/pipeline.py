@@ -79,17 +79,8 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
     come from (the folder records it; default: the one the files record).
     """
     check_output(out, overwrite=overwrite, folder=True)
-    # Each file read once (a record already read is not read again).
-    files = [f if isinstance(f, SampleFile) else read_sample_file(f) for f in sample_files]
-    for f in files:
-        samples_arm(f.path, f.meta, arm)  # another arm's file: one line, before any training
+    files, robot = _training_files(sample_files, arm)
     parts, metas = [f.samples for f in files], [f.meta for f in files]
-    sample_files = [f.path for f in files]
-    # The authors' layout records no robot: it is taken to be the native files' one.
-    robots = {m.get("robot") for m in metas} - {None}
-    if len(robots) > 1:
-        raise FileFormatError(sample_files[0], "metadata", f"files of different robots {robots}")
-    robot = robots.pop() if robots else arm
     start = None
     if init is not None:
         pair0, _, fc0, config0 = load_models(init, robot=robot)
@@ -109,29 +100,14 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
                          f"{train_set.n_samples} for training and {val_set.n_samples} for "
                          "validation: both need samples")
     fc = feature_config_from(train_set) if start is None else start[1]
-    key = jax.random.key(cfg.seed)
-    k_t, k_a = jax.random.split(key)
-    torque = train_torque_models(cfg, fc, train_set, val_set, k_t, progress=progress,
-                                 init=None if start is None else start[0].torque_vars,
-                                 model=None if start is None else start[0].torque_model)
-    t1 = time.perf_counter()
-    attention = train_attention_models(
-        cfg, fc, torque, train_set, val_set, k_a, progress=progress,
-        init=None if start is None else start[0].attention_vars,
-        model=None if start is None else start[0].attention_model)
+    pair, baselines, torque, attention, t1 = _fit(cfg, fc, train_set, val_set,
+                                                  None if start is None else start[0], progress)
     t2 = time.perf_counter()
-    baselines = fit_baselines(train_set.q_d, train_set.q, train_set.direction,
-                              train_set.current_tau, train_set.tau)
-    pair = ModelPair(torque_vars=torque.variables, attention_vars=attention.variables,
-                     tau_scale=np.asarray(fc.tau_scale, np.float32),
-                     torque_model=torque.model, attention_model=attention.model)
     info = {
         "training": cfg.to_dict(),
-        "data": [{"file": str(Path(f).resolve()), "sha256": m["sha256"],
-                  "objects": m.get("objects"), "scenario": m.get("scenario"),
-                  "seed": m.get("seed"), "source": m.get("source"),
-                  "session_ratio": r}
-                 for f, m, r in zip(sample_files, metas, ratios)],
+        "data": [{"file": str(f.path.resolve()), "sha256": f.meta["sha256"],
+                  **{k: f.meta.get(k) for k in ("objects", "scenario", "seed", "source")},
+                  "session_ratio": r} for f, r in zip(files, ratios)],
         "session": reference.to_dict(),
         "simulator_session": None if sim_reference is None else sim_reference.to_dict(),
         "samples_per_object": samples_per_object,
@@ -151,6 +127,40 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
                                    "training": start[2].get("training")}
     save_models(out, pair, baselines, fc, robot=robot, extra=info, arm=arm)  # atomic
     return info
+
+
+def _fit(cfg: TrainConfig, fc, train_set: Samples, val_set: Samples, start: ModelPair | None,
+         progress: bool):
+    """The K torque and attention model pairs (from ``start``'s parameters when given) and
+    the baselines; returns them, the two trainings' results and when the torque's ended."""
+    k_t, k_a = jax.random.split(jax.random.key(cfg.seed))
+    torque = train_torque_models(cfg, fc, train_set, val_set, k_t, progress=progress,
+                                 init=None if start is None else start.torque_vars,
+                                 model=None if start is None else start.torque_model)
+    t1 = time.perf_counter()
+    attention = train_attention_models(
+        cfg, fc, torque, train_set, val_set, k_a, progress=progress,
+        init=None if start is None else start.attention_vars,
+        model=None if start is None else start.attention_model)
+    baselines = fit_baselines(train_set.q_d, train_set.q, train_set.direction,
+                              train_set.current_tau, train_set.tau)
+    pair = ModelPair(torque_vars=torque.variables, attention_vars=attention.variables,
+                     tau_scale=np.asarray(fc.tau_scale, np.float32),
+                     torque_model=torque.model, attention_model=attention.model)
+    return pair, baselines, torque, attention, t1
+
+
+def _training_files(sample_files, arm: str | None) -> tuple[list[SampleFile], str | None]:
+    """The training files, each read once (a record already read is not read again), all
+    of one arm and robot; returns them and the robot's name."""
+    files = [f if isinstance(f, SampleFile) else read_sample_file(f) for f in sample_files]
+    for f in files:
+        samples_arm(f.path, f.meta, arm)  # another arm's file: one line, before any training
+    # The authors' layout records no robot: it is taken to be the native files' one.
+    robots = {f.meta.get("robot") for f in files} - {None}
+    if len(robots) > 1:
+        raise FileFormatError(files[0].path, "metadata", f"files of different robots {robots}")
+    return files, (robots.pop() if robots else arm)
 
 
 def _sessions_read(parts, metas, strength: float, init_config: dict | None,

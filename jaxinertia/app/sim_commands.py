@@ -46,23 +46,7 @@ def cmd_simulate(args) -> int:
             check_output(args.out / f"data_{split}_{name}.npz", overwrite=args.overwrite)
     else:
         check_outputs(args, "--out")
-    if args.n is not None:
-        per = 1 if args.scenario == "continuous" else len(
-            args.objects or (objs.TEST_OBJECTS if args.scenario == "test"
-                             else objs.TRAINING_LOADS_KG))
-        check_memory(args.n * per * SIM_BYTES_PER_SAMPLE,
-                     f"--n {args.n} ({args.n * per} simulated samples)")
-    if args.scenario == "continuous":
-        if args.arm not in (None, DEFAULT_ARM):
-            raise UsageError(f"--arm {args.arm}: the continuous run simulates the "
-                             f"{DEFAULT_ARM} only (so far); use --scenario random, "
-                             "planning or test")
-        if args.plan is not None:
-            raise UsageError("--plan: the continuous run walks nearby random goals; use "
-                             "--scenario test (or random, planning) with a plan")
-        if args.format != "native":
-            raise UsageError("the continuous run is one trajectory with switching objects: "
-                             "use --format native")
+    _check_simulate(args, objs)
     if args.precision == "float32":
         import jax  # the work's module, not for --help
 
@@ -105,7 +89,7 @@ def cmd_simulate(args) -> int:
         if bad:
             print(f"{name}: {bad} of {len(r['q'])} samples timed out (flagged: at_rest = False)")
     fields, meta = run.native_fields(results, params, scenario=args.scenario,
-                                         seed=args.seed, version=__version__)
+                                     seed=args.seed, version=__version__)
     if args.plan is not None:
         meta["plan"] = str(args.plan.resolve())
     data = samples.Samples.from_fields(fields, meta["objects"], need_truth=True)
@@ -117,6 +101,27 @@ def cmd_simulate(args) -> int:
     path = samples.save_native(args.out, data, meta)
     print(f"wrote {path} ({data.n_samples} samples)")
     return 0
+
+
+def _check_simulate(args, objs) -> None:
+    """The request's memory and the continuous run's options, before any work."""
+    if args.n is not None:
+        per = 1 if args.scenario == "continuous" else len(
+            args.objects or (objs.TEST_OBJECTS if args.scenario == "test"
+                             else objs.TRAINING_LOADS_KG))
+        check_memory(args.n * per * SIM_BYTES_PER_SAMPLE,
+                     f"--n {args.n} ({args.n * per} simulated samples)")
+    if args.scenario == "continuous":
+        if args.arm not in (None, DEFAULT_ARM):
+            raise UsageError(f"--arm {args.arm}: the continuous run simulates the "
+                             f"{DEFAULT_ARM} only (so far); use --scenario random, "
+                             "planning or test")
+        if args.plan is not None:
+            raise UsageError("--plan: the continuous run walks nearby random goals; use "
+                             "--scenario test (or random, planning) with a plan")
+        if args.format != "native":
+            raise UsageError("the continuous run is one trajectory with switching objects: "
+                             "use --format native")
 
 
 def cmd_calibrate(args) -> int:

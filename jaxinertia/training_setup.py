@@ -1,0 +1,139 @@
+"""What a training run is given: its configuration (:class:`TrainConfig`, the paper's
+hyperparameters by default; :data:`FINETUNE_DEFAULTS`), the feature scaling taken from the
+training data, the validation split, the per-object subset and the attention model's
+training sets. Pure NumPy on :class:`~jaxinertia.samples.Samples`; the trainers are
+:mod:`jaxinertia.training`."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from jaxinertia.errors import UsageError
+from jaxinertia.features import FeatureConfig
+from jaxinertia.networks import TORQUE_MODELS
+from jaxinertia.samples import Samples
+
+__all__ = ["FINETUNE_DEFAULTS", "TRAINABLE", "TrainConfig", "draw_sets", "feature_config_from",
+           "per_object_subset", "split_validation"]
+
+
+#: What fine-tuning may change (``TrainConfig.trainable``).
+TRAINABLE = ("all", "head", "servo")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Hyperparameters; the defaults are the paper's (the number of attention training
+    sets is not given there: we draw ``attention_sets`` per training object, as many as the
+    test protocol's repeats)."""
+
+    n_models: int = 10
+    seed: int = 0
+    torque_epochs: int = 300
+    torque_batch: int = 256
+    torque_lr: float = 3e-4
+    attention_epochs: int = 30
+    attention_batch: int = 32
+    attention_lr: float = 1e-4
+    set_size: int = 64
+    attention_sets: int = 1000
+    attention_val_sets: int = 200
+    w_mass: float = 1.0
+    w_com: float = 0.3
+    val_fraction: float = 0.1
+    #: What training may change (fine-tuning): "all"; "head" (the per-joint encoders
+    #: fixed); "servo" (only the physical model's servo parameters; the attention fixed).
+    trainable: str = "all"
+    torque_model: str = "paper"  # or "physical" (networks.TORQUE_MODELS)
+    #: Each training file is a recording session: its discrepancy is rescaled towards the
+    #: session of the training data as a whole by ``(g_file / g_ref) ** session_strength``
+    #: (:mod:`jaxinertia.session`; 0: off), and the folder records the reference and the
+    #: strength, so that a new file is adapted the same way when it is evaluated.
+    session_strength: float = 1.0
+
+    def __post_init__(self):
+        positive = ("n_models", "torque_epochs", "torque_batch", "attention_epochs",
+                    "attention_batch", "set_size", "attention_sets", "attention_val_sets")
+        for name in positive:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
+                raise UsageError(f"{name} must be a positive integer, got {v!r}")
+        for name in ("torque_lr", "attention_lr"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise UsageError(f"{name} must be a positive finite number, got {v!r}")
+        for name in ("w_mass", "w_com"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise UsageError(f"{name} must be a finite number >= 0, got {v!r}")
+        if not (np.isfinite(self.session_strength) and 0 <= self.session_strength <= 1):
+            raise UsageError(f"session_strength must be in [0, 1], got {self.session_strength!r}")
+        if self.w_mass + self.w_com <= 0:
+            raise UsageError("w_mass and w_com are both zero: the attention loss would be zero")
+        if not 0.0 < self.val_fraction < 1.0:
+            raise UsageError(f"val_fraction must be in (0, 1), got {self.val_fraction!r}")
+        if self.torque_model not in TORQUE_MODELS:
+            raise UsageError(f"torque_model must be one of {sorted(TORQUE_MODELS)}, got "
+                             f"{self.torque_model!r}")
+        if self.trainable not in TRAINABLE:
+            raise UsageError(f"trainable must be one of {list(TRAINABLE)}, got "
+                             f"{self.trainable!r}")
+
+    def replace(self, **kw) -> TrainConfig:
+        return dataclasses.replace(self, **kw)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+# Fine-tuning's defaults (``train --init``): a few real samples of known objects adapt
+# simulator-trained models; small steps, few epochs, early stopping on the validation split.
+FINETUNE_DEFAULTS = {"torque_epochs": 200, "torque_batch": 64, "torque_lr": 1e-4,
+                     "attention_epochs": 20, "attention_lr": 1e-4, "attention_sets": 250,
+                     "attention_val_sets": 100}
+
+
+def feature_config_from(data: Samples) -> FeatureConfig:
+    """Min-max bounds of q and the scales of q_d - q and tau (max |.|) from training data."""
+    qe = np.abs(data.q_d - data.q)
+    q_min, q_max = data.q.min(axis=0), data.q.max(axis=0)
+    pad = np.maximum(1e-3, 1e-6 * (q_max - q_min))
+    return FeatureConfig.create(q_min - pad, q_max + pad, np.maximum(qe.max(axis=0), 1e-4),
+                                np.maximum(np.abs(data.tau).max(axis=0), 1e-4))
+
+
+def split_validation(data: Samples, fraction: float, seed: int) -> tuple[Samples, Samples]:
+    """Random held-out split, stratified by object."""
+    rng = np.random.default_rng(seed)
+    val = []
+    for o in np.unique(data.object_id):
+        idx = np.flatnonzero(data.object_id == o)
+        val.append(rng.choice(idx, int(round(fraction * len(idx))), replace=False))
+    val = np.sort(np.concatenate(val))
+    train = np.setdiff1d(np.arange(data.n_samples), val)
+    return data.take(train), data.take(val)
+
+
+def per_object_subset(data: Samples, n: int, seed: int) -> Samples:
+    """At most ``n`` samples of each object (a seeded random choice, in file order)."""
+    rng = np.random.default_rng(seed)
+    keep = []
+    for o in np.unique(data.object_id):
+        idx = np.flatnonzero(data.object_id == o)
+        keep.append(np.sort(rng.choice(idx, n, replace=False)) if len(idx) > n else idx)
+    return data.take(np.concatenate(keep))
+
+
+def draw_sets(object_id: np.ndarray, per_object: int, set_size: int, seed: int) -> np.ndarray:
+    """(per_object * O, set_size) index sets, each of one object's samples (without
+    replacement within a set; with replacement only if the object has too few samples)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for o in np.unique(object_id):
+        idx = np.flatnonzero(object_id == o)
+        replace = len(idx) < set_size
+        out += [rng.choice(idx, set_size, replace=replace) for _ in range(per_object)]
+    return np.stack(out)
