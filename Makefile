@@ -45,7 +45,7 @@ test-stress: $(STAMP)
 	@pids=""; trap 'kill $$pids 2>/dev/null' EXIT INT TERM; \
 	for i in $$(seq $$(nproc)); do $(BIN)/python -c "while True: pass" & pids="$$pids $$!"; done; \
 	echo "test-stress: $$(nproc) busy loops:$$pids"; \
-	$(BIN)/python -m pytest -q tests/test_hardware_*.py
+	$(BIN)/python -m pytest -q tests/test_hardware_*.py tests/test_feetech_*.py
 
 # The paper end to end (quick scale): simulate, train, evaluate, switching loads,
 # sim-to-real on shared/lbipe beside the released models; report in runs/demo/report.md.
