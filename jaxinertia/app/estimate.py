@@ -145,8 +145,8 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
     objects = [o.without_truth() for o in objects]
     pair, baselines, fc, config = load_models(models, robot=meta.get("robot"),
                                               arm=samples_arm(sample_file, meta, arm))
-    objects, ratios = adapt_objects(objects, session_reference(
-        config, session_strength, simulated=is_simulated(meta)))
+    reference = session_reference(config, session_strength, simulated=is_simulated(meta))
+    objects, ratios = adapt_objects(objects, reference)
     floor, floor_source = training_validation_error(config)
     noise = floor if floor is not None else np.full(objects[0].n_joints,
                                                     DEFAULT_TORQUE_NOISE_NM)
@@ -154,6 +154,7 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
                     f"nominal {DEFAULT_TORQUE_NOISE_NM * 1e3:.0f} N mm per joint")
     _refuse_unanswerable(objects, sample_file, set_size, noise)  # before any estimate
     out: dict = {"file": str(sample_file), "objects": {},
+                 "session_strength": 0.0 if reference is None else reference.strength,
                  "torque_error_floor": {"Nm": None if floor is None else floor.tolist(),
                                         "source": floor_source}}
     for obj, ratio in zip(objects, ratios):

@@ -48,10 +48,14 @@ def cmd_estimate(args) -> int:
     floor = res["torque_error_floor"]
     for name, o in res["objects"].items():
         ident = o["identifiability"]
-        ratio = ", ".join(f"{r:.3f}" for r in o["session_ratio"])
-        print(f"{name}: session: discrepancy read in the models' session, x ({ratio}) per "
-              "joint (the file's own current gain against the models'; "
-              "--session-strength 0: off)")
+        if res["session_strength"] > 0:
+            ratio = ", ".join(f"{r:.3f}" for r in o["session_ratio"])
+            print(f"{name}: session: discrepancy read in the models' session, x ({ratio}) per "
+                  f"joint (the file's own current gain against the models', strength "
+                  f"{res['session_strength']:g}; --session-strength 0: off)")
+        else:
+            print(f"{name}: session adaptation off (the models' strength 0, or "
+                  "--session-strength 0)")
         pc = np.asarray(ident["predicted_com_se_m"]) * 1e3
         print(f"{name}: {o['n_samples']} samples; poses: condition {ident['condition']:.1f}, "
               f"predicted standard error mass {ident['predicted_mass_se_kg'] * 1e3:.1f} g, "
