@@ -89,6 +89,8 @@ class FoldScale:
     #: The identification's cost grows with the samples it replays: > 0 identifies on that
     #: many of the fold's samples (a seeded random choice), 0 on all of them.
     identify_samples: int = 0
+    #: The session strengths every candidate is judged at (:data:`SESSION_STRENGTHS`).
+    session_strengths: tuple[float, ...] = SESSION_STRENGTHS
 
 
 @dataclass(frozen=True)
@@ -121,15 +123,15 @@ class _Fold:
         return [self.index(n) for n in self.held]
 
     def judge(self, models: Path) -> dict:
-        """The folder on the held-out objects at every strength of
-        :data:`SESSION_STRENGTHS` (``objects``, ``torque``: at the folder's own)."""
+        """The folder on the held-out objects at every strength of the scale's
+        ``session_strengths`` (``objects``, ``torque``: at the folder's own)."""
         idx = self.held_index
         objects = [self.real.objects[i] for i in idx]
         sets, l_max = [self.real.sets[i] for i in idx], [self.real.l_max[i] for i in idx]
         pair, baselines, fc, config = load_models(models)
         own = session_reference(config)
         out = {"by_strength": {}}
-        for s in SESSION_STRENGTHS:
+        for s in self.scale.session_strengths:
             adapted, ratios = adapt_objects(objects, session_reference(config, s))
             res = evaluate(adapted, sets, pair=pair, baselines=baselines, fc=fc, l_max=l_max)
             out["by_strength"][str(s)] = res["objects"]

@@ -139,7 +139,7 @@ def format_folds(res: dict) -> str:
         lines += [f"### Calibrated and trained with {fit_on} only, judged on {held}", "",
                   table1(f["ours"], f"Models trained on the simulator calibrated on {fit_on}"),
                   ""]
-        if f.get("by_strength"):
+        if "0.0" in (f.get("by_strength") or {}):
             lines += [table1(f["by_strength"]["0.0"], "The same, without session adaptation"),
                       "", f"Session ratio (held-out discrepancy per joint): {ratio}.", ""]
         if f.get("randomized"):
