@@ -112,6 +112,16 @@ def test_edge_refinement_beats_detector_corners_face_on():
     assert err_ref < 0.5 * err_raw, f"refined {err_ref:.3f} px vs detector {err_raw:.3f} px"
 
 
+def _write_opencv_yaml(path, intrinsics) -> None:
+    """Intrinsics as OpenCV's FileStorage writes them (the format camera tools produce)."""
+    fs = cv2.FileStorage(str(path), cv2.FileStorage_WRITE)
+    fs.write("image_width", 640)
+    fs.write("image_height", 480)
+    fs.write("camera_matrix", intrinsics.K)
+    fs.write("distortion_coefficients", intrinsics.dist.reshape(1, 5))
+    fs.release()
+
+
 def test_no_tag_raises_tag_not_found():
     img = np.full((480, 640), 120, np.uint8)
     with pytest.raises(TagNotFoundError, match="not found"):
@@ -125,12 +135,7 @@ def test_intrinsics_files(tmp_path):
     good = tmp_path / "cam.json"
     good.write_text(json.dumps(DISTORTED.to_dict()))
     assert load_intrinsics(good) == DISTORTED
-    fs = cv2.FileStorage(str(tmp_path / "cam.yaml"), cv2.FileStorage_WRITE)
-    fs.write("image_width", 640)
-    fs.write("image_height", 480)
-    fs.write("camera_matrix", DISTORTED.K)
-    fs.write("distortion_coefficients", DISTORTED.dist.reshape(1, 5))
-    fs.release()
+    _write_opencv_yaml(tmp_path / "cam.yaml", DISTORTED)
     assert load_intrinsics(tmp_path / "cam.yaml") == DISTORTED
     bad = {"missing.json": None, "notjson.json": "{fx: 1",
            "nofx.json": json.dumps({"fy": 1, "cx": 1, "cy": 1, "width": 2, "height": 2}),
@@ -439,12 +444,7 @@ def test_non_utf8_paths_and_bytes_end_in_one_line(tmp_path, capsys):
                                               blur_sigma=0.8, noise_std=3.0))
     with open(os.fsencode(img_p), "wb") as f:
         f.write(buf.tobytes())
-    fs = cv2.FileStorage(str(tmp_path / "cam.yaml"), cv2.FileStorage_WRITE)
-    fs.write("image_width", 640)
-    fs.write("image_height", 480)
-    fs.write("camera_matrix", DISTORTED.K)
-    fs.write("distortion_coefficients", DISTORTED.dist.reshape(1, 5))
-    fs.release()
+    _write_opencv_yaml(tmp_path / "cam.yaml", DISTORTED)
     os.rename(tmp_path / "cam.yaml", os.fsencode(yaml_p))
     args = ["tag-pose", "--image", img_p, "--intrinsics", yaml_p, "--tag-size", str(TAG),
             "--tag-id", str(TAG_ID), "--json"]
