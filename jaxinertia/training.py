@@ -113,6 +113,11 @@ def _is_trainable(path, trainable: str) -> bool:
     return True
 
 
+def _any_trainable(params, trainable: str) -> bool:
+    return any(_is_trainable(path, trainable)
+               for path, _ in jax.tree_util.tree_flatten_with_path(params)[0])
+
+
 def optimizer(lr: float, *, trainable: str = "all") -> optax.GradientTransformation:
     """Adam on the parameters ``trainable`` names (:class:`TrainConfig`); the others get
     no updates."""
@@ -380,6 +385,14 @@ def train_attention_models(
     model = model or AttentionModel(n_joints=train.q.shape[1])
     K = cfg.n_models
     dtype = jnp.result_type(float)
+    k_init, k_epochs = jax.random.split(key)
+    if init is not None and not _any_trainable(init, cfg.trainable):
+        # Nothing to train (``trainable="servo"``: the attention fixed): its epochs would
+        # change no parameter and keep the start (epoch -1), so none are run or compiled.
+        n_features = jax.eval_shape(lambda: _features(fc, train)).shape[1]
+        start = _start(model, k_init, K, np.zeros((1, n_features), np.float32), init)
+        return TrainedAttention(model, start, np.zeros((0, 2, K), np.float32),
+                                np.full(K, -1, np.int32))
     sets = jnp.asarray(draw_sets(train.object_id, cfg.attention_sets, cfg.set_size, cfg.seed))
     vsets = jnp.asarray(draw_sets(val.object_id, cfg.attention_val_sets, cfg.set_size,
                                   cfg.seed + 1))
@@ -391,7 +404,6 @@ def train_attention_models(
                 jnp.asarray(d.x, dtype)[jnp.asarray(d.object_id)])
 
     (feats, A, y, x_obj), (vf, vA, vy, vx) = arrays(train), arrays(val)
-    k_init, k_epochs = jax.random.split(key)
     epoch = _attention_epoch(model, cfg.attention_lr, cfg.trainable,
                              min(cfg.attention_batch, sets.shape[0]), cfg.w_mass, cfg.w_com)
     data, val_data = ((feats, A, x_obj, sets), y), ((vf, vA, vx, vsets), vy)

@@ -9,6 +9,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from support.asserts import assert_tree_equal
 from support.layouts import N_REAL
 from support.synthetic import synthetic_samples
 
@@ -94,6 +95,13 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
         assert config["fine_tuned_from"]["folder"] == str((fold / "models_physical").resolve())
         assert config["training"]["trainable"] == "servo"
         assert config["torque_model"]["kind"] == "physical"
+        # Only the servo part trains: the attention models are the start's, bit for bit,
+        # and no attention epoch ran (none compiled).
+        assert config["best_epoch"]["attention"] == [-1] * TRAIN.n_models
+        assert config["history"]["attention"] == []
+        assert_tree_equal(load_models(fold / "models_finetuned_30")[0].attention_vars,
+                          load_models(fold / "models_physical")[0].attention_vars,
+                          what="attention kept")
         assert set(f["fine_tuned"]["30"]["objects"]) == set(f["physical"]["objects"]) == {other}
         # Domain randomization: two simulated arms, the spread measured on the fold's object.
         assert set(f["randomized"]["objects"]) == {other} and f["randomized"]["draws"] == 2
@@ -156,3 +164,30 @@ def test_training_on_the_authors_layout_gives_the_models_of_the_native_files(tmp
     for leaf_a, leaf_b in zip(jax.tree_util.tree_leaves((ma[0], ma[1], ma[2])),
                               jax.tree_util.tree_leaves((mb[0], mb[1], mb[2]))):
         np.testing.assert_array_equal(np.asarray(leaf_a), np.asarray(leaf_b))
+
+
+def test_side_by_side_keeps_the_order_and_raises_what_a_stage_raised():
+    """The folds (and a fold's fine-tunings) run side by side on an accelerator: results
+    in the order of the calls, every call ended before an error is raised."""
+    import threading
+
+    from jaxinertia.app.programs import side_by_side
+
+    both = threading.Barrier(2, timeout=60)  # passes only if the two calls run at once
+    assert side_by_side([lambda: both.wait() * 0 + 1, lambda: both.wait() * 0 + 2],
+                        workers=2) == [1, 2]
+    assert side_by_side([lambda: threading.current_thread().name], workers=1) == [
+        threading.current_thread().name]  # one worker: in the caller's thread
+    ended = []
+
+    def fails():
+        raise UsageError("stage failed")
+
+    def slow():
+        ended.append(both.wait())
+        return 3
+
+    both.reset()
+    with pytest.raises(UsageError, match="stage failed"):
+        side_by_side([fails, slow, lambda: both.wait()], workers=3)
+    assert len(ended) == 1

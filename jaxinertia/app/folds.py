@@ -32,6 +32,7 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import jax
@@ -46,7 +47,7 @@ from jaxinertia.app.pipeline import (
     session_reference,
     train,
 )
-from jaxinertia.app.programs import stream_programs
+from jaxinertia.app.programs import side_by_side, side_by_side_workers, stream_programs
 from jaxinertia.app.simdata import simulate_files
 from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import evaluate
@@ -158,16 +159,19 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
     if len(names) < 2:
         return None
     released = released_benchmark(lbipe_dir, real=real)["objects"]
-    folds = {}
-    for fit_on in names:
-        fold = _Fold(Path(out) / f"fit_{fit_on}", fit_on, [n for n in names if n != fit_on],
-                     real, scale, seed, progress)
-        log(f"-- fold: calibrate on {fit_on}, judge on {', '.join(fold.held)}")
-        folds[fit_on] = _run_fold(fold)
-        folds[fit_on]["released"] = {n: {m: released[n][m] for m in ("T", "T-A")}
-                                     for n in fold.held}
+    todo = [_Fold(Path(out) / f"fit_{fit_on}", fit_on, [n for n in names if n != fit_on],
+                  real, scale, seed, progress) for fit_on in names]
+
+    def run(fold: _Fold) -> dict:
+        log(f"-- fold: calibrate on {fold.fit_on}, judge on {', '.join(fold.held)}")
+        return {**_run_fold(fold), "released": {n: {m: released[n][m] for m in ("T", "T-A")}
+                                                for n in fold.held}}
+
+    # The folds share nothing but the real data they read: side by side on an accelerator.
+    folds = dict(zip(names, side_by_side([partial(run, fold) for fold in todo])))
     return {"folds": folds, "sets": dict(zip(names, real.sources)),
-            "recipe": choose_recipe(folds)}
+            "recipe": choose_recipe(folds), "side_by_side": min(side_by_side_workers(),
+                                                                 len(todo))}
 
 
 def _run_fold(fold: _Fold) -> dict:
@@ -269,17 +273,21 @@ def _finetuned(fold: _Fold, files: list[Path]) -> tuple[dict | None, dict]:
     start = fold.dir / "models_physical"
     train(files, start, fold.scale.train.replace(seed=fold.seed, torque_model="physical"),
           overwrite=True, progress=fold.progress, session=fold.session)
-    physical = fold.judge(start)
-    fine = {}
-    for n in fold.scale.finetune_samples:
+
+    def finetune(n: int) -> dict:
         models = fold.dir / f"models_finetuned_{n}"
         info = train([fold.real.files[fold.index(fold.fit_on)]], models,
                      fold.scale.finetune.replace(seed=fold.seed), overwrite=True,
                      progress=fold.progress, init=start, samples_per_object=n)
-        fine[str(n)] = {**fold.judge(models), "samples": info["samples"],
-                        "best_epoch": info["best_epoch"],
-                        "fit_session_ratio": info["data"][0]["session_ratio"]}
-    return physical, fine
+        return {**fold.judge(models), "samples": info["samples"],
+                "best_epoch": info["best_epoch"],
+                "fit_session_ratio": info["data"][0]["session_ratio"]}
+
+    # Each fine-tuning has its own shapes (its own programs): they compile side by side.
+    sizes = fold.scale.finetune_samples
+    physical, *fine = side_by_side([partial(fold.judge, start)]
+                                   + [partial(finetune, n) for n in sizes])
+    return physical, {str(n): f for n, f in zip(sizes, fine)}
 
 
 # ---- the recipe for models of a new real object -----------------------------------------

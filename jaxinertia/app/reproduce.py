@@ -18,6 +18,7 @@ import os
 import platform
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import jax
@@ -35,6 +36,7 @@ from jaxinertia.app.pipeline import (
     sim_to_real,
     train,
 )
+from jaxinertia.app.programs import side_by_side
 from jaxinertia.app.report import reproduce_report
 from jaxinertia.app.simdata import cached, params_digest, simulate_files
 from jaxinertia.arm import Arm
@@ -251,13 +253,15 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
     The real-data folder is read once, here, and handed down. ``arm``: the simulated arm
     (default the OpenMANIPULATOR-X); the real-data stages (sim-to-real, held-out folds,
     models for a new real object) are the OpenMANIPULATOR-X's only and are skipped, with a
-    note, for another arm."""
+    note, for another arm.
+
+    The held-out folds need nothing of the simulated stages: on an accelerator they run
+    beside them (:func:`jaxinertia.app.programs.side_by_side`; the stage times then
+    overlap), on a CPU after them."""
     scale = scale or (FULL if full else QUICK)
     out = Path(out)
-    data_dir = out / "data"
     stage = _Stages()
     arm = get_arm(arm)
-    params = arm_sim_params(arm)
     lbipe_dir = Path(lbipe_dir) if lbipe_dir else default_lbipe_dir()
     real_skipped = None if arm.name == DEFAULT_ARM else (
         f"the real lbipe files are the {DEFAULT_ARM}'s; this run simulates the {arm.name} "
@@ -266,6 +270,57 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
     real = (load_real(lbipe_dir, seed=seed, n_sets=scale.n_sets)
             if lbipe_dir.is_dir() and real_skipped is None else None)
 
+    def held_out() -> dict | None:
+        if real is None or scale.fold_calibration_iterations <= 0:
+            return None
+        with stage("held-out folds"):
+            return run_folds(out / "folds", lbipe_dir, FoldScale(
+                calibration_iterations=scale.fold_calibration_iterations,
+                random_per_load=scale.random_per_load, planning=scale.planning,
+                train=scale.train, finetune_samples=scale.fold_finetune_samples),
+                seed=seed, progress=progress, real=real)
+
+    sim, folds = side_by_side([
+        partial(_simulated_stages, out, scale, arm, real, lbipe_dir, real_skipped, seed,
+                progress, stage), held_out])
+    real_ft = None
+    if real is not None and scale.real_finetune_samples > 0:
+        recipe = ({**folds["recipe"], "chosen_by": "held-out folds"} if folds
+                  else DEFAULT_RECIPE)
+        with stage("models for a new real object"):
+            real_ft = _models_real(out, sim["train_files"], real, scale, recipe, seed,
+                                   progress, sim["session"])
+    info, ev, coverage, cres, s2r = (sim[k] for k in ("info", "evaluation", "coverage",
+                                                       "continuous", "sim-to-real"))
+    results = {
+        "machine": _machine(), "arm": arm.name, "real_skipped": real_skipped,
+        "scale": dataclasses.asdict(scale), "timings_s": stage.total(),
+        "training": {k: info[k] for k in ("samples", "best_epoch", "wall_time_s", "data")},
+        "simulated": {"objects": ev["objects"], "torque": ev["torque"],
+                      "diagnostics": ev["diagnostics"]},
+        "continuous": {m: v["MAE_N"] for m, v in cres["methods"].items()},
+        "real": None if s2r is None else {k: v for k, v in s2r.items() if k != "note"},
+        "held_out": folds,
+        "real_finetuned": real_ft,
+        "coverage": {"floor": coverage["floor"],
+                     **{k: coverage[k]["objects"] for k in ("simulated", "real") if k in coverage}},
+    }
+    write_json(out / "tables.json", results)
+    figs = _figures(out, info, ev, cres, coverage, s2r)
+    write_text(out / "report.md", reproduce_report(
+        results, figs, full=full, seed=seed, scale=scale, continuous=sim["continuous_run"],
+        real_note=None if s2r is None else s2r.get("note", ""), lbipe_dir=lbipe_dir))
+    print(f"wrote {out / 'report.md'}, {out / 'tables.json'} and {len(figs)} plots")
+    return results
+
+
+def _simulated_stages(out: Path, scale: Scale, arm: Arm, real: RealData | None,
+                      lbipe_dir: Path, real_skipped: str | None, seed: int, progress: bool,
+                      stage: _Stages) -> dict:
+    """The stages on the simulator's data (simulate, train, evaluate, uncertainty, the
+    switching-load run) and sim-to-real: their records by name."""
+    data_dir = out / "data"
+    params = arm_sim_params(arm)
     with stage("simulate"):
         wanted = [(data_dir / "test.npz", "test", scale.test_per_object, seed + 1000),
                   (data_dir / "train_random.npz", "random", scale.random_per_load, seed)]
@@ -279,8 +334,8 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
         info = train(train_files, out / "models", scale.train.replace(seed=seed), overwrite=True,
                      progress=progress, session=session, arm=arm.name)
     with stage("evaluate"):
-        sim = evaluate_samples(out / "models", test_file, n_sets=scale.n_sets, seed=seed,
-                               arm=arm.name)
+        ev = evaluate_samples(out / "models", test_file, n_sets=scale.n_sets, seed=seed,
+                              arm=arm.name)
     with stage("uncertainty"):
         coverage = _coverage(out / "models", test_file, real, n_sets=scale.n_sets,
                              set_size=scale.train.set_size, seed=seed)
@@ -289,41 +344,9 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
     with stage("sim-to-real"):
         s2r = None if real_skipped else sim_to_real(out / "models", lbipe_dir, seed=seed,
                                                     real=real)
-    folds = None
-    if real is not None and scale.fold_calibration_iterations > 0:
-        with stage("held-out folds"):
-            folds = run_folds(out / "folds", lbipe_dir, FoldScale(
-                calibration_iterations=scale.fold_calibration_iterations,
-                random_per_load=scale.random_per_load, planning=scale.planning,
-                train=scale.train, finetune_samples=scale.fold_finetune_samples),
-                seed=seed, progress=progress, real=real)
-    real_ft = None
-    if real is not None and scale.real_finetune_samples > 0:
-        recipe = ({**folds["recipe"], "chosen_by": "held-out folds"} if folds
-                  else DEFAULT_RECIPE)
-        with stage("models for a new real object"):
-            real_ft = _models_real(out, train_files, real, scale, recipe, seed, progress,
-                                   session)
-    results = {
-        "machine": _machine(), "arm": arm.name, "real_skipped": real_skipped,
-        "scale": dataclasses.asdict(scale), "timings_s": stage.total(),
-        "training": {k: info[k] for k in ("samples", "best_epoch", "wall_time_s", "data")},
-        "simulated": {"objects": sim["objects"], "torque": sim["torque"],
-                      "diagnostics": sim["diagnostics"]},
-        "continuous": {m: v["MAE_N"] for m, v in cres["methods"].items()},
-        "real": None if s2r is None else {k: v for k, v in s2r.items() if k != "note"},
-        "held_out": folds,
-        "real_finetuned": real_ft,
-        "coverage": {"floor": coverage["floor"],
-                     **{k: coverage[k]["objects"] for k in ("simulated", "real") if k in coverage}},
-    }
-    write_json(out / "tables.json", results)
-    figs = _figures(out, info, sim, cres, coverage, s2r)
-    write_text(out / "report.md", reproduce_report(
-        results, figs, full=full, seed=seed, scale=scale, continuous=cont,
-        real_note=None if s2r is None else s2r.get("note", ""), lbipe_dir=lbipe_dir))
-    print(f"wrote {out / 'report.md'}, {out / 'tables.json'} and {len(figs)} plots")
-    return results
+    return {"train_files": train_files, "session": session, "info": info, "evaluation": ev,
+            "coverage": coverage, "continuous": cres, "continuous_run": cont,
+            "sim-to-real": s2r}
 
 
 def _continuous_force(models: Path, cont_file: SampleFile) -> tuple[dict, dict]:
