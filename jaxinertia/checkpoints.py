@@ -19,6 +19,7 @@ import hashlib
 import json
 import os
 import sys
+import threading
 from pathlib import Path
 
 import jax
@@ -53,6 +54,12 @@ def _arch(model) -> dict:
             and k not in ("parent", "name")}
 
 
+#: One orbax save or restore at a time in this process: orbax's checkpointers are not safe
+#: side by side in threads (their background operations share process-wide ids; two saves
+#: at once in different folders failed on an H100 with "File exists" in one of them).
+_ORBAX = threading.Lock()
+
+
 def save_models(directory: str | os.PathLike, pair: ModelPair, baselines: Baselines,
                 features: FeatureConfig, *, robot: str, extra: dict | None = None,
                 arm: str | None = None) -> Path:
@@ -76,7 +83,7 @@ def save_models(directory: str | os.PathLike, pair: ModelPair, baselines: Baseli
     json.dumps(config, allow_nan=False)  # no bare NaN in the config (checked before writing)
     # Checkpoint and config appear together (a folder renamed into place) or not at all.
     with replacing_dir(directory) as tmp:
-        with ocp.StandardCheckpointer() as saver:
+        with _ORBAX, ocp.StandardCheckpointer() as saver:
             saver.save(tmp / "checkpoint", state, force=True)
         config["checksums"] = _checksums(tmp / "checkpoint")
         text = json.dumps(config, indent=2, allow_nan=False) + "\n"
@@ -180,7 +187,7 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None,
 
     target = {"torque": abstract(tm), "attention": abstract(am)}
     try:
-        with ocp.StandardCheckpointer() as loader:
+        with _ORBAX, ocp.StandardCheckpointer() as loader:
             state = loader.restore(directory / "checkpoint", target)
     except Exception as e:  # orbax raises many types for missing or mismatched files
         raise ModelFolderError(f"{directory / 'checkpoint'}: cannot restore the models "
