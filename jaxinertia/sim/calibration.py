@@ -24,11 +24,9 @@ from jaxinertia.lbipe import find_layout, load_test_files
 from jaxinertia.objects import HeldObject
 from jaxinertia.robot import Robot
 from jaxinertia.samples import Samples
-from jaxinertia.session import dead_band_fit
 from jaxinertia.sim.run import run_plans
 from jaxinertia.sim.simulator import SimParams
 from jaxinertia.sim.stream import StreamPrograms
-from jaxinertia.xm430 import RAD_PER_TICK
 from jaxinertia.statics import (
     fit_tag_pose,
     identify_gravity_base_parameters,
@@ -151,8 +149,8 @@ def _intercept(d: dict, ref: dict) -> np.ndarray:
 
 def calibrate_servo_friction(params, data: Sequence[Samples], *, iterations: int = 6,
                              seed: int = 0, kinetic_ratio: float = 0.6,
-                             fit_offset: bool = False, dead_band: bool = True, log=print,
-                             progress: bool = False, programs: StreamPrograms | None = None):
+                             fit_offset: bool = False, log=print, progress: bool = False,
+                             programs: StreamPrograms | None = None):
     """Fixed-point fit of per-joint servo gain, torque constant and friction parameters so
     that the simulated real plan reproduces the real baseline statistics (k, f0, mu,
     current gain, PE MAE). Kinetic (Coulomb) friction is ``kinetic_ratio`` times the
@@ -160,10 +158,7 @@ def calibrate_servo_friction(params, data: Sequence[Samples], *, iterations: int
     load such as cable forces or a gravity-model error) so that the intercept at the real
     PE gain and friction, ``mean(tau - k qe + s f)``, matches the real one; without it the
     simulated arm has the real gains and friction but not the real intercepts, which is
-    most of the sim-to-real gap (docs/results.md). ``dead_band``: the drive's dead band per
-    joint, in ticks of error, is the one the real current shows
-    (:func:`jaxinertia.session.dead_band_fit`; no ground truth), kept in ticks as the gain
-    moves. ``data``: the real files' records it
+    most of the sim-to-real gap (docs/results.md). ``data``: the real files' records it
     fits (one per file; a held-out fold hands it one). ``programs``: the caller's compiled
     stream programs (None: this call's own, shared by its iterations). Returns
     ``(params, history)``."""
@@ -171,8 +166,8 @@ def calibrate_servo_friction(params, data: Sequence[Samples], *, iterations: int
         with StreamPrograms() as own:
             return calibrate_servo_friction(
                 params, data, iterations=iterations, seed=seed,
-                kinetic_ratio=kinetic_ratio, fit_offset=fit_offset, dead_band=dead_band,
-                log=log, progress=progress, programs=own)
+                kinetic_ratio=kinetic_ratio, fit_offset=fit_offset, log=log, progress=progress,
+                programs=own)
     plans = real_plan(params.robot, data)
     real = baseline_statistics(
         np.concatenate([d.q_d for _, _, d in plans]), np.concatenate([d.q for _, _, d in plans]),
@@ -181,12 +176,6 @@ def calibrate_servo_friction(params, data: Sequence[Samples], *, iterations: int
         np.concatenate([d.current_tau for _, _, d in plans]))
     real_plan_arrays = {k: np.concatenate([getattr(d, k) for _, _, d in plans])
                         for k in ("q_d", "q", "direction", "tau")}
-    # The dead band in ticks of error (0: none); the servo holds it in PWM units.
-    band_ticks = (dead_band_fit(real_plan_arrays["q_d"] - real_plan_arrays["q"],
-                                np.concatenate([d.current_tau for _, _, d in plans]))[2]
-                  / RAD_PER_TICK) if dead_band else np.zeros(params.robot.n_joints)
-    params = params.replace(servo=params.servo.replace(
-        pwm_dead_band=jnp.asarray(band_ticks * params.servo.p_gain / 128.0)))
     history = []
     key = jax.random.key(seed)
     fr = params.friction  # start the per-sample friction spread where the real data sit
@@ -228,8 +217,7 @@ def calibrate_servo_friction(params, data: Sequence[Samples], *, iterations: int
         jitter = np.clip(fr.jitter * np.clip((real["pe_mae"] / st["pe_mae"]) ** 2, 0.5, 2.0),
                          0.02, 1.5)
         params = params.replace(
-            servo=sv.replace(torque_constant=jnp.asarray(kt), p_gain=jnp.asarray(p_gain),
-                             pwm_dead_band=jnp.asarray(band_ticks * p_gain / 128.0)),
+            servo=sv.replace(torque_constant=jnp.asarray(kt), p_gain=jnp.asarray(p_gain)),
             friction=fr.replace(static=jnp.asarray(static),
                                 coulomb=jnp.asarray(kinetic_ratio * static),
                                 load_coefficient=jnp.asarray(mu), jitter=jnp.asarray(jitter)))

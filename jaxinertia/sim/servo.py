@@ -8,7 +8,6 @@ Position loop (e-manual, "Position PID controller"), run every ``control_period`
     e      = goal_ticks - present_ticks                           [ticks]
     PWM    = clip(KP e + KI sum(e) + KD (e - e_prev), +-PWM Limit) KP = P/128, KI = I/65536,
                                                                    KD = D/16, 885 = 100 %
-    PWM'   = sign(PWM) max(|PWM| - dead band, 0)                   (the drive's dead band)
     V      = PWM / 885 * V_supply                                  [V]
     I      = (V - k_e * qd) / R                                    [A]  (output-side k_e)
     tau    = k_t * I                                               [N m] (output-side k_t,
@@ -61,10 +60,6 @@ class ServoParams:
     back_emf: jnp.ndarray  # output-side [V s/rad]
     current_limit: jnp.ndarray  # [A]
     current_noise: jnp.ndarray  # std of the Present Current reading [A]
-    #: PWM below which the drive gives no current [PWM register units]. The real XM430s of
-    #: the OpenMANIPULATOR-X read no current within 1-3 ticks of error
-    #: (experiments/servo_dead_band.py); the datasheet servo has none (0).
-    pwm_dead_band: jnp.ndarray
 
     @classmethod
     def xm430_w350(cls, n_joints: int, **overrides) -> ServoParams:
@@ -93,8 +88,7 @@ class ServoParams:
                 d_gain=d * (kd * 16.0) * to_pwm, pwm_limit=m.pwm_limit * to_pwm,
                 supply_voltage=v, torque_constant=m.stall_torque / m.stall_current,
                 resistance=v / m.stall_current, back_emf=v / m.no_load_speed,
-                current_limit=m.current_limit, current_noise=2 * noise_lsb,
-                pwm_dead_band=0.0)
+                current_limit=m.current_limit, current_noise=2 * noise_lsb)
 
         per_joint = [values(m) for m in models]
         base = {k: np.array([pj[k] for pj in per_joint]) for k in per_joint[0]}
@@ -141,7 +135,6 @@ def servo_step(
     pwm = (params.p_gain / 128.0) * e + (params.i_gain / 65536.0) * integral + (
         params.d_gain / 16.0) * (e - state.prev_error)
     pwm = jnp.clip(pwm, -params.pwm_limit, params.pwm_limit)
-    pwm = jnp.sign(pwm) * jnp.maximum(jnp.abs(pwm) - params.pwm_dead_band, 0.0)
     voltage = pwm / PWM_FULL_SCALE * params.supply_voltage
     current = (voltage - params.back_emf * qd) / params.resistance
     current = jnp.clip(current, -params.current_limit, params.current_limit)
