@@ -171,7 +171,7 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None,
     if K < 1:
         raise ModelFolderError(f"{cfg_path}: n_models {K} must be at least 1")
     _verify(directory, config)
-    example = jnp.zeros((1, tm.n_joints, 4), jnp.float32)
+    example = jnp.zeros((1, tm.n_joints, features.n_inputs), jnp.float32)
 
     def abstract(model):
         shapes = jax.eval_shape(lambda k: model.init(k, example), jax.random.key(0))

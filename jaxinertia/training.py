@@ -75,8 +75,8 @@ __all__ = [
 
 
 def _features(fc: FeatureConfig, d: Samples) -> jnp.ndarray:
-    return featurize(fc, jnp.asarray(d.q), jnp.asarray(d.q_d), jnp.asarray(d.direction)).astype(
-        jnp.float32)
+    return featurize(fc, jnp.asarray(d.q), jnp.asarray(d.q_d), jnp.asarray(d.direction),
+                     jnp.asarray(d.current_tau)).astype(jnp.float32)
 
 
 @functools.partial(jax.jit, static_argnums=0)

@@ -99,7 +99,9 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
         raise UsageError(f"{data.n_samples} samples and --val-fraction {cfg.val_fraction} leave "
                          f"{train_set.n_samples} for training and {val_set.n_samples} for "
                          "validation: both need samples")
-    fc = feature_config_from(train_set) if start is None else start[1]
+    fc = (feature_config_from(train_set, current_input=cfg.current_input) if start is None
+          else start[1])
+    cfg = cfg.replace(current_input=fc.current_scale is not None)  # fine-tuning: the folder's
     pair, baselines, torque, attention, t1 = _fit(cfg, fc, train_set, val_set,
                                                   None if start is None else start[0], progress)
     t2 = time.perf_counter()
