@@ -73,7 +73,7 @@ def main():
             cells = []
             for b0, b1 in zip(edges[:-1], edges[1:]):
                 part = []
-                for name, e, cur, tau in data[:2]:
+                for _name, e, cur, tau in data[:2]:
                     m = (tau[:, j] >= b0) & (tau[:, j] < b1)
                     part.append(f"{1e3 * e[m, j].mean():.1f}/{1e3 * cur[m, j].mean():.0f}")
                 cells.append(f"{1e3 * (b0 + b1) / 2:.0f}: " + " vs ".join(part))

@@ -124,7 +124,8 @@ def stack(objects: Sequence[Samples], sets: Sequence[np.ndarray],
     f64 = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
     # Features in float64 then float32, the precision the networks were trained with.
     feats = None if fc is None else jnp.asarray(np.stack([
-        _pad(np.asarray(featurize(fc, jnp.asarray(o.q, f64), o.q_d, o.direction, o.current_tau), np.float32), n)
+        _pad(np.asarray(featurize(fc, jnp.asarray(o.q, f64), o.q_d, o.direction,
+                                  o.current_tau), np.float32), n)
         for o in objects]))
     return Stacked(features=feats,
                    A=jnp.asarray(np.stack([_pad(o.A, n) for o in objects])),

@@ -323,7 +323,8 @@ def validation_torque_error(pair: ModelPair, fc: FeatureConfig, val: Samples) ->
     if val.tau is None or val.n_samples == 0:
         raise UsageError("the validation error needs held-out samples with known torques")
     f64 = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
-    feats = jnp.asarray(featurize(fc, jnp.asarray(val.q, f64), val.q_d, val.direction, val.current_tau),
+    feats = jnp.asarray(featurize(fc, jnp.asarray(val.q, f64), val.q_d, val.direction,
+                                  val.current_tau),
                         jnp.float32)
     tau_hat = jax.vmap(lambda tv: predict_torques(pair.torque_model, tv, feats, pair.tau_scale))(
         pair.torque_vars)

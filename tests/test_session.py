@@ -114,7 +114,8 @@ def test_the_real_files_are_two_sessions(lbipe_dir):
     # weaker than cube's: one supply for four servos. A line through every sample puts
     # joint 4 at +28 %, an artefact of white's heavier load (docs/results.md).
     np.testing.assert_allclose(ratio, 0.955, atol=0.025)
-    assert np.all((cube.dead_band > 0.5 * DEAD_BAND_GRID[10]) & (cube.dead_band < DEAD_BAND_GRID[-1]))
+    tick = DEAD_BAND_GRID[10]
+    assert np.all((cube.dead_band > 0.5 * tick) & (cube.dead_band < DEAD_BAND_GRID[-1]))
     assert 4 * max(cube.current_gain_se[1], white.current_gain_se[1]) < 0.044 * cube.current_gain[1]
 
 
