@@ -54,3 +54,4 @@ def test_models_with_the_current_input_train_save_and_read_the_current(tmp_path)
     a, b = (evaluate_models(tmp_path / "m", [o], sets, l_max=[0.1], session_strength=0.0)
             for o in (obj, obj.replace(current_tau=obj.current_tau * 1.5)))
     assert a["objects"]["o0"]["T"]["mass_MAE_g"] != b["objects"]["o0"]["T"]["mass_MAE_g"]
+
