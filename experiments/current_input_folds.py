@@ -7,6 +7,10 @@ four inputs per joint, and with the current torque as a fifth (``train --current
 Prints T and T-A mass / COM NMAE per candidate, fold and session strength, side by side.
 
     python experiments/current_input_folds.py --out runs/current [--scale full]
+        [--compare RUN/tables.json]
+
+``--compare``: run only the current-input folds and compare with the paper-input folds of
+a ``reproduce`` run at the same scale and seed (its ``held_out``), saving one run of folds.
 """
 
 from __future__ import annotations
@@ -32,13 +36,19 @@ def main():
     ap.add_argument("--scale", choices=["quick", "full"], default="quick")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--lbipe-dir", default=None)
+    ap.add_argument("--compare", type=Path, default=None,
+                    help="a reproduce run's tables.json: its folds are the paper-input ones")
     a = ap.parse_args()
     lbipe_dir = a.lbipe_dir or default_lbipe_dir()
     scale = FULL if a.scale == "full" else QUICK
     real = load_real(lbipe_dir, seed=a.seed, n_sets=scale.n_sets,
                      set_size=scale.train.set_size)
     results = {}
+    if a.compare is not None:
+        results["paper inputs"] = json.loads(a.compare.read_text())["held_out"]
     for current in (False, True):
+        if not current and a.compare is not None:
+            continue
         fs = FoldScale(calibration_iterations=scale.fold_calibration_iterations,
                        random_per_load=scale.random_per_load, planning=scale.planning,
                        train=scale.train.replace(current_input=current),
