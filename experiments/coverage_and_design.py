@@ -285,7 +285,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     results: dict = {"argv": sys.argv, "machine": str(jax.devices()[0])}
-    pair, baselines, fc, config = load_models(args.models)
+    folder = load_models(args.models)
+    pair, baselines, fc, config = folder.pair, folder.baselines, folder.features, folder.config
     floor, why = training_validation_error(config)
     results["floor"] = {"Nm": None if floor is None else floor.tolist(), "source": why}
     print(f"torque error floor: {why}: {floor}")

@@ -19,6 +19,7 @@ import hashlib
 import json
 import os
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import jax
@@ -32,11 +33,31 @@ from jaxinertia.features import FeatureConfig
 from jaxinertia.fileio import replacing_dir
 from jaxinertia.networks import TORQUE_MODELS, AttentionModel, torque_model_kind
 
-__all__ = ["file_sha256", "load_models", "save_models"]
+__all__ = ["ModelFolder", "file_sha256", "load_models", "save_models"]
 
 CONFIG = "config.json"
 FORMAT = "jaxinertia-models"
 FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class ModelFolder:
+    """A model folder as :func:`load_models` read it (verified, every weight finite).
+
+    Attributes:
+      pair: the K torque and attention models (:class:`~jaxinertia.estimation.ModelPair`).
+      baselines: the baseline methods' fitted values (PE law, current-to-torque).
+      features: the feature normalisation the models were trained with.
+      config: ``config.json`` as a dict (architecture, training record, session, the
+        torque models' validation error, checksums, ...).
+      directory: the folder's absolute path.
+    """
+
+    pair: ModelPair
+    baselines: Baselines
+    features: FeatureConfig
+    config: dict
+    directory: Path
 
 
 def file_sha256(path: str | os.PathLike) -> str:
@@ -116,8 +137,8 @@ def _verify(directory: Path, config: dict) -> None:
 
 
 def load_models(directory: str | os.PathLike, *, robot: str | None = None,
-                arm: str | None = None):
-    """Reads a model folder -> (ModelPair, Baselines, FeatureConfig, config dict).
+                arm: str | None = None) -> ModelFolder:
+    """Reads and verifies a model folder -> :class:`ModelFolder`.
 
     ``robot`` / ``arm``: the robot and the arm the caller's samples come from; models of
     another are an error (:class:`RobotMismatchError`, one line). A folder that records no
@@ -205,7 +226,8 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None,
     for k, v in {**features.to_dict(), **baselines.to_dict()}.items():
         if not np.all(np.isfinite(np.asarray(v, np.float64))):
             raise ModelFolderError(f"{cfg_path}: {k} holds non-finite values")
-    return pair, baselines, features, config
+    return ModelFolder(pair=pair, baselines=baselines, features=features, config=config,
+                       directory=directory)
 
 
 def _first_line(e: Exception) -> str:

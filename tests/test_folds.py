@@ -88,7 +88,7 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
         assert cal["identified"]["theta"] == ident["theta"]
         # Fine-tuned on 30 real samples of the fold's object only, from the physical model.
         fold = tmp_path / "folds" / f"fit_{fit_on}"
-        config = load_models(fold / "models_finetuned_30")[3]
+        config = load_models(fold / "models_finetuned_30").config
         assert [Path(e["file"]).name for e in config["data"]] == [f"data_test_{fit_on}.npz"]
         assert config["samples"]["train"] + config["samples"]["validation"] == 30
         assert config["fine_tuned_from"]["folder"] == str((fold / "models_physical").resolve())
@@ -153,6 +153,6 @@ def test_training_on_the_authors_layout_gives_the_models_of_the_native_files(tmp
     np.testing.assert_array_equal(a["history"]["torque"], b["history"]["torque"])
     np.testing.assert_array_equal(a["history"]["attention"], b["history"]["attention"])
     ma, mb = load_models(tmp_path / "a"), load_models(tmp_path / "b")
-    for leaf_a, leaf_b in zip(jax.tree_util.tree_leaves((ma[0], ma[1], ma[2])),
-                              jax.tree_util.tree_leaves((mb[0], mb[1], mb[2]))):
+    for leaf_a, leaf_b in zip(jax.tree_util.tree_leaves((ma.pair, ma.baselines, ma.features)),
+                              jax.tree_util.tree_leaves((mb.pair, mb.baselines, mb.features))):
         np.testing.assert_array_equal(np.asarray(leaf_a), np.asarray(leaf_b))

@@ -275,7 +275,7 @@ def test_a_folder_without_checksums_loads_with_a_note(models, tmp_path, capsys):
     c = json.loads((m / "config.json").read_text())
     del c["checksums"]
     (m / "config.json").write_text(json.dumps(c))
-    assert load_models(m)[3]["n_models"] == 2
+    assert load_models(m).config["n_models"] == 2
     assert "has no checksums" in capsys.readouterr().err
 
 

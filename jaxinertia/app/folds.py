@@ -128,12 +128,13 @@ class _Fold:
         idx = self.held_index
         objects = [self.real.objects[i] for i in idx]
         sets, l_max = [self.real.sets[i] for i in idx], [self.real.l_max[i] for i in idx]
-        pair, baselines, fc, config = load_models(models)
-        own = session_reference(config)
+        folder = load_models(models)
+        own = session_reference(folder.config)
         out = {"by_strength": {}}
         for s in self.scale.session_strengths:
-            adapted, ratios = adapt_objects(objects, session_reference(config, s))
-            res = evaluate(adapted, sets, pair=pair, baselines=baselines, fc=fc, l_max=l_max)
+            adapted, ratios = adapt_objects(objects, session_reference(folder.config, s))
+            res = evaluate(adapted, sets, pair=folder.pair, baselines=folder.baselines,
+                           fc=folder.features, l_max=l_max)
             out["by_strength"][str(s)] = res["objects"]
             if own is None or own.strength == s:
                 out.update(objects=res["objects"], torque=res["torque"],

@@ -132,7 +132,8 @@ def _coverage(models: Path, test_file: SampleFile, real: RealData | None, *, n_s
               set_size: int, seed: int) -> dict:
     """Coverage of the trained models' intervals on the simulated test objects (the sets of
     the evaluate stage) and, when there are real files, on them."""
-    pair, _, fc, config = load_models(models)
+    folder = load_models(models)
+    pair, fc, config = folder.pair, folder.features, folder.config
     floor, why = training_validation_error(config)
     objects, _ = adapt_objects(test_file.samples.by_object(),
                                session_reference(config, simulated=True))
@@ -328,10 +329,11 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
 
 def _continuous_force(models: Path, cont_file: SampleFile) -> tuple[dict, dict]:
     """The switching-load run's vertical force by every method, and what it held."""
-    pair, baselines, fc, _ = load_models(models)
+    folder = load_models(models)
     run = cont_file.samples
     names = [run.names[i] for i in run.object_id]
-    return continuous_force(run, pair, baselines, fc), {"n": len(names), "objects": names}
+    return (continuous_force(run, folder.pair, folder.baselines, folder.features),
+            {"n": len(names), "objects": names})
 
 
 def _figures(out: Path, info: dict, sim: dict, cres: dict, coverage: dict,
