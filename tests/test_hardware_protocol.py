@@ -32,7 +32,7 @@ from support.hardware import RETRIES
 
 from jaxinertia.hardware import control_table as ct
 from jaxinertia.hardware.arm_config import arm_config, safety_limits
-from jaxinertia.hardware.driver import DynamixelArm, HardwareError
+from jaxinertia.hardware.driver import DynamixelArm, ServoHardwareError
 from jaxinertia.hardware.protocol import (
     Instruction,
     PacketParser,
@@ -336,7 +336,7 @@ def test_a_hardware_error_reading_is_confirmed_before_it_is_reported(bus, monkey
         with bus._lock:  # a real one: ID 13 overloaded
             bus.servos[13].set("hardware_error_status", ct.HW_ERROR_OVERLOAD)
         try:
-            with pytest.raises(HardwareError, match="ID 13: overload") as e:
+            with pytest.raises(ServoHardwareError, match="ID 13: overload") as e:
                 arm.check_hardware_errors()
             assert e.value.errors == {13: ct.HW_ERROR_OVERLOAD}, "confirmed errors"
         finally:

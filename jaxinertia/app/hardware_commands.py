@@ -287,7 +287,7 @@ def cmd_collect(args) -> int:
         raise SafetyError(f"refused: {e}") from e
     except PortError:  # nothing has moved; the journal is as it was
         raise
-    except HardwareError as e:  # the bus or a servo (driver.CommError, driver.HardwareError)
+    except HardwareError as e:  # the bus or a servo (CommError, ServoHardwareError)
         raise HardwareError(f"stopped ({config.on_stop}): {e}; {where()}") from e
     except KeyboardInterrupt:
         print(f"jaxinertia collect: interrupted ({config.on_stop}); {where()}",
