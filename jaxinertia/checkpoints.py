@@ -170,7 +170,7 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None,
         raise RobotMismatchError(
             f"{directory}: models trained for robot {config.get('robot')!r} (arm {trained!r}), "
             f"the samples come from the arm {theirs!r}: use models trained on that arm's "
-            f"samples (jaxinertia train --arm {theirs})")
+            f"samples (train with `arm` {theirs})")
     try:
         arch = dict(config["torque_model"])
         kind = arch.pop("kind", "paper")  # folders before the option: the paper's network

@@ -238,8 +238,8 @@ def plan_poses(n: int, *, robot: Robot, step_deg: float, workspace, clearance: f
                          workspace=inner_workspace(workspace, margin_deg))
     q = np.unique(q, axis=0)  # the directions repeat each configuration
     if n > len(q):
-        raise UsageError(f"--n {n}: the grid has only {len(q)} collision-free configurations "
-                         "(use a finer --step-deg)")
+        raise UsageError(f"`n` {n}: the grid has only {len(q)} collision-free configurations "
+                         "(use a finer `step_deg`)")
     A = regressors(q, robot=robot, tag=tag)
     C = information(A, joint_weights)
     idx, ld, k = select(C, n)
@@ -292,7 +292,7 @@ def load_plan(path: str | os.PathLike, *, arm: str | None = None
     planned_for = doc.get("arm") or doc.get("robot")
     if arm is not None and planned_for is not None and planned_for != arm:
         raise UsageError(f"{path}: a plan for the arm {planned_for!r}, not for {arm!r} "
-                         f"(make one: jaxinertia plan-poses --arm {arm})")
+                         f"(plan poses for it with `arm` {arm})")
     out = []
     for key in ("q_d", "direction"):
         try:

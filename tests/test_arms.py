@@ -168,6 +168,7 @@ def test_arm_sim_params():
 
 def test_files_of_one_arm_refuse_another(tmp_path):
     from jaxinertia.app.arm_options import samples_arm
+    from jaxinertia.app.options import flag_wording
     from jaxinertia.checkpoints import load_models
     from jaxinertia.design import PLAN_FORMAT, load_plan
     from jaxinertia.errors import RobotMismatchError, UsageError
@@ -180,8 +181,9 @@ def test_files_of_one_arm_refuse_another(tmp_path):
     with pytest.raises(RobotMismatchError, match="arm 'so101'.*the arm 'koch_v1_1'") as e:
         load_models(folder, robot="koch_v1_1", arm="koch_v1_1")
     assert "\n" not in str(e.value)
-    with pytest.raises(RobotMismatchError, match="train --arm open_manipulator_x"):
+    with pytest.raises(RobotMismatchError, match="train with `arm` open_manipulator_x") as e:
         load_models(folder, arm="open_manipulator_x")
+    assert "train with --arm open_manipulator_x" in flag_wording(str(e.value))  # the CLI's
     # Sample files: the recorded arm against --arm; a file that records none takes --arm's.
     with pytest.raises(RobotMismatchError, match="samples of the arm 'so101', not of --arm "
                        "'koch_v1_1'"):

@@ -29,6 +29,7 @@ from jaxinertia.app.arm_options import add_arm_option, arm_of, dynamixel_arm_opt
 from jaxinertia.app.options import (
     check_memory,
     finite_float,
+    flag_wording,
     nonnegative_float,
     positive_float,
     positive_int,
@@ -296,7 +297,7 @@ def cmd_collect(args) -> int:
     finally:
         journal.close()
         dxl.close()
-    print(f"bus: {dxl.bus_report()}", file=sys.stderr)
+    print(f"bus: {flag_wording(dxl.bus_report())}", file=sys.stderr)
     x = None if obj is None else np.asarray(obj.x)
     samples = samples_from_records(journal.records, robot, x, args.object)
     path = save_native(out, samples, _collected_meta(args, arm, robot, journal, header))

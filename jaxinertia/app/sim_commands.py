@@ -134,7 +134,7 @@ def cmd_calibrate(args) -> int:
                          "over the shipped calibration (pass it to simulate --calibration)")
     check_outputs(args, "--out")
     for name in ("report.md", "calibration.png"):
-        check_output(args.report / name, overwrite=args.overwrite, option="--report")
+        check_output(args.report / name, overwrite=args.overwrite, option="report")
     enable_x64()
     # The work's modules (JAX, matplotlib): imported when the command runs, not for --help.
     import numpy as np

@@ -192,7 +192,7 @@ class Journal:
         numbers: dict[int, int] = {}  # each record's line
         if path.exists() and path.stat().st_size:
             if not resume:
-                raise JournalExists(f"{path} exists: pass --resume to continue it, or "
+                raise JournalExists(f"{path} exists: pass `resume` to continue it, or "
                                       "remove it to start over")
             lines = path.read_bytes().split(b"\n")
             # A crash can tear the last line only (every line is flushed before the next);

@@ -92,7 +92,7 @@ class DynamixelArm:
     def bus_report(self) -> str:
         """One line of bus diagnostics (starts with the number of retried transactions)."""
         return (f"{self.failed_transactions} failed transactions retried (at most "
-                f"{self.most_attempts} attempts of --retries + 1 = {self.config.retries + 1} "
+                f"{self.most_attempts} attempts of `retries` + 1 = {self.config.retries + 1} "
                 f"for one), {self.packet.stale_packets} late status packets discarded, "
                 f"{self.unconfirmed_alarms} unconfirmed hardware-error readings, "
                 f"{self.stale_readings} late readings skipped")

@@ -54,7 +54,7 @@ def select(data: Sequence[Samples], objects: Sequence[str] | None = None, *,
     have = [d.name for d in data]
     unknown = [o for o in objects if o not in have]
     if unknown or not objects:
-        raise UsageError(f"--real-objects {list(objects)}: {where} has real files of {have}")
+        raise UsageError(f"`objects` {list(objects)}: {where} has real files of {have}")
     return [d for d in data if d.name in objects]
 
 
