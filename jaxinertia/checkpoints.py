@@ -2,7 +2,7 @@
 
 A model folder holds ``checkpoint/`` (orbax: the K stacked torque and attention model
 parameters) and ``config.json`` (architecture, feature normalisation, baselines, training
-hyperparameters, seeds, the robot and its arm, the simulator calibration and the training data's
+hyperparameters, seeds, the robot and its arm, the simulator fit and the training data's
 SHA-256). Everything needed to use the models is in the folder.
 
 ``config.json`` records the SHA-256 of every file of ``checkpoint/`` (``checksums``);

@@ -71,7 +71,7 @@ class WeightsError(JaxinertiaError, ValueError):
 
 
 class ConfigError(FileFormatError):
-    """A parameter or calibration file (simulator, camera, intrinsics) that cannot be used."""
+    """A parameter file (simulator fit, camera pose, intrinsics) that cannot be used."""
 
 
 class TrainingError(JaxinertiaError, ArithmeticError):

@@ -21,7 +21,7 @@ from jaxinertia.app.report import format_folds
 from jaxinertia.checkpoints import load_models
 from jaxinertia.errors import UsageError
 from jaxinertia.samples import load_native, save_lbipe, save_native
-from jaxinertia.sim import calibration
+from jaxinertia.sim import real_fit
 from jaxinertia.training import TrainConfig
 
 #: Training samples (four loads or objects) and configuration of every training here and in
@@ -41,7 +41,7 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
             return f(first, data, *args, **kw)
         return spy
 
-    for name in ("fit_link_gravity", "calibrate_servo_friction", "real_plan"):
+    for name in ("fit_link_gravity", "fit_servo_friction", "real_plan"):
         monkeypatch.setattr(folds, name, spying(getattr(folds, name)))
     read_npz = samples.read_npz
 
@@ -121,8 +121,8 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
 
 def test_fits_refuse_objects_the_folder_does_not_have(small_lbipe_dir, capsys):
     with pytest.raises(UsageError, match="mystery"):
-        calibration.real_files(small_lbipe_dir, ["mystery"])
-    assert [d.name for d in calibration.real_files(small_lbipe_dir, ["white"])] == ["white"]
+        real_fit.real_files(small_lbipe_dir, ["mystery"])
+    assert [d.name for d in real_fit.real_files(small_lbipe_dir, ["white"])] == ["white"]
     assert main(["calibrate", "--lbipe-dir", str(small_lbipe_dir), "--real-objects", "cube",
                  "cube"]) == 2
     assert "--real-objects" in capsys.readouterr().err

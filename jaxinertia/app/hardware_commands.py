@@ -205,7 +205,7 @@ def _collect_request(args):
     against the limits: all that can be refused, before the port is opened."""
     from jaxinertia import objects  # the work's modules: imported when the command runs
     from jaxinertia.hardware.arm_config import safety_limits  # (as above)
-    from jaxinertia.open_manipulator_x import calibrated_robot  # (as above)
+    from jaxinertia.open_manipulator_x import sim_fit_robot  # (as above)
     from jaxinertia.sim.params import arm_sim_params  # (as above)
 
     arm = dynamixel_arm_options(args)
@@ -214,7 +214,7 @@ def _collect_request(args):
                                                             tag_in_ee=arm.tag_in_ee)
     # The calibrated bare arm: A and tau_g (as the simulator records them) and the FK of
     # the kinematic tag pose (an arm without a calibration: its description's links).
-    robot = (calibrated_robot(args.calibration) if arm.calibration_file is not None
+    robot = (sim_fit_robot(args.calibration) if arm.sim_fit_file is not None
              else arm_sim_params(arm, args.calibration).robot)
     q_d, direction = _collect_plan(args, arm, robot)
     _check_ids(args, robot.n_joints)
