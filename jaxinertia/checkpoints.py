@@ -31,7 +31,12 @@ from jaxinertia.errors import ModelFolderError, RobotMismatchError
 from jaxinertia.estimation import ModelPair
 from jaxinertia.features import FeatureConfig
 from jaxinertia.fileio import replacing_dir
-from jaxinertia.networks import TORQUE_MODELS, AttentionModel, torque_model_kind
+from jaxinertia.networks import (
+    TORQUE_MODELS,
+    AttentionModel,
+    parameter_shapes,
+    torque_model_kind,
+)
 
 __all__ = ["ModelFolder", "file_sha256", "load_models", "save_models"]
 
@@ -192,14 +197,8 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None,
     if K < 1:
         raise ModelFolderError(f"{cfg_path}: n_models {K} must be at least 1")
     _verify(directory, config)
-    example = jnp.zeros((1, tm.n_joints, 4), jnp.float32)
-
-    def abstract(model):
-        shapes = jax.eval_shape(lambda k: model.init(k, example), jax.random.key(0))
-        return jax.tree_util.tree_map(
-            lambda s: jax.ShapeDtypeStruct((K,) + s.shape, s.dtype), shapes)
-
-    target = {"torque": abstract(tm), "attention": abstract(am)}
+    target = {"torque": parameter_shapes(tm, tm.n_joints, K),
+              "attention": parameter_shapes(am, tm.n_joints, K)}
     try:
         with ocp.StandardCheckpointer() as loader:
             state = loader.restore(directory / "checkpoint", target)
