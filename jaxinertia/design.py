@@ -37,7 +37,7 @@ import numpy as np
 from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.fileio import write_text
 from jaxinertia.linalg import gram, logdet_spd
-from jaxinertia.plans import planning_plan
+from jaxinertia.plans import Goals, planning_plan
 from jaxinertia.robot import Robot
 from jaxinertia.statics import load_regressor_fixed_tag
 
@@ -273,9 +273,9 @@ def save_plan(path: str | os.PathLike, plan: Plan, *, robot: str, extra: dict | 
     return write_text(path, json.dumps(doc, indent=2) + "\n")
 
 
-def load_plan(path: str | os.PathLike, *, arm: str | None = None
-              ) -> tuple[np.ndarray, np.ndarray]:
-    """A plan file -> ``(q_d (n, N) [rad], direction (n, N) of +1 / -1)``, checked;
+def load_plan(path: str | os.PathLike, *, arm: str | None = None) -> Goals:
+    """A plan file -> :class:`~jaxinertia.plans.Goals` (``q_d`` (n, N) [rad], ``direction``
+    (n, N) of +1 / -1), checked;
     ``arm``: the arm it is for (a plan made for another arm is refused)."""
     path = Path(path)
     try:
@@ -310,4 +310,4 @@ def load_plan(path: str | os.PathLike, *, arm: str | None = None
                               f"{q_d.shape}")
     if not np.all(np.abs(direction) == 1):
         raise FileFormatError(path, "direction", "entries must be +1 or -1")
-    return q_d, direction
+    return Goals(q_d, direction)

@@ -39,7 +39,7 @@ from jaxinertia.errors import HardwareError, UsageError
 from jaxinertia.fileio import check_output
 
 if TYPE_CHECKING:
-    import numpy as np
+    from jaxinertia.plans import Goals
 
 __all__ = ["register"]
 
@@ -177,7 +177,7 @@ def _check_collect_options(args) -> None:
                          f"{args.settle_time:g} s")
 
 
-def _collect_plan(args, arm, robot) -> tuple[np.ndarray, np.ndarray]:
+def _collect_plan(args, arm, robot) -> Goals:
     """The goals and approach directions of ``--plan`` (the arm's planning grid, random
     goals in its workspace, or a plan file of ``jaxinertia plan-poses`` for that arm;
     ``--n`` cuts the planning grid or a file's plan)."""
@@ -197,7 +197,7 @@ def _collect_plan(args, arm, robot) -> tuple[np.ndarray, np.ndarray]:
         q_d, direction = load_plan(args.plan, arm=arm.name)
     if args.n is not None:
         q_d, direction = q_d[: args.n], direction[: args.n]
-    return q_d, direction
+    return plans.Goals(q_d, direction)
 
 
 def _collect_request(args):
