@@ -80,13 +80,13 @@ def choose_sets(objects: Sequence[Samples], *, n_sets: int = 1000, set_size: int
 def l_max_of(objects: Sequence[Samples], overrides: dict[str, float] | None = None,
              *, path: str | os.PathLike | None = None) -> list[float]:
     """Each known object's bounding-box diagonal (the COM error normaliser); an object
-    without one is an error naming it (``--l-max NAME=METRES`` supplies it)."""
+    without one is an error naming it (``overrides``, ``{name: metres}``, supplies it)."""
     out = []
     for obj in objects:
         d = bounding_box_diagonal(obj.name, overrides)
         if d is None and obj.known:
             msg = (f"no bounding-box diagonal for object {obj.name!r}: pass "
-                   f"--l-max {obj.name}=METRES")
+                   f"`l_max` {obj.name}=METRES")
             raise FileFormatError(path, None, msg) if path else UsageError(msg)
         out.append(np.nan if d is None else d)
     return out

@@ -45,7 +45,13 @@ from jaxinertia.errors import TrainingError, UsageError
 from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.identification import solve_normal
 from jaxinertia.linalg import gram_statistics
-from jaxinertia.networks import TORQUE_MODELS, AttentionModel, PhysicalTorqueModel, TorqueModel
+from jaxinertia.networks import (
+    TORQUE_MODELS,
+    AttentionModel,
+    PhysicalTorqueModel,
+    TorqueModel,
+    parameter_shapes,
+)
 from jaxinertia.samples import Samples
 from jaxinertia.sharding import shard
 from jaxinertia.training_setup import (
@@ -89,7 +95,7 @@ def _init_stacked(model, keys, example):
 def _start(model, key, K: int, example, init):
     """K stacked parameter sets: ``init`` (fine-tuning: checked against the model's shapes)
     or fresh ones from ``key``."""
-    fresh = jax.eval_shape(lambda: _init_stacked(model, jax.random.split(key, K), example))
+    fresh = parameter_shapes(model, example.shape[-2], K, example.dtype, example.shape[-1])
     if init is None:
         return _init_stacked(model, jax.random.split(key, K), example)
     if (jax.tree_util.tree_structure(init) != jax.tree_util.tree_structure(fresh) or any(

@@ -65,10 +65,10 @@ __all__ = [
     "LEVELS",
     "Identifiability",
     "SetUncertainty",
-    "calibration",
     "coverage",
     "fit_inflation",
     "identifiability",
+    "interval_coverage",
     "intervals",
     "mass_com_covariance",
     "set_uncertainty",
@@ -379,7 +379,7 @@ def uncertainty_of(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
     return out
 
 
-def calibration(objects: Sequence[Samples], answers: dict[str, SetUncertainty], *,
+def interval_coverage(objects: Sequence[Samples], answers: dict[str, SetUncertainty], *,
                 levels: Sequence[float] = LEVELS, inflate=1.0) -> dict:
     """Coverage of every method's intervals on known objects, over each object's sets
     (``answers`` from :func:`uncertainty_of` on the same objects):

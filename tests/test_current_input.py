@@ -44,9 +44,10 @@ def test_models_with_the_current_input_train_save_and_read_the_current(tmp_path)
                       attention_val_sets=4, set_size=16, current_input=True)
     info = train([f], tmp_path / "m", cfg, progress=False)
     assert info["training"]["current_input"] is True
-    pair, _, fc, config = load_models(tmp_path / "m")
-    assert fc.n_inputs == 5 and config["training"]["current_input"] is True
-    kernel = pair.torque_vars["params"]["joint0"]["hidden"]["kernel"]
+    folder = load_models(tmp_path / "m")
+    assert folder.features.n_inputs == 5
+    assert folder.config["training"]["current_input"] is True
+    kernel = folder.pair.torque_vars["params"]["joint0"]["hidden"]["kernel"]
     assert kernel.shape[-2] == 5  # the first layer takes five inputs per joint
     # Evaluation reads the samples' current: another current, other torques and estimates.
     sets = [random_sets(300, n_sets=4, set_size=16, seed=0)]

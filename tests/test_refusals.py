@@ -275,7 +275,7 @@ def test_a_folder_without_checksums_loads_with_a_note(models, tmp_path, capsys):
     c = json.loads((m / "config.json").read_text())
     del c["checksums"]
     (m / "config.json").write_text(json.dumps(c))
-    assert load_models(m)[3]["n_models"] == 2
+    assert load_models(m).config["n_models"] == 2
     assert "has no checksums" in capsys.readouterr().err
 
 
@@ -446,3 +446,21 @@ def test_orbax_closed_loop_noise_is_dropped_and_nothing_else(monkeypatch):
     other = Unraisable(RuntimeError("something else"))
     cli._quiet_closed_loops(other)
     assert seen == [other]
+
+
+def test_library_messages_name_arguments_and_the_cli_names_flags(tmp_path):
+    """A library error names the caller's argument (`` `overwrite` ``), never a flag; the
+    command line words the same message with the command's flags."""
+    from jaxinertia.app.options import flag_wording
+    from jaxinertia.errors import UsageError
+
+    (tmp_path / "x.npz").write_bytes(b"")
+    with pytest.raises(UsageError) as e:
+        check_output(tmp_path / "x.npz")
+    said = str(e.value)
+    assert "--" not in said and "`out`" in said and "`overwrite`" in said
+    assert flag_wording(said) == (f"--out {tmp_path / 'x.npz'} exists; pass --overwrite to "
+                                  "replace it")
+    assert flag_wording("`objects` ['x']: no", "calibrate") == "--real-objects ['x']: no"
+    assert (flag_wording("`step_deg` and `l_max` mystery=METRES")
+            == "--step-deg and --l-max mystery=METRES")

@@ -29,6 +29,7 @@ from jaxinertia.app.arm_options import add_arm_option, arm_of, dynamixel_arm_opt
 from jaxinertia.app.options import (
     check_memory,
     finite_float,
+    flag_wording,
     nonnegative_float,
     positive_float,
     positive_int,
@@ -38,7 +39,7 @@ from jaxinertia.errors import HardwareError, UsageError
 from jaxinertia.fileio import check_output
 
 if TYPE_CHECKING:
-    import numpy as np
+    from jaxinertia.plans import Goals
 
 __all__ = ["register"]
 
@@ -176,7 +177,7 @@ def _check_collect_options(args) -> None:
                          f"{args.settle_time:g} s")
 
 
-def _collect_plan(args, arm, robot) -> tuple[np.ndarray, np.ndarray]:
+def _collect_plan(args, arm, robot) -> Goals:
     """The goals and approach directions of ``--plan`` (the arm's planning grid, random
     goals in its workspace, or a plan file of ``jaxinertia plan-poses`` for that arm;
     ``--n`` cuts the planning grid or a file's plan)."""
@@ -196,7 +197,7 @@ def _collect_plan(args, arm, robot) -> tuple[np.ndarray, np.ndarray]:
         q_d, direction = load_plan(args.plan, arm=arm.name)
     if args.n is not None:
         q_d, direction = q_d[: args.n], direction[: args.n]
-    return q_d, direction
+    return plans.Goals(q_d, direction)
 
 
 def _collect_request(args):
@@ -204,7 +205,7 @@ def _collect_request(args):
     against the limits: all that can be refused, before the port is opened."""
     from jaxinertia import objects  # the work's modules: imported when the command runs
     from jaxinertia.hardware.arm_config import safety_limits  # (as above)
-    from jaxinertia.open_manipulator_x import calibrated_robot  # (as above)
+    from jaxinertia.open_manipulator_x import sim_fit_robot  # (as above)
     from jaxinertia.sim.params import arm_sim_params  # (as above)
 
     arm = dynamixel_arm_options(args)
@@ -213,7 +214,7 @@ def _collect_request(args):
                                                             tag_in_ee=arm.tag_in_ee)
     # The calibrated bare arm: A and tau_g (as the simulator records them) and the FK of
     # the kinematic tag pose (an arm without a calibration: its description's links).
-    robot = (calibrated_robot(args.calibration) if arm.calibration_file is not None
+    robot = (sim_fit_robot(args.calibration) if arm.sim_fit_file is not None
              else arm_sim_params(arm, args.calibration).robot)
     q_d, direction = _collect_plan(args, arm, robot)
     _check_ids(args, robot.n_joints)
@@ -287,7 +288,7 @@ def cmd_collect(args) -> int:
         raise SafetyError(f"refused: {e}") from e
     except PortError:  # nothing has moved; the journal is as it was
         raise
-    except HardwareError as e:  # the bus or a servo (driver.CommError, driver.HardwareError)
+    except HardwareError as e:  # the bus or a servo (CommError, ServoHardwareError)
         raise HardwareError(f"stopped ({config.on_stop}): {e}; {where()}") from e
     except KeyboardInterrupt:
         print(f"jaxinertia collect: interrupted ({config.on_stop}); {where()}",
@@ -296,7 +297,7 @@ def cmd_collect(args) -> int:
     finally:
         journal.close()
         dxl.close()
-    print(f"bus: {dxl.bus_report()}", file=sys.stderr)
+    print(f"bus: {flag_wording(dxl.bus_report())}", file=sys.stderr)
     x = None if obj is None else np.asarray(obj.x)
     samples = samples_from_records(journal.records, robot, x, args.object)
     path = save_native(out, samples, _collected_meta(args, arm, robot, journal, header))

@@ -29,6 +29,7 @@ from tqdm.auto import tqdm
 from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.hardware.driver import DynamixelArm
 from jaxinertia.kinematics import gravity_torques
+from jaxinertia.plans import Goals
 from jaxinertia.robot import Robot
 from jaxinertia.samples import Samples
 from jaxinertia.statics import load_regressor, tag_pose
@@ -125,7 +126,7 @@ MAX_ABS_Q = 2 * np.pi
 
 
 def _check_values(path: Path, number: int, rec: dict, n_joints: int,
-                  plan: tuple[np.ndarray, np.ndarray] | None) -> None:
+                  plan: Goals | None) -> None:
     """A record's values as a sample file's are checked (shapes, finite, directions +-1, a
     rotation, angles a servo can read), and its goal the plan's: before anything moves, a
     damaged record is an error naming the line and the field, never a sample."""
@@ -177,7 +178,7 @@ class Journal:
 
     @classmethod
     def open(cls, path: str | os.PathLike, header: dict, *, resume: bool,
-             plan: tuple[np.ndarray, np.ndarray] | None = None) -> Journal:
+             plan: Goals | None = None) -> Journal:
         """A new journal, or (``resume``) the existing one after checking its header.
 
         Raises :class:`JournalExists` (a FileExistsError) when a journal exists and
@@ -192,7 +193,7 @@ class Journal:
         numbers: dict[int, int] = {}  # each record's line
         if path.exists() and path.stat().st_size:
             if not resume:
-                raise JournalExists(f"{path} exists: pass --resume to continue it, or "
+                raise JournalExists(f"{path} exists: pass `resume` to continue it, or "
                                       "remove it to start over")
             lines = path.read_bytes().split(b"\n")
             # A crash can tear the last line only (every line is flushed before the next);

@@ -15,7 +15,7 @@ The bus is :mod:`jaxinertia.hardware.transport`: the port is locked while open, 
 status packet is matched to its request (late ones are discarded), and the bus is drained
 before a failed transaction is retried. A Hardware Error Status reading, or an alert bit,
 is confirmed by reading register 70 of each servo concerned on its own before
-:class:`HardwareError` tells the user to power-cycle; an unconfirmed one is counted
+:class:`ServoHardwareError` tells the user to power-cycle; an unconfirmed one is counted
 (``unconfirmed_alarms``) and the collection goes on. A device that cannot be opened, is
 locked by another program or disappears (``OSError``, pyserial's ``SerialException``,
 ``termios.error``) is a :class:`CommError` (:class:`PortError` when opening).
@@ -41,8 +41,8 @@ from jaxinertia.hardware.driver_config import (
     ArmConfig,
     ArmState,
     CommError,
-    HardwareError,
     PortError,
+    ServoHardwareError,
 )
 from jaxinertia.hardware.safety import SafetyLimits
 from jaxinertia.hardware.transport import (
@@ -53,7 +53,8 @@ from jaxinertia.hardware.transport import (
 )
 from jaxinertia.robot import Robot
 
-__all__ = ["ArmConfig", "ArmState", "CommError", "DynamixelArm", "HardwareError", "PortError"]
+__all__ = ["ArmConfig", "ArmState", "CommError", "DynamixelArm", "PortError",
+           "ServoHardwareError"]
 
 
 class DynamixelArm:
@@ -65,7 +66,7 @@ class DynamixelArm:
     sync_read_class = GroupSyncRead
     refused_bits = 0x7F
     error_register = "hardware_error_status"
-    hardware_error = HardwareError
+    hardware_error = ServoHardwareError
 
     def __init__(self, config: ArmConfig, *, robot: Robot | None = None,
                  safety: SafetyLimits | None = None) -> None:
@@ -91,7 +92,7 @@ class DynamixelArm:
     def bus_report(self) -> str:
         """One line of bus diagnostics (starts with the number of retried transactions)."""
         return (f"{self.failed_transactions} failed transactions retried (at most "
-                f"{self.most_attempts} attempts of --retries + 1 = {self.config.retries + 1} "
+                f"{self.most_attempts} attempts of `retries` + 1 = {self.config.retries + 1} "
                 f"for one), {self.packet.stale_packets} late status packets discarded, "
                 f"{self.unconfirmed_alarms} unconfirmed hardware-error readings, "
                 f"{self.stale_readings} late readings skipped")
@@ -193,7 +194,7 @@ class DynamixelArm:
                                 f"({self.model[0]})")
         try:
             self.check_hardware_errors()
-        except HardwareError as e:
+        except ServoHardwareError as e:
             if not self.config.reboot_on_error:
                 raise
             for dxl_id in e.errors:
@@ -264,7 +265,7 @@ class DynamixelArm:
     # ---- state and motion --------------------------------------------------------------
 
     def check_hardware_errors(self) -> None:
-        """Raises :class:`HardwareError` if any joint servo has Hardware Error Status set
+        """Raises :class:`ServoHardwareError` if any joint servo has Hardware Error Status set
         (a nonzero reading is confirmed first: :meth:`_confirm_hardware_errors`)."""
         item = ct.ITEMS["hardware_error_status"]
         data = self._sync_read(item.address, item.size)
@@ -274,7 +275,7 @@ class DynamixelArm:
 
     def _confirm_hardware_errors(self, ids) -> None:
         """Reads Hardware Error Status (70) of each servo in ``ids`` on its own, on a
-        drained bus: raises :class:`HardwareError` for those where it is set (the register
+        drained bus: raises :class:`ServoHardwareError` for those where it is set (the register
         latches until a reboot, so a real error reads the same again); otherwise the
         reading or alert bit was not the servos' and is counted in ``unconfirmed_alarms``."""
         self._drain()

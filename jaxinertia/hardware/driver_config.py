@@ -13,7 +13,7 @@ import numpy as np
 from jaxinertia import errors
 from jaxinertia.hardware import control_table as ct
 
-__all__ = ["BUS_ERRORS", "ArmConfig", "ArmState", "CommError", "HardwareError", "PortError"]
+__all__ = ["BUS_ERRORS", "ArmConfig", "ArmState", "CommError", "PortError", "ServoHardwareError"]
 
 #: What the serial device raises when it fails or disappears (pyserial's SerialException is
 #: an OSError; tcflush on a vanished tty raises termios.error, which is not).
@@ -29,7 +29,7 @@ class PortError(CommError):
     """The serial device cannot be opened or is locked by another program (exit code 3)."""
 
 
-class HardwareError(errors.HardwareError):
+class ServoHardwareError(errors.HardwareError):
     """A servo reported a hardware error (Hardware Error Status, alert bit; exit code 3)."""
 
     #: The error register's bits (Hardware Error Status, address 70).

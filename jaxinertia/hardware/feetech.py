@@ -40,7 +40,7 @@ from jaxinertia.hardware.driver import (
     ArmState,
     CommError,
     DynamixelArm,
-    HardwareError,
+    ServoHardwareError,
 )
 from jaxinertia.hardware.feetech_transport import LockedScsPortHandler, StsMatchingPacketHandler
 from jaxinertia.hardware.safety import SafetyLimits
@@ -53,7 +53,7 @@ __all__ = ["FeetechArm", "FeetechState", "StsHardwareError", "feetech_config"]
 ACCELERATION_LSB = 100.0 * ft.RAD_PER_TICK  # [rad/s^2]
 
 
-class StsHardwareError(HardwareError):
+class StsHardwareError(ServoHardwareError):
     """A servo's Status (65) reports a protection stop (exit code 3)."""
 
     bit_names = ft.STATUS_NAMES
