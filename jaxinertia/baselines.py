@@ -6,6 +6,10 @@ PE (position error):     tau_hat = P * (q_d - q) - s * tau_f2 + b2
 ``tau_raw`` is the torque the servo's Present Current implies (datasheet torque constant);
 its gain is 1 as in the paper, only the friction and the offset are fitted. Both baselines
 estimate x by least squares with identity weights.
+
+A joint whose servo senses no current (XL430-W250: Present Load only) has NaN for
+``tau_raw``: its Sensor constants are NaN, and the Sensor baseline is unavailable on samples
+of such an arm (:func:`jaxinertia.evaluation.baseline_methods` says so).
 """
 
 from __future__ import annotations
@@ -77,7 +81,9 @@ def fit_baselines(q_d, q, direction, current_tau, tau) -> Baselines:
         out["pe_friction"].append(f)
         out["pe_offset"].append(b)
         X = np.column_stack([-s[:, j], one])
-        (f, b), *_ = np.linalg.lstsq(X, tau[:, j] - cur[:, j], rcond=None)
+        read = np.isfinite(cur[:, j])  # a servo without a current sensor reads none
+        (f, b), *_ = (np.linalg.lstsq(X[read], (tau[:, j] - cur[:, j])[read], rcond=None)
+                      if read.sum() >= 3 else ((np.nan, np.nan),))
         out["sensor_friction"].append(f)
         out["sensor_offset"].append(b)
     return Baselines.from_dict(out)

@@ -25,7 +25,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from jaxinertia.app import defaults
-from jaxinertia.app.arm_options import add_arm_option, arm_of, dynamixel_arm_options
+from jaxinertia.app.arm_options import (
+    add_arm_option,
+    arm_of,
+    bus_arm_options,
+    dynamixel_arm_options,
+)
 from jaxinertia.app.options import (
     check_memory,
     finite_float,
@@ -48,6 +53,9 @@ EXIT_INTERRUPTED = 130
 #: What one goal of a plan takes while it is drawn and checked (its pre-position, forward
 #: kinematics of both against the safety limits) [bytes], generous.
 PLAN_BYTES_PER_POSE = 4096
+
+#: A collected sample file's ``source``, by the arm's bus (``Arm.bus``).
+SOURCE_OF_BUS = {"dynamixel2": "dynamixel", "feetech_sts": "feetech"}
 
 #: ``collect --object unknown``: no ground truth (the file has no tau and no x).
 UNKNOWN = "unknown"
@@ -117,7 +125,8 @@ def cmd_virtual_robot(args) -> int:
     import numpy as np  # (as above)
 
     from jaxinertia import objects  # (as above)
-    from jaxinertia.app.feetech_commands import is_feetech, virtual_sts_robot  # (as above)
+    from jaxinertia.app.feetech_commands import virtual_sts_robot  # (as above)
+    from jaxinertia.servos import servo_model  # (as above)
     from jaxinertia.sim.params import arm_sim_params  # (as above)
     from jaxinertia.virtual.bus import Faults  # (as above)
     from jaxinertia.virtual.robot import VirtualServoBus  # (as above)
@@ -127,16 +136,21 @@ def cmd_virtual_robot(args) -> int:
                     delay_rate=args.delay_rate, delay_s=args.delay_ms / 1000.0,
                     overload_id=args.overload_id, overload_after=args.overload_after,
                     seed=args.fault_seed)
-    if is_feetech(arm_of(args)):  # the arm record names the servo family
+    if arm_of(args).bus == "feetech_sts":  # the arm record names the servo family
         return virtual_sts_robot(args, arm_of(args), faults, _serve)
     arm = dynamixel_arm_options(args)
     obj = objects.resolve(args.object, tag_in_ee=arm.tag_in_ee)
     params = arm_sim_params(arm, args.calibration)
     _check_ids(args, params.robot.n_joints)
+    gripper = () if args.gripper_id is None else (arm.gripper_servo or arm.servos[0],)
+    # Each servo answers as its model (the Koch's XL430s with Present Load); each joint's
+    # simulated gain belongs to its P register (the arm's, or the servo model's).
     bus = VirtualServoBus(params, obj, ids=args.ids,
                           extra_ids=() if args.gripper_id is None else (args.gripper_id,),
                           q0=np.radians(args.q0), speed=args.speed, faults=faults,
-                          seed=args.seed)
+                          seed=args.seed,
+                          servo_models=[servo_model(m) for m in (*arm.servos, *gripper)],
+                          gain_registers=[g[0] for g in arm.joint_gains])
     bus.compile()  # every physics path, so that no reply waits on a compilation
     return _serve(bus, f"virtual {arm.name} servos {list(bus.servos)} on {bus.path}, object "
                        f"{args.object}, {args.speed:g}x real time")
@@ -207,7 +221,7 @@ def _collect_request(args):
     from jaxinertia.open_manipulator_x import calibrated_robot  # (as above)
     from jaxinertia.sim.params import arm_sim_params  # (as above)
 
-    arm = dynamixel_arm_options(args)
+    arm = bus_arm_options(args)  # any bus: the record names its driver
     _check_collect_options(args)
     obj = None if args.object == UNKNOWN else objects.resolve(args.object,
                                                             tag_in_ee=arm.tag_in_ee)
@@ -235,7 +249,7 @@ def cmd_collect(args) -> int:
     import jax
     import numpy as np  # (as above)
 
-    from jaxinertia.hardware.arm_config import arm_config  # (as above)
+    from jaxinertia.hardware.arm_config import arm_config, driver_class  # (as above)
     from jaxinertia.hardware.collect import (  # (as above)
         Journal,
         KinematicTagPose,
@@ -244,7 +258,7 @@ def cmd_collect(args) -> int:
         plan_digest,
         samples_from_records,
     )
-    from jaxinertia.hardware.driver import DynamixelArm, PortError  # (as above)
+    from jaxinertia.hardware.driver import PortError  # (as above)
     from jaxinertia.hardware.safety import SafetyError  # (as above)
     from jaxinertia.samples import save_native  # (as above)
 
@@ -270,7 +284,7 @@ def cmd_collect(args) -> int:
               file=sys.stderr)
     R_ee_tag, p_ee_tag = arm.tag_in_ee
     tag_source = KinematicTagPose(robot, R_ee_tag, p_ee_tag)
-    dxl = DynamixelArm(config, robot=robot, safety=safety)
+    dxl = driver_class(arm)(config, robot=robot, safety=safety)  # the arm's bus
 
     def where() -> str:
         if not journal.path.exists():
@@ -310,7 +324,7 @@ def _collected_meta(args, arm, robot, journal, header) -> dict:
     """What a collected sample file records of its collection."""
     from jaxinertia import __version__  # (light; the package's own version)
 
-    return {"version": __version__, "source": "dynamixel", "port": args.port,
+    return {"version": __version__, "source": SOURCE_OF_BUS[arm.bus], "port": args.port,
             "plan": args.plan, "object": args.object,
             "scenario": args.plan if args.plan in ("planning", "random") else "plan",
             "objects": [args.object], "seed": args.seed, "servo_ids": list(args.ids),

@@ -12,6 +12,11 @@ than its last line (a corrupt record, a torn header) is a :class:`JournalError` 
 the line. At the end the native sample file is written from the
 journal, with ``A`` and ``tau_g`` of the bare arm computed at the measured ``q`` and
 tag pose.
+
+The current-based torque of a joint is its servo's torque constant times its Present
+Current (:attr:`DynamixelArm.torque_constants`); a servo without a current sensor (the
+XL430-W250) has none: its ``current`` and ``current_tau`` are ``null`` in the journal and
+NaN in the sample file (the Sensor baseline is then unavailable, and says so).
 """
 
 from __future__ import annotations
@@ -32,7 +37,6 @@ from jaxinertia.kinematics import gravity_torques
 from jaxinertia.robot import Robot
 from jaxinertia.samples import Samples
 from jaxinertia.statics import load_regressor, tag_pose
-from jaxinertia.xm430 import NOMINAL_TORQUE_CONSTANT
 
 __all__ = [
     "DELTA",
@@ -138,13 +142,17 @@ def _check_values(path: Path, number: int, rec: dict, n_joints: int,
               "timestamp": ()}
     values = {}
     for field, shape in shapes.items():
+        value = rec[field]
+        if field == "current_tau" and isinstance(value, list):
+            # null: a joint whose servo senses no current (nothing else may be missing)
+            value = [np.nan if v is None else v for v in value]
         try:
-            a = np.asarray(rec[field], np.float64)
+            a = np.asarray(value, np.float64)
         except (TypeError, ValueError):
             raise bad(field, f"not numbers: {rec[field]!r}"[:200]) from None
         if a.shape != shape:
             raise bad(field, f"shape {a.shape}, expected {shape}")
-        if not np.all(np.isfinite(a)):
+        if not np.all(np.isfinite(a) | (field == "current_tau") & np.isnan(a)):
             raise bad(field, "holds non-finite values")
         values[field] = a
     if not isinstance(rec["at_rest"], bool):
@@ -277,14 +285,19 @@ def collect(
             R, p = tag_pose(state.q)
             journal.append({
                 "index": i, "q_d": goal.tolist(), "q": state.q.tolist(),
-                "current": state.current.tolist(),
-                "current_tau": (NOMINAL_TORQUE_CONSTANT * state.current).tolist(),
+                "current": _json_values(state.current),
+                "current_tau": _json_values(arm.torque_constants * state.current),
                 "direction": s.tolist(), "R_base_tag": np.asarray(R).tolist(),
                 "p_base_tag": np.asarray(p).tolist(), "at_rest": bool(ok_pre and ok),
                 "settle_time": settle, "timestamp": state.timestamp,
                 "temperature": state.temperature.tolist(), "voltage": state.voltage.tolist(),
             })
             bar.update(1)
+
+
+def _json_values(a: np.ndarray) -> list:
+    """``a`` as a JSON list, NaN (no reading) as null."""
+    return [None if np.isnan(v) else float(v) for v in np.asarray(a, np.float64)]
 
 
 @jax.jit
@@ -304,7 +317,10 @@ def samples_from_records(records: dict[int, dict], robot: Robot, x: np.ndarray |
     idx = sorted(records)
     cols = ("q_d", "q", "current_tau", "direction", "R_base_tag", "p_base_tag", "at_rest",
             "settle_time", "timestamp", "temperature", "voltage")
-    f = {k: np.asarray([records[i][k] for i in idx]) for k in cols}
+    f = {k: np.asarray([records[i][k] for i in idx]) for k in cols if k != "current_tau"}
+    f["current_tau"] = np.asarray([[np.nan if v is None else v
+                                    for v in records[i]["current_tau"]] for i in idx],
+                                  np.float64)
     f["at_rest"] = f["at_rest"].astype(bool)
     q = f["q"].astype(np.float64)
     A, tau_g = (np.asarray(v) for v in _statics(robot, q, f["R_base_tag"], f["p_base_tag"]))
