@@ -57,6 +57,9 @@ def servo_session(data: Samples | Sequence[Samples]) -> ServoSession:
     S, N = e.shape
     gain, se = np.zeros(N), np.zeros(N)
     for j in range(N):
+        if not np.all(np.isfinite(cur[:, j])):  # a servo without a current sensor
+            gain[j], se[j] = np.nan, np.inf  # (ServoSession.ratio leaves the joint as is)
+            continue
         X = np.column_stack([e[:, j], np.ones(S)])
         coef, *_ = np.linalg.lstsq(X, cur[:, j], rcond=None)
         r = cur[:, j] - X @ coef
