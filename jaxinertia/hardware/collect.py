@@ -143,16 +143,18 @@ def _check_values(path: Path, number: int, rec: dict, n_joints: int,
     values = {}
     for field, shape in shapes.items():
         value = rec[field]
-        if field == "current_tau" and isinstance(value, list):
-            # null: a joint whose servo senses no current (nothing else may be missing)
-            value = [np.nan if v is None else v for v in value]
+        # null: a joint whose servo senses no current (nothing else may be missing, and a
+        # NaN written as a number is damage, not a missing reading)
+        unread = ([v is None for v in value] if field == "current_tau"
+                  and isinstance(value, list) else False)
         try:
-            a = np.asarray(value, np.float64)
+            a = np.asarray([np.nan if u else v for u, v in zip(unread, value)]
+                           if unread else value, np.float64)
         except (TypeError, ValueError):
             raise bad(field, f"not numbers: {rec[field]!r}"[:200]) from None
         if a.shape != shape:
             raise bad(field, f"shape {a.shape}, expected {shape}")
-        if not np.all(np.isfinite(a) | (field == "current_tau") & np.isnan(a)):
+        if not np.all(np.isfinite(a) | np.asarray(unread)):
             raise bad(field, "holds non-finite values")
         values[field] = a
     if not isinstance(rec["at_rest"], bool):
