@@ -249,7 +249,7 @@ def cmd_collect(args) -> int:
     import jax
     import numpy as np  # (as above)
 
-    from jaxinertia.hardware.arm_config import arm_config, driver_class  # (as above)
+    from jaxinertia.hardware.arm_config import arm_config  # (as above)
     from jaxinertia.hardware.collect import (  # (as above)
         Journal,
         KinematicTagPose,
@@ -259,6 +259,7 @@ def cmd_collect(args) -> int:
         samples_from_records,
     )
     from jaxinertia.hardware.driver import PortError  # (as above)
+    from jaxinertia.hardware.drivers import driver_class  # (as above)
     from jaxinertia.hardware.safety import SafetyError  # (as above)
     from jaxinertia.samples import save_native  # (as above)
 

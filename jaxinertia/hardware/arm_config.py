@@ -1,18 +1,19 @@
 """An arm's record on the bus: the driver's configuration and the safety limits taken from
 an :class:`jaxinertia.arm.Arm` (bus IDs, baud rate, position-loop registers, motion timing,
 joint limits and workspace box), so that nothing in :mod:`jaxinertia.hardware` holds a
-particular arm's constants; :func:`driver_class` picks the driver of the arm's bus."""
+particular arm's constants (:mod:`jaxinertia.hardware.drivers` picks the driver of the
+arm's bus)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from jaxinertia.arm import Arm
-from jaxinertia.hardware.driver import ArmConfig, DynamixelArm
+from jaxinertia.hardware.driver import ArmConfig
 from jaxinertia.hardware.safety import SafetyLimits, default_joint_limits
 from jaxinertia.robot import Robot
 
-__all__ = ["arm_config", "driver_class", "safety_limits"]
+__all__ = ["arm_config", "safety_limits"]
 
 
 def arm_config(arm: Arm, port: str, **overrides) -> ArmConfig:
@@ -37,15 +38,6 @@ def arm_config(arm: Arm, port: str, **overrides) -> ArmConfig:
         settle_time=t.settle_time, move_timeout=t.move_timeout,
         joint_limits=default_joint_limits(arm.workspace_deg, arm.safety_margin_deg))
     return ArmConfig(port=port, **{**values, **overrides})
-
-
-def driver_class(arm: Arm) -> type[DynamixelArm]:
-    """The driver of ``arm``'s bus (:attr:`Arm.bus`): :class:`DynamixelArm` for DYNAMIXEL
-    Protocol 2.0, :class:`jaxinertia.hardware.feetech.FeetechArm` for Feetech STS."""
-    from jaxinertia.hardware.feetech import FeetechArm  # scservo_sdk: only for its arms
-
-    drivers = {"dynamixel2": DynamixelArm, "feetech_sts": FeetechArm}
-    return drivers[arm.bus]
 
 
 def safety_limits(arm: Arm, robot: Robot) -> SafetyLimits:

@@ -27,8 +27,8 @@ is confirmed by reading register 70 of each servo concerned on its own before
 locked by another program or disappears (``OSError``, pyserial's ``SerialException``,
 ``termios.error``) is a :class:`CommError` (:class:`PortError` when opening).
 
-One class, whose bus primitives, lifecycle and motion share the port, the retry policy
-and the bus diagnostics; its configuration, readings and errors are
+One module, one class, whose bus primitives, lifecycle and motion share the port, the
+retry policy and the bus diagnostics; its configuration, readings and errors are
 :mod:`jaxinertia.hardware.driver_config` (re-exported here).
 """
 

@@ -35,6 +35,7 @@ from scservo_sdk import GroupSyncRead, GroupSyncWrite
 
 from jaxinertia.arm import Arm
 from jaxinertia.hardware import feetech_table as ft
+from jaxinertia.hardware.arm_config import arm_config
 from jaxinertia.hardware.driver import (
     ArmConfig,
     ArmState,
@@ -70,8 +71,6 @@ def feetech_config(port: str, arm: Arm, **overrides) -> ArmConfig:
     """The driver's configuration for ``arm`` (``arms.SO101``) on ``port``
     (:func:`jaxinertia.hardware.arm_config.arm_config`: PWM limit 1000, the STS's full
     scale); ``overrides`` replace any field."""
-    from jaxinertia.hardware.arm_config import arm_config  # (it names this driver)
-
     return arm_config(arm, port, **overrides)
 
 
