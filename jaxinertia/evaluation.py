@@ -150,10 +150,12 @@ def baseline_methods(objects: Sequence[Samples]) -> tuple[tuple[str, ...], dict[
 
 
 def baseline_torques(baselines: Baselines, obj: Samples) -> dict[str, np.ndarray]:
-    """(S, N) torques [N m] of the Sensor and PE baselines."""
+    """(S, N) torques [N m] of the Sensor and PE baselines (PE only where ``obj`` has no
+    current-based torque: :func:`baseline_methods`)."""
     s = jnp.asarray(obj.direction)
-    return {"Sensor": np.asarray(baselines.sensor(jnp.asarray(obj.current_tau), s)),
-            "PE": np.asarray(baselines.pe(jnp.asarray(obj.q_d), jnp.asarray(obj.q), s))}
+    out = {"Sensor": lambda: baselines.sensor(jnp.asarray(obj.current_tau), s),
+           "PE": lambda: baselines.pe(jnp.asarray(obj.q_d), jnp.asarray(obj.q), s)}
+    return {m: np.asarray(out[m]()) for m in baseline_methods([obj])[0]}
 
 
 def _finite(x: np.ndarray) -> np.ndarray:
