@@ -11,8 +11,9 @@ disappears; a collection stopped by the bus or a servo: the journal is kept and
 collection is not an error: the command says where the journal is and returns 130.
 
 One module for both: they share the bus options, the arm record's defaults for them
-(``arm_options.dynamixel_arm_options``) and the serving loop; the Feetech bus is served
-from ``feetech_commands``.
+(``arm_options.bus_arm_options``) and the serving loop; the Feetech bus is served
+from ``feetech_commands``. ``collect`` drives whatever bus the arm record names
+(``hardware.drivers``).
 """
 
 from __future__ import annotations
@@ -351,9 +352,9 @@ def _register_virtual_robot(sub, names: str) -> None:
         "virtual-robot",
         help="a simulated chain of DYNAMIXEL servos on a pseudo-terminal",
         description="Opens a pseudo-terminal, prints its path as the first line of stdout "
-        "and answers there as DYNAMIXEL servos (Protocol 2.0, the XM430's control table) "
-        "whose joints are the simulated arm (default: the OpenMANIPULATOR-X). Runs until "
-        "SIGTERM or Ctrl-C.",
+        "and answers there as the arm's servos (DYNAMIXEL Protocol 2.0, each servo its "
+        "model's control table; Feetech STS for the SO-101) whose joints are the simulated "
+        "arm (default: the OpenMANIPULATOR-X). Runs until SIGTERM or Ctrl-C.",
     )
     add_arm_option(v)  # Feetech servos (so101) are served by the STS bus model
     v.add_argument("--object", default="none",
