@@ -19,6 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxinertia.fileio import nan_to_null, null_to_nan
+
 __all__ = ["Baselines", "fit_baselines", "fit_pe_law", "pe_rows"]
 
 
@@ -40,12 +42,13 @@ class Baselines:
         """Current-based torque estimate [N m] (..., N)."""
         return current_tau - direction * self.sensor_friction + self.sensor_offset
 
-    def to_dict(self) -> dict[str, list[float]]:
-        return {k: np.asarray(v).tolist() for k, v in self.__dict__.items()}
+    def to_dict(self) -> dict[str, list[float | None]]:
+        """Plain data (a joint without a current sensor: null Sensor constants)."""
+        return {k: nan_to_null(v) for k, v in self.__dict__.items()}
 
     @classmethod
     def from_dict(cls, d: dict) -> Baselines:
-        return cls(**{k: jnp.asarray(d[k], jnp.float64 if _x64() else jnp.float32)
+        return cls(**{k: jnp.asarray(null_to_nan(d[k]), jnp.float64 if _x64() else jnp.float32)
                       for k in cls.__dataclass_fields__})
 
 

@@ -26,6 +26,7 @@ import numpy as np
 from flax import struct
 
 from jaxinertia.errors import UsageError
+from jaxinertia.fileio import nan_to_null, null_to_nan
 from jaxinertia.samples import Samples
 
 __all__ = ["ServoSession", "SessionReference", "adapt", "servo_session"]
@@ -43,9 +44,10 @@ class ServoSession:
     n_samples: int = struct.field(pytree_node=False, default=0)
 
     def to_dict(self) -> dict:
-        return {"current_gain": np.asarray(self.current_gain).tolist(),
-                "current_gain_se": np.asarray(self.current_gain_se).tolist(),
-                "n_samples": self.n_samples}
+        """Plain data (a joint without a current sensor: null gain and standard error)."""
+        se = np.where(np.isfinite(self.current_gain), self.current_gain_se, np.nan)
+        return {"current_gain": nan_to_null(self.current_gain),
+                "current_gain_se": nan_to_null(se), "n_samples": self.n_samples}
 
 
 def servo_session(data: Samples | Sequence[Samples]) -> ServoSession:
@@ -100,14 +102,15 @@ class SessionReference:
         return np.where(ok, ratio ** self.strength, 1.0)
 
     def to_dict(self) -> dict:
-        return {"current_gain": np.asarray(self.current_gain).tolist(),
+        """Plain data (a joint without a current sensor: null gain, left as it is)."""
+        return {"current_gain": nan_to_null(self.current_gain),
                 "strength": float(self.strength)}
 
     @classmethod
     def from_dict(cls, d: dict | None) -> SessionReference | None:
         if not d:
             return None
-        return cls(np.asarray(d["current_gain"], np.float64), float(d.get("strength", 1.0)))
+        return cls(null_to_nan(d["current_gain"]), float(d.get("strength", 1.0)))
 
 
 def adapt(data: Samples, reference: SessionReference | None,

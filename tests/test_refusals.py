@@ -227,7 +227,7 @@ def test_a_record_of_joints_without_a_current_sensor_resumes(tmp_path):
     assert not s.has_current
 
 
-def test_the_sensor_baseline_says_it_is_unavailable_without_current_sensors():
+def test_the_sensor_baseline_says_it_is_unavailable_without_current_sensors(tmp_path):
     from jaxinertia.evaluation import evaluate
     from jaxinertia.uncertainty import uncertainty_of
 
@@ -244,6 +244,14 @@ def test_the_sensor_baseline_says_it_is_unavailable_without_current_sensors():
     why = res["unavailable"]["Sensor"]
     assert "joints [0, 1]" in why and "no current sensor" in why, why
     assert set(uncertainty_of([d], sets, baselines=b)) == {"PE"}
+    # A model folder keeps them (null in config.json: strict JSON) and reads them back.
+    folder = save_models(tmp_path / "m", tiny_pair(), b, feature_config(), robot="koch_v1_1")
+    assert json.loads((folder / "config.json").read_text())["baselines"][
+        "sensor_friction"][:2] == [None, None]
+    back = load_models(folder)[1]
+    for k in ("sensor_friction", "sensor_offset", "pe_gain"):
+        np.testing.assert_array_equal(np.asarray(getattr(back, k)), np.asarray(getattr(b, k)),
+                                      err_msg=k)
 
 
 @pytest.mark.parametrize("change, words", [

@@ -32,6 +32,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from jaxinertia.errors import FileFormatError, UsageError
+from jaxinertia.fileio import nan_to_null, null_to_nan
 from jaxinertia.hardware.driver import DynamixelArm
 from jaxinertia.kinematics import gravity_torques
 from jaxinertia.robot import Robot
@@ -287,19 +288,14 @@ def collect(
             R, p = tag_pose(state.q)
             journal.append({
                 "index": i, "q_d": goal.tolist(), "q": state.q.tolist(),
-                "current": _json_values(state.current),
-                "current_tau": _json_values(arm.torque_constants * state.current),
+                "current": nan_to_null(state.current),
+                "current_tau": nan_to_null(arm.torque_constants * state.current),
                 "direction": s.tolist(), "R_base_tag": np.asarray(R).tolist(),
                 "p_base_tag": np.asarray(p).tolist(), "at_rest": bool(ok_pre and ok),
                 "settle_time": settle, "timestamp": state.timestamp,
                 "temperature": state.temperature.tolist(), "voltage": state.voltage.tolist(),
             })
             bar.update(1)
-
-
-def _json_values(a: np.ndarray) -> list:
-    """``a`` as a JSON list, NaN (no reading) as null."""
-    return [None if np.isnan(v) else float(v) for v in np.asarray(a, np.float64)]
 
 
 @jax.jit
@@ -320,9 +316,7 @@ def samples_from_records(records: dict[int, dict], robot: Robot, x: np.ndarray |
     cols = ("q_d", "q", "current_tau", "direction", "R_base_tag", "p_base_tag", "at_rest",
             "settle_time", "timestamp", "temperature", "voltage")
     f = {k: np.asarray([records[i][k] for i in idx]) for k in cols if k != "current_tau"}
-    f["current_tau"] = np.asarray([[np.nan if v is None else v
-                                    for v in records[i]["current_tau"]] for i in idx],
-                                  np.float64)
+    f["current_tau"] = np.asarray([null_to_nan(records[i]["current_tau"]) for i in idx])
     f["at_rest"] = f["at_rest"].astype(bool)
     q = f["q"].astype(np.float64)
     A, tau_g = (np.asarray(v) for v in _statics(robot, q, f["R_base_tag"], f["p_base_tag"]))
