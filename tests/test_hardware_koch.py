@@ -77,6 +77,9 @@ def test_every_servo_answers_as_its_model_and_a_goal_is_reached(bus):
         assert state.addParam(i)
     assert c.call(lambda _port: state.txRxPacket()) == COMM_SUCCESS
 
+    for i, m in zip(JOINTS, MODELS):  # each at its own supply: 12 V (XL430), 5 V (XL330)
+        assert state.getData(i, 144, 2) == round(m.supply_voltage * 10), f"voltage ID {i}"
+
     def position(i: int) -> int:
         return ct.to_signed(state.getData(i, 132, 4), 4)
 

@@ -32,6 +32,7 @@ import jax
 import numpy as np
 
 from jaxinertia.errors import SimulationError, UsageError
+from jaxinertia.hardware.control_table import VOLTAGE_LSB
 from jaxinertia.objects import HeldObject
 from jaxinertia.open_manipulator_x import GRIPPER_ID, JOINT_IDS
 from jaxinertia.servos import ServoModel
@@ -103,6 +104,10 @@ class VirtualServoBus(ServoBus):
                          tables=self._shared_tables, lock=ctx.Lock(),
                          models=None if models is None else tuple(m.model_number
                                                                   for m in models))
+        if models is not None:  # each servo at its own model's supply (XL330: 5 V)
+            for i, m in zip(self.servos, models):
+                self.servos[i].set("present_input_voltage",
+                                   round(m.supply_voltage / VOLTAGE_LSB))
         self._ctx = ctx
         self._base_servo = params.servo
         self._gain_scale = gain_scale(params.servo, gain_registers)
