@@ -133,6 +133,23 @@ class Arm:
         return tuple(servo_model(s) for s in self.servos)
 
     @property
+    def joint_gains(self) -> tuple[tuple[float, float, float], ...]:
+        """(P, I, D) registers per arm joint: the record's override, else the servo model's."""
+        overrides = self.gains or (None,) * self.n_joints
+        return tuple(tuple(g) if g else m.gains for g, m in zip(overrides, self.servo_models))
+
+    @property
+    def bus(self) -> str:
+        """The protocol every servo of the arm speaks (``ServoModel.protocol``); one bus
+        cannot mix protocols (:class:`ConfigError`)."""
+        models = self.servo_models + ((servo_model(self.gripper_servo),)
+                                      if self.gripper_servo else ())
+        protocols = sorted({m.protocol for m in models})
+        if len(protocols) != 1:
+            raise ConfigError(self.name, "servos", f"one bus cannot mix {protocols} servos")
+        return protocols[0]
+
+    @property
     def has_current_sensors(self) -> bool:
         """Whether every arm joint's servo reads its motor current (the Sensor baseline)."""
         return all(m.has_current_sensor for m in self.servo_models)

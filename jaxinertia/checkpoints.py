@@ -223,8 +223,12 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None,
                      tau_scale=jnp.asarray(np.asarray(features.tau_scale), jnp.float32),
                      torque_model=tm, attention_model=am)
     _check_finite(pair, directory)
-    for k, v in {**features.to_dict(), **baselines.to_dict()}.items():
-        if not np.all(np.isfinite(np.asarray(v, np.float64))):
+    for k, v in {**features.to_dict(), **config["baselines"]}.items():
+        # null: the Sensor baseline's constants of a joint without a current sensor
+        missing = [x is None for x in v] if k.startswith("sensor_") else False
+        a = np.asarray([0.0 if m else x for m, x in zip(missing, v)] if missing else v,
+                       np.float64)
+        if not np.all(np.isfinite(a)):
             raise ModelFolderError(f"{cfg_path}: {k} holds non-finite values")
     return ModelFolder(pair=pair, baselines=baselines, features=features, config=config,
                        directory=directory)

@@ -136,11 +136,27 @@ def stack(objects: Sequence[Samples], sets: Sequence[np.ndarray],
 # ---- evaluation -------------------------------------------------------------------------
 
 
+def baseline_methods(objects: Sequence[Samples]) -> tuple[tuple[str, ...], dict[str, str]]:
+    """The baselines that ``objects`` allow, and why any other is unavailable: the Sensor
+    baseline needs every joint's current-based torque, which a servo without a current
+    sensor (XL430-W250: Present Load only) does not give."""
+    missing = [o.name for o in objects if not o.has_current]
+    if not missing:
+        return ("Sensor", "PE"), {}
+    joints = sorted({int(j) for o in objects
+                     for j in np.flatnonzero(~np.all(np.isfinite(o.current_tau), axis=0))})
+    return ("PE",), {"Sensor": f"unavailable: joints {joints} of {', '.join(missing)} have no "
+                               "current sensor (Present Load only), so no current-based "
+                               "torque"}
+
+
 def baseline_torques(baselines: Baselines, obj: Samples) -> dict[str, np.ndarray]:
-    """(S, N) torques [N m] of the Sensor and PE baselines."""
+    """(S, N) torques [N m] of the Sensor and PE baselines (PE only where ``obj`` has no
+    current-based torque: :func:`baseline_methods`)."""
     s = jnp.asarray(obj.direction)
-    return {"Sensor": np.asarray(baselines.sensor(jnp.asarray(obj.current_tau), s)),
-            "PE": np.asarray(baselines.pe(jnp.asarray(obj.q_d), jnp.asarray(obj.q), s))}
+    out = {"Sensor": lambda: baselines.sensor(jnp.asarray(obj.current_tau), s),
+           "PE": lambda: baselines.pe(jnp.asarray(obj.q_d), jnp.asarray(obj.q), s)}
+    return {m: np.asarray(out[m]()) for m in baseline_methods([obj])[0]}
 
 
 def _finite(x: np.ndarray) -> np.ndarray:
@@ -163,7 +179,8 @@ def evaluate(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
 
     Returns ``{"objects": {name: {method: Table I metrics, "mean_attention_weight": [...],
     "L_max_m": ...}}, "torque": {method: Table II metrics}, "diagnostics": {name: {method:
-    flagged sets}}, "estimates": {method: (O, [K,] B, 4)}, "model_estimates": Estimates}``.
+    flagged sets}}, "estimates": {method: (O, [K,] B, 4)}, "model_estimates": Estimates,
+    "unavailable": {method: why}}`` (the Sensor baseline on an arm without current sensors).
     Metrics of the K model pairs are computed over all their sets together (as the paper's
     ten repeats); unknown objects get estimates but no metrics.
     """
@@ -178,9 +195,10 @@ def evaluate(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
     batch = batch._replace(sets=shard(batch.sets, axis=1))
     solves: dict[str, WLSResult] = {}
     tau_hat: dict[str, list[np.ndarray]] = {}
+    usable, unavailable = baseline_methods(objects)
     if baselines is not None:
         per_obj = [baseline_torques(baselines, o) for o in objects]
-        for m in ("Sensor", "PE"):
+        for m in usable:
             tau_hat[m] = [p[m] for p in per_obj]
             y = jnp.asarray(np.stack([_pad(t, batch.A.shape[1]) for t in tau_hat[m]]))
             solves[m] = identity_solves(batch.A, y, batch.tau_g, batch.sets)
@@ -217,7 +235,8 @@ def evaluate(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
     return {"objects": results, "torque": torque,
             "diagnostics": {n: {m: _diagnostics(r, o) for m, r in solves.items()}
                             for o, n in enumerate(names)},
-            "estimates": estimates, "model_estimates": est}
+            "estimates": estimates, "model_estimates": est,
+            "unavailable": unavailable if baselines is not None else {}}
 
 
 def average(objects: dict) -> dict[str, dict[str, float]]:

@@ -35,7 +35,8 @@ from pathlib import Path
 from jaxinertia.errors import JaxinertiaError, UsageError
 
 __all__ = ["OutputError", "OutputLockedError", "check_output", "command_locks",
-           "release_locks", "replacing", "replacing_dir", "write_json", "write_text"]
+           "nan_to_null", "null_to_nan", "release_locks", "replacing", "replacing_dir",
+           "write_json", "write_text"]
 
 #: Locks this process holds, by the output's absolute path (see the module's docstring).
 _HELD: dict[Path, object] = {}
@@ -196,6 +197,21 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
 def write_json(path: str | os.PathLike, obj) -> Path:
     """``obj`` as indented JSON (numpy arrays as lists), written atomically."""
     return write_text(path, json.dumps(obj, indent=2, default=_json_default) + "\n")
+
+
+def nan_to_null(a) -> list:
+    """``a`` (1-D) as a JSON list, a NaN (a value that does not exist: the current-based
+    torque of a servo without a current sensor) as null; strict JSON has no NaN."""
+    import numpy as np  # (as in _json_default)
+
+    return [None if v != v else float(v) for v in np.asarray(a, np.float64).ravel()]
+
+
+def null_to_nan(values):
+    """The float64 array of a JSON list, null as NaN (:func:`nan_to_null` read back)."""
+    import numpy as np  # (as in _json_default)
+
+    return np.asarray([np.nan if v is None else v for v in values], np.float64)
 
 
 def _json_default(o):

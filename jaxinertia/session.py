@@ -35,6 +35,7 @@ import numpy as np
 from flax import struct
 
 from jaxinertia.errors import UsageError
+from jaxinertia.fileio import nan_to_null, null_to_nan
 from jaxinertia.samples import Samples
 
 __all__ = ["DEAD_BAND_GRID", "ServoSession", "SessionReference", "adapt", "dead_band_fit",
@@ -55,11 +56,12 @@ class ServoSession:
     dead_band: np.ndarray | None = None
 
     def to_dict(self) -> dict:
-        d = {"current_gain": np.asarray(self.current_gain).tolist(),
-             "current_gain_se": np.asarray(self.current_gain_se).tolist(),
-             "n_samples": self.n_samples}
+        """Plain data (a joint without a current sensor: null gain and standard error)."""
+        se = np.where(np.isfinite(self.current_gain), self.current_gain_se, np.nan)
+        d = {"current_gain": nan_to_null(self.current_gain),
+             "current_gain_se": nan_to_null(se), "n_samples": self.n_samples}
         if self.dead_band is not None:
-            d["dead_band"] = np.asarray(self.dead_band).tolist()
+            d["dead_band"] = nan_to_null(self.dead_band)
         return d
 
 
@@ -71,8 +73,12 @@ DEAD_BAND_GRID = np.arange(51) * 0.1 * (2.0 * np.pi / 4096)
 def dead_band_fit(e: np.ndarray, current: np.ndarray, grid: np.ndarray = DEAD_BAND_GRID):
     """Per joint, the least-squares fit of ``current = g * sign(e) max(|e| - d, 0) + c``
     over the dead bands ``d`` of ``grid``. ``e``, ``current``: (S, N). Returns ``(g, se,
-    d)``, each (N,): the gain, its standard error (given ``d``) and the dead band."""
+    d)``, each (N,): the gain, its standard error (given ``d``) and the dead band; a joint
+    without a current sensor (a non-finite current) gets gain and dead band NaN, standard
+    error inf (:meth:`SessionReference.ratio` leaves it as it is)."""
     e, current = np.asarray(e, np.float64), np.asarray(current, np.float64)
+    sensed = np.all(np.isfinite(current), axis=0)  # (N,)
+    current = np.where(sensed, current, 0.0)
     S = e.shape[0]
     x = np.sign(e)[None] * np.maximum(np.abs(e)[None] - grid[:, None, None], 0.0)  # (D, S, N)
     xc = x - x.mean(axis=1, keepdims=True)
@@ -83,11 +89,12 @@ def dead_band_fit(e: np.ndarray, current: np.ndarray, grid: np.ndarray = DEAD_BA
     sse = np.where(sxx > 0, np.sum(yc * yc, axis=0)[None] - sxy ** 2 / safe, np.inf)
     best = np.argmin(sse, axis=0)  # (N,) the first of equals: the smallest dead band
     cols = np.arange(e.shape[1])
-    gain = np.where(sxx[best, cols] > 0, sxy[best, cols] / safe[best, cols], 0.0)
+    ok = sensed & (sxx[best, cols] > 0)
+    gain = np.where(ok, sxy[best, cols] / safe[best, cols], np.where(sensed, 0.0, np.nan))
     dof = max(S - 2, 1)
-    se = np.where(sxx[best, cols] > 0,
-                  np.sqrt(np.maximum(sse[best, cols], 0.0) / dof / safe[best, cols]), np.inf)
-    return gain, se, np.asarray(grid)[best]
+    se = np.where(ok, np.sqrt(np.maximum(sse[best, cols], 0.0) / dof / safe[best, cols]),
+                  np.inf)
+    return gain, se, np.where(sensed, np.asarray(grid)[best], np.nan)
 
 
 def servo_session(data: Samples | Sequence[Samples]) -> ServoSession:
@@ -131,14 +138,15 @@ class SessionReference:
         return np.where(ok, ratio ** self.strength, 1.0)
 
     def to_dict(self) -> dict:
-        return {"current_gain": np.asarray(self.current_gain).tolist(),
+        """Plain data (a joint without a current sensor: null gain, left as it is)."""
+        return {"current_gain": nan_to_null(self.current_gain),
                 "strength": float(self.strength)}
 
     @classmethod
     def from_dict(cls, d: dict | None) -> SessionReference | None:
         if not d:
             return None
-        return cls(np.asarray(d["current_gain"], np.float64), float(d.get("strength", 1.0)))
+        return cls(null_to_nan(d["current_gain"]), float(d.get("strength", 1.0)))
 
 
 def adapt(data: Samples, reference: SessionReference | None,

@@ -105,6 +105,11 @@ def feature_config_from(data: Samples, *, current_input: bool = False) -> Featur
     q_min, q_max = data.q.min(axis=0), data.q.max(axis=0)
     pad = np.maximum(1e-3, 1e-6 * (q_max - q_min))
     tau_scale = np.maximum(np.abs(data.tau).max(axis=0), 1e-4)
+    unsensed = np.flatnonzero(~np.all(np.isfinite(data.current_tau), axis=0))
+    if current_input and unsensed.size:
+        raise UsageError(f"the current input needs a current on every joint; joints "
+                         f"{(unsensed + 1).tolist()} have none (a servo without a current "
+                         "sensor)")
     return FeatureConfig.create(q_min - pad, q_max + pad, np.maximum(qe.max(axis=0), 1e-4),
                                 tau_scale, tau_scale if current_input else None)
 

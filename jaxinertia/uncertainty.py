@@ -48,7 +48,7 @@ import numpy as np
 from jaxinertia.baselines import Baselines
 from jaxinertia.errors import UsageError
 from jaxinertia.estimation import ModelPair, estimate_sets, predict_torques
-from jaxinertia.evaluation import baseline_torques, stack
+from jaxinertia.evaluation import baseline_methods, baseline_torques, stack
 from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.identification import (
     DEFAULT_MAX_CONDITION,
@@ -362,7 +362,7 @@ def uncertainty_of(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
     out: dict[str, SetUncertainty] = {}
     if baselines is not None:
         per_obj = [baseline_torques(baselines, o) for o in objects]
-        for m in ("Sensor", "PE"):
+        for m in baseline_methods(objects)[0]:
             tau = jnp.asarray(np.stack([  # padded like stack(): the last sample repeated
                 np.pad(p[m], ((0, batch.A.shape[1] - len(p[m])), (0, 0)), mode="edge")
                 for p in per_obj]))

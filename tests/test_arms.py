@@ -220,8 +220,10 @@ def test_arm_option_on_the_commands(tmp_path, capsys):
     capsys.readouterr()
     # Refused in one line before anything is opened or read.
     for argv, said in [
+            # The SO-101 collects through its own (Feetech) driver: its IDs are checked.
             (["collect", "--arm", "so101", "--port", "/dev/null", "--plan", "random",
-              "--object", "cube", "--out", str(tmp_path / "c.npz")], "DYNAMIXEL"),
+              "--object", "cube", "--ids", "1,2,3,4", "--out", str(tmp_path / "c.npz")],
+             "--ids needs 5"),
             (["virtual-robot", "--arm", "koch_v1_1", "--q0", "0", "0"], "--q0 needs 5"),
             (["calibrate", "--arm", "so101"], "lbipe files, which are the open_manipulator_x"),
             (["evaluate", "--arm", "koch_v1_1", "--models", str(tmp_path)], "lbipe files"),

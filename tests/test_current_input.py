@@ -9,6 +9,7 @@ from support.synthetic import feature_config, synthetic_samples
 
 from jaxinertia.app.pipeline import evaluate_models, train
 from jaxinertia.checkpoints import load_models
+from jaxinertia.errors import UsageError
 from jaxinertia.evaluation import random_sets
 from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.samples import save_native
@@ -34,6 +35,11 @@ def test_the_current_is_a_fifth_input_scaled_like_the_torque():
     assert FeatureConfig.from_dict(with_current.to_dict()).current_scale.tolist() == \
         with_current.current_scale.tolist()
     assert "current_scale" not in feature_config().to_dict()
+    # A servo without a current sensor (an XL430's NaN current) cannot give the input.
+    cur = np.array(d.current_tau)
+    cur[:, 1] = np.nan
+    with pytest.raises(UsageError, match=r"joints \[2\] have none"):
+        feature_config_from(d.replace(current_tau=cur), current_input=True)
 
 
 def test_models_with_the_current_input_train_save_and_read_the_current(tmp_path):

@@ -182,6 +182,7 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
         pred_se = np.asarray(ident.se[0])
         out["objects"][obj.name] = {
             "n_samples": obj.n_samples, "methods": methods, "session_ratio": ratio,
+            "unavailable": res["unavailable"],
             "identifiability": {"condition": float(ident.condition[0]),
                                 "predicted_mass_se_kg": float(pred_se[0]),
                                 "predicted_com_se_m": pred_se[1:].tolist(),

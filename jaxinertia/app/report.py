@@ -200,6 +200,9 @@ def reproduce_report(results: dict, figs: dict, *, full: bool, seed: int, scale,
         "model.", "",
         "## Simulated test objects", "",
         table1(sim["objects"], "Table I: mass and COM"), "",
+        # A baseline the arm's servos cannot give (the Koch's XL430s: no current sensor).
+        *(line for m, why in sim.get("unavailable", {}).items()
+          for line in (f"{m} baseline {why}.", "")),
         table2(sim["torque"], "Table II: joint torque (all test samples)"), "",
         table3(sim["objects"], "Table III: mean attention weights"), "",
         f"![Table I]({figs['table1'].name})", "",

@@ -92,7 +92,14 @@ def arm_sim_params(arm: Arm | None = None,
         base = FrictionParams.create(1)
         friction = {k: [m.friction.get(k, float(getattr(base, k)[0])) for m in models]
                     for k in keys}
-        params = SimParams(robot, servo, FrictionParams.create(n, **friction))
+        # What each servo reports (the XL430: Present Load, no current-based torque).
+        params = SimParams(robot, servo, FrictionParams.create(n, **friction),
+                           current_lsb=jnp.asarray([m.sensed_lsb if m.has_current_sensor
+                                                    else m.sensed_lsb * m.stall_current
+                                                    for m in models]),
+                           current_torque_constant=jnp.asarray(
+                               [m.torque_constant if m.has_current_sensor else np.nan
+                                for m in models]))
     t = arm.timing
     return params.replace(profile_velocity=t.profile_velocity,
                           profile_acceleration=t.profile_acceleration,

@@ -60,16 +60,19 @@ def run_plans(params: SimParams, plans: list, *, lanes: int | None = None,
     out = []
     for plan, res, name in zip(checked, results, descs):
         res = res._asdict()
-        _check_diverged(res, plan.q_d, name)
+        _check_diverged(res, plan.q_d, name, params)
         out.append(res)
     return out
 
 
-def _check_diverged(res: dict, q_d: np.ndarray, desc: str) -> None:
+def _check_diverged(res: dict, q_d: np.ndarray, desc: str, params: SimParams) -> None:
     # Diverged: a non-finite state, or an arm that ended far from its goal (a settled
-    # servo misses by a few ticks; 0.5 rad is a runaway integration).
+    # servo misses by a few ticks; 0.5 rad is a runaway integration). A joint without a
+    # current sensor has no current-based torque (NaN by design).
+    unsensed = (np.zeros(q_d.shape[1], bool) if params.current_torque_constant is None
+                else np.isnan(np.asarray(params.current_torque_constant)))
     with np.errstate(invalid="ignore"):
-        bad = ~np.all(np.isfinite(res["q"]) & np.isfinite(res["current_tau"])
+        bad = ~np.all(np.isfinite(res["q"]) & (np.isfinite(res["current_tau"]) | unsensed)
                       & (np.abs(res["q"] - q_d) < DIVERGED_RAD), axis=1)
     if bad.any():
         i = np.flatnonzero(bad)
