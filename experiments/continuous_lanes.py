@@ -42,7 +42,8 @@ def main() -> None:
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", True)
     params = default_sim_params()
-    pair, baselines, fc, _ = load_models(args.models)
+    folder = load_models(args.models)
+    pair, baselines, fc = folder.pair, folder.baselines, folder.features
     kw = dict(n=args.n, objects=CONTINUOUS_OBJECTS, switch_every=args.switch_every, seed=0,
               progress=False)
     runs = {}

@@ -48,8 +48,8 @@ from jaxinertia.lbipe import load_test_files as real_files  # noqa: E402
 from jaxinertia.open_manipulator_x import WORKSPACE_DEG  # noqa: E402
 from jaxinertia.samples import load_samples  # noqa: E402
 from jaxinertia.uncertainty import (  # noqa: E402
-    calibration,
     fit_inflation,
+    interval_coverage,
     training_validation_error,
     uncertainty_of,
 )
@@ -93,7 +93,7 @@ def coverage_section(objects, sets, pair, fc, floor, baselines=None) -> dict:
                 uncertainty_of(objects, sets, pair=pair, fc=fc, floor=None))
     out = {"wall_s_incl_compile": wall, "variants": {}}
     for name, ans in _variants(answers, no_floor).items():
-        s = _summary(calibration(objects, ans))
+        s = _summary(interval_coverage(objects, ans))
         out["variants"][name] = {"objects": s, "mean": {m: _mean(s, m) for m in ans}}
     return out, answers
 
@@ -105,7 +105,7 @@ def inflation_section(objects, answers) -> dict:
         u = answers[m]
         for fit, check in ((0, 1), (1, 0)):
             kappa = fit_inflation(u.x[fit], u.cov[fit], objects[fit].x[0])
-            cal = calibration([objects[check]], {m: u._replace(
+            cal = interval_coverage([objects[check]], {m: u._replace(
                 x=u.x[check:check + 1], cov=u.cov[check:check + 1])}, inflate=kappa)
             c = cal["objects"][objects[check].name][m]
             out[f"{m}: fit {objects[fit].name} -> check {objects[check].name}"] = {
@@ -285,7 +285,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     results: dict = {"argv": sys.argv, "machine": str(jax.devices()[0])}
-    pair, baselines, fc, config = load_models(args.models)
+    folder = load_models(args.models)
+    pair, baselines, fc, config = folder.pair, folder.baselines, folder.features, folder.config
     floor, why = training_validation_error(config)
     results["floor"] = {"Nm": None if floor is None else floor.tolist(), "source": why}
     print(f"torque error floor: {why}: {floor}")

@@ -36,7 +36,8 @@ def main() -> None:
     ap.add_argument("models")
     ap.add_argument("--lbipe-dir", default=None)
     args = ap.parse_args()
-    pair, bl, fc, _ = load_models(args.models)
+    folder = load_models(args.models)
+    pair, bl, fc = folder.pair, folder.baselines, folder.features
     layout = find_layout(args.lbipe_dir or default_lbipe_dir())
     print("per joint:" + "".join(f"{f'joint {j + 1}':>9}" for j in range(4)))
     print(_row("model folder PE gain [N m/rad]", bl.pe_gain))

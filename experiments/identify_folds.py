@@ -34,13 +34,6 @@ import numpy as np  # noqa: E402
 from jaxinertia import apply_xla_workarounds  # noqa: E402
 from jaxinertia.fileio import write_json  # noqa: E402
 from jaxinertia.lbipe import default_lbipe_dir, find_layout, load_test_files  # noqa: E402
-from jaxinertia.sim.calibration import (  # noqa: E402
-    baseline_statistics,
-    calibrate_servo_friction,
-    fit_link_gravity,
-    real_files,
-    real_plan,
-)
 from jaxinertia.sim.identify import (  # noqa: E402
     ESConfig,
     group_index,
@@ -49,6 +42,13 @@ from jaxinertia.sim.identify import (  # noqa: E402
     target_of,
 )
 from jaxinertia.sim.params import datasheet_sim_params, params_to_dict  # noqa: E402
+from jaxinertia.sim.real_fit import (  # noqa: E402
+    baseline_statistics,
+    fit_link_gravity,
+    fit_servo_friction,
+    real_files,
+    real_plan,
+)
 from jaxinertia.sim.sampling import simulate_samples  # noqa: E402
 
 
@@ -138,7 +138,7 @@ def main() -> None:
         fit, other = real_files(lbipe, [fit_on]), real_files(lbipe, [held])
         robot, _ = fit_link_gravity(params.robot, fit)
         params = params.replace(robot=robot)
-        params, _ = calibrate_servo_friction(params, fit, iterations=args.iterations,
+        params, _ = fit_servo_friction(params, fit, iterations=args.iterations,
                                              seed=args.seed, fit_offset=True,
                                              log=lambda m: None)
         t1 = time.perf_counter()

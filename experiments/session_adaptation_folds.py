@@ -45,7 +45,9 @@ def main():
     for fold in sorted(Path(a.run, "folds").glob("fit_*")):
         fit_on = fold.name[4:]
         for models in sorted(p for p in fold.glob("models*") if (p / "config.json").is_file()):
-            pair, baselines, fc, config = load_models(models)
+            folder = load_models(models)
+            pair, baselines, fc = folder.pair, folder.baselines, folder.features
+            config = folder.config
             if a.reference == "fit":
                 ref = servo_session(real.objects[names.index(fit_on)])
             else:

@@ -32,9 +32,9 @@ from jaxinertia.app.reproduce import FULL, QUICK
 from jaxinertia.app.simdata import simulate_files
 from jaxinertia.lbipe import default_lbipe_dir, find_layout, load_test_files
 from jaxinertia.session import servo_session
-from jaxinertia.sim.calibration import baseline_statistics
 from jaxinertia.sim.params import default_sim_params
 from jaxinertia.sim.randomize import session_drawn, session_spread
+from jaxinertia.sim.real_fit import baseline_statistics
 
 
 def real_spread(lbipe_dir):

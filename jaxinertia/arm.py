@@ -65,8 +65,9 @@ class Arm:
       timing: :class:`MotionTiming`; pre_position_deg: the protocol's pre-position offset.
       planning_step_deg: the planning grid's step.
       gravity: gravitational acceleration in the base frame [m/s^2] (the mounting).
-      armature: reflected rotor inertia per joint until a calibration sets it [kg m^2].
-      calibration_file: the shipped simulator calibration (under ``data/``), or None.
+      armature: reflected rotor inertia per joint until a simulator fit sets it [kg m^2].
+      sim_fit_file: the shipped simulator fit (under ``data/``), or None (an arm file's
+        older key ``calibration_file`` is read as this).
       estimates: names of the fields that are estimates; notes: sources.
     """
 
@@ -94,7 +95,7 @@ class Arm:
     pre_position_deg: float = 3.0
     planning_step_deg: float = 10.0
     armature: float = 0.01
-    calibration_file: str | None = None
+    sim_fit_file: str | None = None
     estimates: tuple[str, ...] = ()
     notes: str = ""
 
@@ -130,6 +131,23 @@ class Arm:
     @property
     def servo_models(self) -> tuple[ServoModel, ...]:
         return tuple(servo_model(s) for s in self.servos)
+
+    @property
+    def joint_gains(self) -> tuple[tuple[float, float, float], ...]:
+        """(P, I, D) registers per arm joint: the record's override, else the servo model's."""
+        overrides = self.gains or (None,) * self.n_joints
+        return tuple(tuple(g) if g else m.gains for g, m in zip(overrides, self.servo_models))
+
+    @property
+    def bus(self) -> str:
+        """The protocol every servo of the arm speaks (``ServoModel.protocol``); one bus
+        cannot mix protocols (:class:`ConfigError`)."""
+        models = self.servo_models + ((servo_model(self.gripper_servo),)
+                                      if self.gripper_servo else ())
+        protocols = sorted({m.protocol for m in models})
+        if len(protocols) != 1:
+            raise ConfigError(self.name, "servos", f"one bus cannot mix {protocols} servos")
+        return protocols[0]
 
     @property
     def has_current_sensors(self) -> bool:
@@ -171,6 +189,8 @@ def arm_from_dict(data: dict, *, where: str | os.PathLike = "arm", base: Path | 
     """An :class:`Arm` from plain data; a relative ``description`` is taken relative to
     ``base`` (the file's folder) when that file exists there, else under ``data/``."""
     fields = {f.name for f in dataclasses.fields(Arm)}
+    if "calibration_file" in data and "sim_fit_file" not in data:  # arm files written before
+        data = {("sim_fit_file" if k == "calibration_file" else k): v for k, v in data.items()}
     unknown = sorted(set(data) - fields)
     if unknown:
         raise ConfigError(where, unknown[0], f"unknown field (known: {sorted(fields)})")

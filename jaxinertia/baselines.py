@@ -6,6 +6,10 @@ PE (position error):     tau_hat = P * (q_d - q) - s * tau_f2 + b2
 ``tau_raw`` is the torque the servo's Present Current implies (datasheet torque constant);
 its gain is 1 as in the paper, only the friction and the offset are fitted. Both baselines
 estimate x by least squares with identity weights.
+
+A joint whose servo senses no current (XL430-W250: Present Load only) has NaN for
+``tau_raw``: its Sensor constants are NaN, and the Sensor baseline is unavailable on samples
+of such an arm (:func:`jaxinertia.evaluation.baseline_methods` says so).
 """
 
 from __future__ import annotations
@@ -14,6 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+
+from jaxinertia.fileio import nan_to_null, null_to_nan
 
 __all__ = ["Baselines", "fit_baselines", "fit_pe_law", "pe_rows"]
 
@@ -36,12 +42,13 @@ class Baselines:
         """Current-based torque estimate [N m] (..., N)."""
         return current_tau - direction * self.sensor_friction + self.sensor_offset
 
-    def to_dict(self) -> dict[str, list[float]]:
-        return {k: np.asarray(v).tolist() for k, v in self.__dict__.items()}
+    def to_dict(self) -> dict[str, list[float | None]]:
+        """Plain data (a joint without a current sensor: null Sensor constants)."""
+        return {k: nan_to_null(v) for k, v in self.__dict__.items()}
 
     @classmethod
     def from_dict(cls, d: dict) -> Baselines:
-        return cls(**{k: jnp.asarray(d[k], jnp.float64 if _x64() else jnp.float32)
+        return cls(**{k: jnp.asarray(null_to_nan(d[k]), jnp.float64 if _x64() else jnp.float32)
                       for k in cls.__dataclass_fields__})
 
 
@@ -77,7 +84,9 @@ def fit_baselines(q_d, q, direction, current_tau, tau) -> Baselines:
         out["pe_friction"].append(f)
         out["pe_offset"].append(b)
         X = np.column_stack([-s[:, j], one])
-        (f, b), *_ = np.linalg.lstsq(X, tau[:, j] - cur[:, j], rcond=None)
+        read = np.isfinite(cur[:, j])  # a servo without a current sensor reads none
+        (f, b), *_ = (np.linalg.lstsq(X[read], (tau[:, j] - cur[:, j])[read], rcond=None)
+                      if read.sum() >= 3 else ((np.nan, np.nan),))
         out["sensor_friction"].append(f)
         out["sensor_offset"].append(b)
     return Baselines.from_dict(out)

@@ -2,7 +2,7 @@
 
 A model folder holds ``checkpoint/`` (orbax: the K stacked torque and attention model
 parameters) and ``config.json`` (architecture, feature normalisation, baselines, training
-hyperparameters, seeds, the robot and its arm, the simulator calibration and the training data's
+hyperparameters, seeds, the robot and its arm, the simulator fit and the training data's
 SHA-256). Everything needed to use the models is in the folder.
 
 ``config.json`` records the SHA-256 of every file of ``checkpoint/`` (``checksums``);
@@ -20,6 +20,7 @@ import json
 import os
 import sys
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 
 import jax
@@ -31,13 +32,38 @@ from jaxinertia.errors import ModelFolderError, RobotMismatchError
 from jaxinertia.estimation import ModelPair
 from jaxinertia.features import FeatureConfig
 from jaxinertia.fileio import replacing_dir
-from jaxinertia.networks import TORQUE_MODELS, AttentionModel, torque_model_kind
+from jaxinertia.networks import (
+    TORQUE_MODELS,
+    AttentionModel,
+    parameter_shapes,
+    torque_model_kind,
+)
 
-__all__ = ["file_sha256", "load_models", "save_models"]
+__all__ = ["ModelFolder", "file_sha256", "load_models", "save_models"]
 
 CONFIG = "config.json"
 FORMAT = "jaxinertia-models"
 FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class ModelFolder:
+    """A model folder as :func:`load_models` read it (verified, every weight finite).
+
+    Attributes:
+      pair: the K torque and attention models (:class:`~jaxinertia.estimation.ModelPair`).
+      baselines: the baseline methods' fitted values (PE law, current-to-torque).
+      features: the feature normalisation the models were trained with.
+      config: ``config.json`` as a dict (architecture, training record, session, the
+        torque models' validation error, checksums, ...).
+      directory: the folder's absolute path.
+    """
+
+    pair: ModelPair
+    baselines: Baselines
+    features: FeatureConfig
+    config: dict
+    directory: Path
 
 
 def file_sha256(path: str | os.PathLike) -> str:
@@ -123,8 +149,8 @@ def _verify(directory: Path, config: dict) -> None:
 
 
 def load_models(directory: str | os.PathLike, *, robot: str | None = None,
-                arm: str | None = None):
-    """Reads a model folder -> (ModelPair, Baselines, FeatureConfig, config dict).
+                arm: str | None = None) -> ModelFolder:
+    """Reads and verifies a model folder -> :class:`ModelFolder`.
 
     ``robot`` / ``arm``: the robot and the arm the caller's samples come from; models of
     another are an error (:class:`RobotMismatchError`, one line). A folder that records no
@@ -156,7 +182,7 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None,
         raise RobotMismatchError(
             f"{directory}: models trained for robot {config.get('robot')!r} (arm {trained!r}), "
             f"the samples come from the arm {theirs!r}: use models trained on that arm's "
-            f"samples (jaxinertia train --arm {theirs})")
+            f"samples (train with `arm` {theirs})")
     try:
         arch = dict(config["torque_model"])
         kind = arch.pop("kind", "paper")  # folders before the option: the paper's network
@@ -178,14 +204,9 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None,
     if K < 1:
         raise ModelFolderError(f"{cfg_path}: n_models {K} must be at least 1")
     _verify(directory, config)
-    example = jnp.zeros((1, tm.n_joints, 4), jnp.float32)
-
-    def abstract(model):
-        shapes = jax.eval_shape(lambda k: model.init(k, example), jax.random.key(0))
-        return jax.tree_util.tree_map(
-            lambda s: jax.ShapeDtypeStruct((K,) + s.shape, s.dtype), shapes)
-
-    target = {"torque": abstract(tm), "attention": abstract(am)}
+    n_in = features.n_inputs  # 4: the paper's inputs; 5 with the current torque
+    target = {"torque": parameter_shapes(tm, tm.n_joints, K, n_inputs=n_in),
+              "attention": parameter_shapes(am, tm.n_joints, K, n_inputs=n_in)}
     try:
         with _ORBAX, ocp.StandardCheckpointer() as loader:
             state = loader.restore(directory / "checkpoint", target)
@@ -209,10 +230,15 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None,
                      tau_scale=jnp.asarray(np.asarray(features.tau_scale), jnp.float32),
                      torque_model=tm, attention_model=am)
     _check_finite(pair, directory)
-    for k, v in {**features.to_dict(), **baselines.to_dict()}.items():
-        if not np.all(np.isfinite(np.asarray(v, np.float64))):
+    for k, v in {**features.to_dict(), **config["baselines"]}.items():
+        # null: the Sensor baseline's constants of a joint without a current sensor
+        missing = [x is None for x in v] if k.startswith("sensor_") else False
+        a = np.asarray([0.0 if m else x for m, x in zip(missing, v)] if missing else v,
+                       np.float64)
+        if not np.all(np.isfinite(a)):
             raise ModelFolderError(f"{cfg_path}: {k} holds non-finite values")
-    return pair, baselines, features, config
+    return ModelFolder(pair=pair, baselines=baselines, features=features, config=config,
+                       directory=directory)
 
 
 def _first_line(e: Exception) -> str:

@@ -37,7 +37,7 @@ import numpy as np
 from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.fileio import write_text
 from jaxinertia.linalg import gram, logdet_spd
-from jaxinertia.plans import planning_plan
+from jaxinertia.plans import Goals, planning_plan
 from jaxinertia.robot import Robot
 from jaxinertia.statics import load_regressor_fixed_tag
 
@@ -238,8 +238,8 @@ def plan_poses(n: int, *, robot: Robot, step_deg: float, workspace, clearance: f
                          workspace=inner_workspace(workspace, margin_deg))
     q = np.unique(q, axis=0)  # the directions repeat each configuration
     if n > len(q):
-        raise UsageError(f"--n {n}: the grid has only {len(q)} collision-free configurations "
-                         "(use a finer --step-deg)")
+        raise UsageError(f"`n` {n}: the grid has only {len(q)} collision-free configurations "
+                         "(use a finer `step_deg`)")
     A = regressors(q, robot=robot, tag=tag)
     C = information(A, joint_weights)
     idx, ld, k = select(C, n)
@@ -273,9 +273,9 @@ def save_plan(path: str | os.PathLike, plan: Plan, *, robot: str, extra: dict | 
     return write_text(path, json.dumps(doc, indent=2) + "\n")
 
 
-def load_plan(path: str | os.PathLike, *, arm: str | None = None
-              ) -> tuple[np.ndarray, np.ndarray]:
-    """A plan file -> ``(q_d (n, N) [rad], direction (n, N) of +1 / -1)``, checked;
+def load_plan(path: str | os.PathLike, *, arm: str | None = None) -> Goals:
+    """A plan file -> :class:`~jaxinertia.plans.Goals` (``q_d`` (n, N) [rad], ``direction``
+    (n, N) of +1 / -1), checked;
     ``arm``: the arm it is for (a plan made for another arm is refused)."""
     path = Path(path)
     try:
@@ -292,7 +292,7 @@ def load_plan(path: str | os.PathLike, *, arm: str | None = None
     planned_for = doc.get("arm") or doc.get("robot")
     if arm is not None and planned_for is not None and planned_for != arm:
         raise UsageError(f"{path}: a plan for the arm {planned_for!r}, not for {arm!r} "
-                         f"(make one: jaxinertia plan-poses --arm {arm})")
+                         f"(plan poses for it with `arm` {arm})")
     out = []
     for key in ("q_d", "direction"):
         try:
@@ -310,4 +310,4 @@ def load_plan(path: str | os.PathLike, *, arm: str | None = None
                               f"{q_d.shape}")
     if not np.all(np.abs(direction) == 1):
         raise FileFormatError(path, "direction", "entries must be +1 or -1")
-    return q_d, direction
+    return Goals(q_d, direction)

@@ -7,6 +7,11 @@ the servo bus and the hardware. Anything else is a bug and keeps its traceback.
 Each class also derives from the built-in exception a caller would expect
 (``FileFormatError`` is a ``ValueError``, ``TagNotFoundError`` a ``LookupError``), so
 ``except ValueError`` keeps working for library users.
+
+A message speaks of the caller's arguments, never of command-line flags: it names an
+argument in back-quotes, as Python spells it (`` `step_deg` ``, `` `overwrite` ``); the
+command line shows the flag instead (:func:`jaxinertia.app.options.flag_wording`:
+``--step-deg``, ``--overwrite``).
 """
 
 from __future__ import annotations
@@ -66,7 +71,7 @@ class WeightsError(JaxinertiaError, ValueError):
 
 
 class ConfigError(FileFormatError):
-    """A parameter or calibration file (simulator, camera, intrinsics) that cannot be used."""
+    """A parameter file (simulator fit, camera pose, intrinsics) that cannot be used."""
 
 
 class TrainingError(JaxinertiaError, ArithmeticError):

@@ -80,13 +80,13 @@ def choose_sets(objects: Sequence[Samples], *, n_sets: int = 1000, set_size: int
 def l_max_of(objects: Sequence[Samples], overrides: dict[str, float] | None = None,
              *, path: str | os.PathLike | None = None) -> list[float]:
     """Each known object's bounding-box diagonal (the COM error normaliser); an object
-    without one is an error naming it (``--l-max NAME=METRES`` supplies it)."""
+    without one is an error naming it (``overrides``, ``{name: metres}``, supplies it)."""
     out = []
     for obj in objects:
         d = bounding_box_diagonal(obj.name, overrides)
         if d is None and obj.known:
             msg = (f"no bounding-box diagonal for object {obj.name!r}: pass "
-                   f"--l-max {obj.name}=METRES")
+                   f"`l_max` {obj.name}=METRES")
             raise FileFormatError(path, None, msg) if path else UsageError(msg)
         out.append(np.nan if d is None else d)
     return out
@@ -124,7 +124,8 @@ def stack(objects: Sequence[Samples], sets: Sequence[np.ndarray],
     f64 = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
     # Features in float64 then float32, the precision the networks were trained with.
     feats = None if fc is None else jnp.asarray(np.stack([
-        _pad(np.asarray(featurize(fc, jnp.asarray(o.q, f64), o.q_d, o.direction), np.float32), n)
+        _pad(np.asarray(featurize(fc, jnp.asarray(o.q, f64), o.q_d, o.direction,
+                                  o.current_tau), np.float32), n)
         for o in objects]))
     return Stacked(features=feats,
                    A=jnp.asarray(np.stack([_pad(o.A, n) for o in objects])),
@@ -135,11 +136,27 @@ def stack(objects: Sequence[Samples], sets: Sequence[np.ndarray],
 # ---- evaluation -------------------------------------------------------------------------
 
 
+def baseline_methods(objects: Sequence[Samples]) -> tuple[tuple[str, ...], dict[str, str]]:
+    """The baselines that ``objects`` allow, and why any other is unavailable: the Sensor
+    baseline needs every joint's current-based torque, which a servo without a current
+    sensor (XL430-W250: Present Load only) does not give."""
+    missing = [o.name for o in objects if not o.has_current]
+    if not missing:
+        return ("Sensor", "PE"), {}
+    joints = sorted({int(j) for o in objects
+                     for j in np.flatnonzero(~np.all(np.isfinite(o.current_tau), axis=0))})
+    return ("PE",), {"Sensor": f"unavailable: joints {joints} of {', '.join(missing)} have no "
+                               "current sensor (Present Load only), so no current-based "
+                               "torque"}
+
+
 def baseline_torques(baselines: Baselines, obj: Samples) -> dict[str, np.ndarray]:
-    """(S, N) torques [N m] of the Sensor and PE baselines."""
+    """(S, N) torques [N m] of the Sensor and PE baselines (PE only where ``obj`` has no
+    current-based torque: :func:`baseline_methods`)."""
     s = jnp.asarray(obj.direction)
-    return {"Sensor": np.asarray(baselines.sensor(jnp.asarray(obj.current_tau), s)),
-            "PE": np.asarray(baselines.pe(jnp.asarray(obj.q_d), jnp.asarray(obj.q), s))}
+    out = {"Sensor": lambda: baselines.sensor(jnp.asarray(obj.current_tau), s),
+           "PE": lambda: baselines.pe(jnp.asarray(obj.q_d), jnp.asarray(obj.q), s)}
+    return {m: np.asarray(out[m]()) for m in baseline_methods([obj])[0]}
 
 
 def _finite(x: np.ndarray) -> np.ndarray:
@@ -162,7 +179,8 @@ def evaluate(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
 
     Returns ``{"objects": {name: {method: Table I metrics, "mean_attention_weight": [...],
     "L_max_m": ...}}, "torque": {method: Table II metrics}, "diagnostics": {name: {method:
-    flagged sets}}, "estimates": {method: (O, [K,] B, 4)}, "model_estimates": Estimates}``.
+    flagged sets}}, "estimates": {method: (O, [K,] B, 4)}, "model_estimates": Estimates,
+    "unavailable": {method: why}}`` (the Sensor baseline on an arm without current sensors).
     Metrics of the K model pairs are computed over all their sets together (as the paper's
     ten repeats); unknown objects get estimates but no metrics.
     """
@@ -177,9 +195,10 @@ def evaluate(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
     batch = batch._replace(sets=shard(batch.sets, axis=1))
     solves: dict[str, WLSResult] = {}
     tau_hat: dict[str, list[np.ndarray]] = {}
+    usable, unavailable = baseline_methods(objects)
     if baselines is not None:
         per_obj = [baseline_torques(baselines, o) for o in objects]
-        for m in ("Sensor", "PE"):
+        for m in usable:
             tau_hat[m] = [p[m] for p in per_obj]
             y = jnp.asarray(np.stack([_pad(t, batch.A.shape[1]) for t in tau_hat[m]]))
             solves[m] = identity_solves(batch.A, y, batch.tau_g, batch.sets)
@@ -216,7 +235,8 @@ def evaluate(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
     return {"objects": results, "torque": torque,
             "diagnostics": {n: {m: _diagnostics(r, o) for m, r in solves.items()}
                             for o, n in enumerate(names)},
-            "estimates": estimates, "model_estimates": est}
+            "estimates": estimates, "model_estimates": est,
+            "unavailable": unavailable if baselines is not None else {}}
 
 
 def average(objects: dict) -> dict[str, dict[str, float]]:

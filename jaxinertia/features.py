@@ -8,6 +8,11 @@ Per sample and joint j the networks see four numbers (paper Sec. IV, "Implementa
 
 and the torque model's output is multiplied by ``tau_scale`` to give N m. The defaults are
 the constants of the authors' released OpenMANIPULATOR-X models (shared/lbipe/README.md).
+
+A configuration with a ``current_scale`` adds a fifth number per joint, the servo's own
+current torque ``k_t I / current_scale`` (issue 30): the motor torque the position loop
+asked for, which a change of supply voltage or winding resistance does not decouple from
+the joint torque, where it does the discrepancy's.
 """
 
 from __future__ import annotations
@@ -27,29 +32,39 @@ class FeatureConfig:
     q_max: jnp.ndarray
     qe_scale: jnp.ndarray
     tau_scale: jnp.ndarray
+    #: (N,) scale of the current torque input [N m]; None: the paper's four inputs.
+    current_scale: jnp.ndarray | None = None
+
+    @property
+    def n_inputs(self) -> int:
+        """Inputs per joint: 4 (the paper's), 5 with the current torque."""
+        return 4 if self.current_scale is None else 5
 
     @property
     def n_joints(self) -> int:
         return int(np.shape(self.q_min)[0])
 
     @classmethod
-    def create(cls, q_min, q_max, qe_scale, tau_scale) -> FeatureConfig:
-        arrs = [np.asarray(a, dtype=np.float64) for a in (q_min, q_max, qe_scale, tau_scale)]
+    def create(cls, q_min, q_max, qe_scale, tau_scale, current_scale=None) -> FeatureConfig:
+        given = [a for a in (q_min, q_max, qe_scale, tau_scale, current_scale) if a is not None]
+        arrs = [np.asarray(a, dtype=np.float64) for a in given]
         n = arrs[0].shape
         if any(a.shape != n or a.ndim != 1 for a in arrs):
-            raise ValueError(f"FeatureConfig: all four arrays must have shape (N,), got "
+            raise ValueError(f"FeatureConfig: all arrays must have shape (N,), got "
                              f"{[a.shape for a in arrs]}")
-        if np.any(arrs[1] <= arrs[0]) or np.any(arrs[2] <= 0) or np.any(arrs[3] <= 0):
+        if np.any(arrs[1] <= arrs[0]) or any(np.any(a <= 0) for a in arrs[2:]):
             raise ValueError("FeatureConfig: need q_max > q_min and positive scales")
         return cls(*arrs)
 
     def to_dict(self) -> dict:
-        return {k: np.asarray(getattr(self, k)).tolist()
-                for k in ("q_min", "q_max", "qe_scale", "tau_scale")}
+        keys = ("q_min", "q_max", "qe_scale", "tau_scale") + (
+            () if self.current_scale is None else ("current_scale",))
+        return {k: np.asarray(getattr(self, k)).tolist() for k in keys}
 
     @classmethod
     def from_dict(cls, d: dict) -> FeatureConfig:
-        return cls.create(d["q_min"], d["q_max"], d["qe_scale"], d["tau_scale"])
+        return cls.create(d["q_min"], d["q_max"], d["qe_scale"], d["tau_scale"],
+                          d.get("current_scale"))
 
 
 _DEG = np.pi / 180.0
@@ -64,9 +79,11 @@ LBIPE_FEATURES = FeatureConfig.create(
 
 
 def featurize(
-    config: FeatureConfig, q: jnp.ndarray, q_d: jnp.ndarray, direction: jnp.ndarray
+    config: FeatureConfig, q: jnp.ndarray, q_d: jnp.ndarray, direction: jnp.ndarray,
+    current_tau: jnp.ndarray | None = None,
 ) -> jnp.ndarray:
-    """Network inputs (..., N, 4) from present position q, goal q_d and direction (..., N).
+    """Network inputs (..., N, 4) from present position q, goal q_d and direction (..., N);
+    (..., N, 5) with the current torque ``current_tau`` [N m] where ``config`` takes it.
 
     ``direction`` is +1 or -1 (the sign of the joint velocity while approaching rest).
     Reshape to (..., 4N) for the authors' flat layout (joint-major).
@@ -79,4 +96,10 @@ def featurize(
     d = jnp.asarray(direction)
     pos = (d > 0).astype(dtype)
     neg = (d < 0).astype(dtype)
-    return jnp.stack([q_norm, qe, pos, neg], axis=-1)
+    cols = [q_norm, qe, pos, neg]
+    if config.current_scale is not None:
+        if current_tau is None:
+            raise ValueError("these models take the servo's current as an input: the "
+                             "samples need their current torque")
+        cols.append(jnp.asarray(current_tau, dtype) / c(config.current_scale))
+    return jnp.stack(cols, axis=-1)

@@ -35,7 +35,8 @@ from pathlib import Path
 from jaxinertia.errors import JaxinertiaError, UsageError
 
 __all__ = ["OutputError", "OutputLockedError", "check_output", "command_locks",
-           "release_locks", "replacing", "replacing_dir", "write_json", "write_text"]
+           "nan_to_null", "null_to_nan", "release_locks", "replacing", "replacing_dir",
+           "write_json", "write_text"]
 
 #: Locks this process holds, by the output's absolute path (see the module's docstring).
 _HELD: dict[Path, object] = {}
@@ -73,7 +74,8 @@ def _lock_path(path: Path) -> Path:
 
 
 def _acquire(path: Path, option: str) -> None:
-    """Takes the lock of ``path`` (absolute) for this command, or refuses at once."""
+    """Takes the lock of ``path`` (absolute) for this command, or refuses at once
+    (``option``: how the message names the output)."""
     if path in _HELD and path not in _OTHERS:
         return
     from filelock import FileLock, Timeout  # light, but only writers need it
@@ -122,28 +124,28 @@ def command_locks() -> Iterator[None]:
         release_locks(keep=before)
 
 
-def check_output(path: str | os.PathLike, *, overwrite: bool = False, option: str = "--out",
+def check_output(path: str | os.PathLike, *, overwrite: bool = False, option: str = "out",
                  folder: bool = False) -> Path:
     """``path`` if it may be written: it does not exist (or ``overwrite``, and it is a
     folder exactly when ``folder``), its folder exists or can be created and is writable,
     and no other writer holds it. Takes the output's lock (held until the output is
-    renamed into place). Raises :class:`UsageError` naming the option."""
+    renamed into place). Raises :class:`UsageError` naming the argument ``option``."""
     path = Path(path)
     if path.exists() and not overwrite:
-        raise UsageError(f"{option} {path} exists; pass --overwrite to replace it")
+        raise UsageError(f"`{option}` {path} exists; pass `overwrite` to replace it")
     if path.exists() and path.is_dir() != folder:
-        raise UsageError(f"{option} {path} is a {'file' if folder else 'folder'}; "
+        raise UsageError(f"`{option}` {path} is a {'file' if folder else 'folder'}; "
                          f"{'a model folder' if folder else 'a file'} is written there: "
                          "remove it or choose another name")
     parent = path.parent if str(path.parent) else Path(".")
     try:
         parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        raise UsageError(f"{option} {path}: cannot create the folder {parent} "
+        raise UsageError(f"`{option}` {path}: cannot create the folder {parent} "
                          f"({e.strerror or e})") from None
     if not os.access(parent, os.W_OK | os.X_OK):
-        raise UsageError(f"{option} {path}: the folder {parent} is not writable")
-    _acquire(path.absolute(), option)
+        raise UsageError(f"`{option}` {path}: the folder {parent} is not writable")
+    _acquire(path.absolute(), f"`{option}`")
     return path
 
 
@@ -195,6 +197,21 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
 def write_json(path: str | os.PathLike, obj) -> Path:
     """``obj`` as indented JSON (numpy arrays as lists), written atomically."""
     return write_text(path, json.dumps(obj, indent=2, default=_json_default) + "\n")
+
+
+def nan_to_null(a) -> list:
+    """``a`` (1-D) as a JSON list, a NaN (a value that does not exist: the current-based
+    torque of a servo without a current sensor) as null; strict JSON has no NaN."""
+    import numpy as np  # (as in _json_default)
+
+    return [None if v != v else float(v) for v in np.asarray(a, np.float64).ravel()]
+
+
+def null_to_nan(values):
+    """The float64 array of a JSON list, null as NaN (:func:`nan_to_null` read back)."""
+    import numpy as np  # (as in _json_default)
+
+    return np.asarray([np.nan if v is None else v for v in values], np.float64)
 
 
 def _json_default(o):

@@ -41,7 +41,7 @@ __all__ = [
 
 GET_IT = (
     "get it from the public repository ChirikjianLab/lbipe (data/ and dicts/) and point "
-    "JAXINERTIA_LBIPE_DIR (or --lbipe-dir) at it, or place the project's shared/lbipe beside "
+    "JAXINERTIA_LBIPE_DIR (or `lbipe_dir`) at it, or place the project's shared/lbipe beside "
     "the repository"
 )
 

@@ -39,6 +39,7 @@ __all__ = [
     "WeightsError",
     "attention_params_from_torch",
     "load_released_pair",
+    "parameter_shapes",
     "load_state_dict",
     "stack_params",
     "torque_model_kind",
@@ -244,19 +245,28 @@ def attention_params_from_torch(
 
 def _check_against_init(model, variables, n, path):
     """Every tensor must have exactly the shape the architecture initialises."""
-    ref_shapes = _init_shapes(model, n)
+    ref_shapes = jax.tree_util.tree_map(lambda s: s.shape, parameter_shapes(model, n))
     got_shapes = jax.tree_util.tree_map(lambda a: a.shape, variables)
     if ref_shapes != got_shapes:
         raise WeightsError(f"{path}: tensors do not fit {model}: {got_shapes} vs {ref_shapes}")
 
 
+def parameter_shapes(model, n_joints: int, n_models: int | None = None,
+                     dtype=jnp.float32, n_inputs: int = 4):
+    """The parameters ``model`` initialises for ``n_joints`` joints (``n_inputs`` features
+    of ``dtype`` each), as :class:`jax.ShapeDtypeStruct` leaves (nothing computed), stacked
+    ``n_models`` deep when given: what released weights, a model folder and a fine-tuning
+    start must fit."""
+    ref = _init_structs(model, n_joints, jnp.dtype(dtype).name, n_inputs)
+    lead = () if n_models is None else (n_models,)
+    return jax.tree_util.tree_map(lambda s: jax.ShapeDtypeStruct(lead + s.shape, s.dtype), ref)
+
+
 @functools.lru_cache(maxsize=64)
-def _init_shapes(model, n: int):
-    """The parameter shapes ``model`` initialises for N joints: traced once per architecture
-    (a Flax module is a frozen dataclass, hashed by its fields), not once per weight file
-    (the ten released pairs took a second to check)."""
-    ref = jax.eval_shape(model.init, jax.random.key(0), jnp.zeros((1, n, 4), jnp.float32))
-    return jax.tree_util.tree_map(lambda a: a.shape, ref)
+def _init_structs(model, n: int, dtype: str, n_inputs: int = 4):
+    """Traced once per architecture (a Flax module is a frozen dataclass, hashed by its
+    fields), not once per weight file (the ten released pairs took a second to check)."""
+    return jax.eval_shape(model.init, jax.random.key(0), jnp.zeros((1, n, n_inputs), dtype))
 
 
 def load_released_pair(weights_dir: str | os.PathLike, index: int, *, prefer: str = "npz"):

@@ -21,15 +21,15 @@ from jaxinertia.robot import OPEN_MANIPULATOR_X_XML, Robot, data_path, open_mani
 
 __all__ = [
     "ARM",
-    "CALIBRATION_FILE",
+    "SIM_FIT_FILE",
     "DEFAULT_ARMATURE",
     "JOINT_IDS",
     "MOUNT_CLEARANCE_M",
     "NAME",
     "TAG_IN_EE",
     "WORKSPACE_DEG",
-    "calibrated_robot",
-    "load_calibration",
+    "sim_fit_robot",
+    "load_sim_fit",
 ]
 
 #: ``Robot.name`` of the embedded description (sample files and model folders record it).
@@ -53,12 +53,12 @@ TAG_IN_EE = (np.eye(3), np.array([0.00925, -0.00043, 0.0232]))
 #: points and leaves 721 configurations, i.e. the paper's 46,144 planning samples.
 MOUNT_CLEARANCE_M = 0.10
 
-#: Reflected rotor inertia of the XM430 gear train [kg m^2] (until a calibration sets it).
+#: Reflected rotor inertia of the XM430 gear train [kg m^2] (until a simulator fit sets it).
 DEFAULT_ARMATURE = 0.01
 
-#: The shipped calibration: link gravity fitted to the real ``tau_g``, servo and friction
+#: The shipped simulator fit: link gravity fitted to the real ``tau_g``, servo and friction
 #: parameters of the simulated arm (``jaxinertia calibrate`` writes it).
-CALIBRATION_FILE = "open_manipulator_x_sim.json"
+SIM_FIT_FILE = "open_manipulator_x_sim.json"
 
 
 #: The arm as one record (the constants above, the collection protocol's motion timing and
@@ -85,14 +85,15 @@ ARM = Arm(
     planning_step_deg=10.0,
     gravity=(-9.81, 0.0, 0.0),  # joint 1's axis horizontal (Lao et al.)
     armature=DEFAULT_ARMATURE,
-    calibration_file=CALIBRATION_FILE,
+    sim_fit_file=SIM_FIT_FILE,
     notes="ROBOTIS OpenMANIPULATOR-X (RM-X52-TNM) as the paper mounts and uses it",
 )
 
 
-def load_calibration(path: str | os.PathLike | None = None) -> dict:
-    """The calibration file at ``path`` (default: the shipped one) as a dict."""
-    path = Path(path) if path else data_path(CALIBRATION_FILE)
+def load_sim_fit(path: str | os.PathLike | None = None) -> dict:
+    """The simulator-fit file at ``path`` (default: the shipped one) as a dict (the
+    command line's ``--calibration FILE``)."""
+    path = Path(path) if path else data_path(SIM_FIT_FILE)
     try:
         cal = json.loads(path.read_text())
     except (OSError, ValueError) as e:
@@ -108,14 +109,14 @@ def load_calibration(path: str | os.PathLike | None = None) -> dict:
     return cal
 
 
-def calibrated_robot(calibration: dict | str | os.PathLike | None = None) -> Robot:
+def sim_fit_robot(fit: dict | str | os.PathLike | None = None) -> Robot:
     """The bare arm with the link masses and first moments fitted to the real ``tau_g``
     (the robot that ``A`` and ``tau_g`` of samples are computed with) and the default
-    armature; ``calibration`` is a loaded dict, a path, or None for the shipped file."""
-    if not isinstance(calibration, dict):
-        calibration = load_calibration(calibration)
+    armature; ``fit`` is a loaded dict, a path, or None for the shipped file."""
+    if not isinstance(fit, dict):
+        fit = load_sim_fit(fit)
     robot = open_manipulator_x()
-    g = calibration["link_gravity"]
+    g = fit["link_gravity"]
     return robot.replace(mass=jnp.asarray(g["link_mass"], robot.mass.dtype),
                          com=jnp.asarray(g["link_com"], robot.com.dtype),
                          armature=jnp.full(robot.n_joints, DEFAULT_ARMATURE))

@@ -11,6 +11,7 @@ joints; the robot and the clearance of the collision filter come from the record
 from __future__ import annotations
 
 import itertools
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -19,6 +20,7 @@ from jaxinertia.kinematics import ee_positions
 from jaxinertia.robot import Robot
 
 __all__ = [
+    "Goals",
     "collides",
     "continuous_plan",
     "planning_plan",
@@ -28,6 +30,13 @@ __all__ = [
 
 _DEG = np.pi / 180.0
 Workspace = tuple[tuple[float, float], ...]
+
+
+class Goals(NamedTuple):
+    """A plan: where the arm stops and how each joint approaches the stop."""
+
+    q_d: np.ndarray  # (S, N) goals [rad]
+    direction: np.ndarray  # (S, N) +1 / -1: the joint approaches its goal from below / above
 
 
 def _bounds(workspace: Workspace) -> tuple[np.ndarray, np.ndarray]:
@@ -46,7 +55,7 @@ def collides(q: np.ndarray, *, clearance: float, robot: Robot) -> np.ndarray:
 
 
 def planning_plan(step_deg: float, *, clearance: float, robot: Robot,
-                  workspace: Workspace) -> tuple[np.ndarray, np.ndarray]:
+                  workspace: Workspace) -> Goals:
     """The planning grid (``step_deg`` over the workspace) minus the configurations that
     collide with the mounting surface (:func:`collides`), x all 2^N direction patterns.
 
@@ -60,19 +69,19 @@ def planning_plan(step_deg: float, *, clearance: float, robot: Robot,
     dirs = np.array(list(itertools.product([1.0, -1.0], repeat=len(workspace))))
     q = np.repeat(grid, len(dirs), axis=0)
     d = np.tile(dirs, (len(grid), 1))
-    return q, d
+    return Goals(q, d)
 
 
 def random_plan(n: int, seed: int = 0, *,
-                workspace: Workspace) -> tuple[np.ndarray, np.ndarray]:
+                workspace: Workspace) -> Goals:
     """``n`` goals uniform in the workspace with random directions."""
     rng = np.random.default_rng(seed)
     lo, hi = _bounds(workspace)
-    return rng.uniform(lo, hi, (n, len(lo))), rng.choice([-1.0, 1.0], (n, len(lo)))
+    return Goals(rng.uniform(lo, hi, (n, len(lo))), rng.choice([-1.0, 1.0], (n, len(lo))))
 
 
 def continuous_plan(n: int, seed: int = 0, *, step_deg: tuple[float, float] = (0.5, 2.0),
-                    workspace: Workspace) -> tuple[np.ndarray, np.ndarray]:
+                    workspace: Workspace) -> Goals:
     """A random walk of ``n`` nearby goals in the workspace: every joint moves by
     ``step_deg`` (uniform magnitude, random sign, reflected at the workspace bounds) from
     one goal to the next, so every joint has a defined approach direction."""
@@ -88,7 +97,7 @@ def continuous_plan(n: int, seed: int = 0, *, step_deg: tuple[float, float] = (0
         nxt[out] = q[i - 1][out] - d[out]
         q[i] = nxt
     direction = np.sign(np.diff(q, axis=0, prepend=q[:1] - (hi - lo) * 1e-3))
-    return q, direction
+    return Goals(q, direction)
 
 
 def switching_schedule(n: int, n_objects: int, every: int) -> np.ndarray:

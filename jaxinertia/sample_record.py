@@ -43,7 +43,9 @@ class Samples:
     q_d: np.ndarray  # (S, N) commanded goal [rad]
     q: np.ndarray  # (S, N) present position [rad]
     direction: np.ndarray  # (S, N) approach direction, +1 / -1
-    current_tau: np.ndarray  # (S, N) torque from the present current, k_t * I [N m]
+    #: (S, N) torque from the present current, k_t * I [N m]; NaN on a joint whose servo
+    #: senses no current (XL430-W250: Present Load only; the Sensor baseline then refuses)
+    current_tau: np.ndarray
     tau_g: np.ndarray  # (S, N) load torque of the bare arm at q [N m]
     A: np.ndarray  # (S, N, 4) load regressor: tau - tau_g = A x
     object_id: np.ndarray  # (S,) index into names (and x)
@@ -81,6 +83,12 @@ class Samples:
             raise UsageError(f"samples of {self.n_objects} objects {list(self.names)} have no "
                              "single name")
         return self.names[0]
+
+    @property
+    def has_current(self) -> bool:
+        """Whether every joint's current-based torque was read (no servo without a current
+        sensor): what the Sensor baseline needs."""
+        return bool(np.all(np.isfinite(self.current_tau)))
 
     @property
     def mass(self) -> float:
@@ -195,7 +203,9 @@ class Samples:
             if a is not None and np.shape(a) != shape:
                 raise FileFormatError(path, k, f"expected shape {shape}, got {np.shape(a)}")
         for k in ("q_d", "q", "direction", "current_tau", "tau_g", "A"):
-            if not np.all(np.isfinite(fields[k])):
+            a = np.asarray(fields[k])
+            # current_tau: NaN is "no current sensor on that joint"; nothing else is missing
+            if not np.all(np.isfinite(a) | ((k == "current_tau") & np.isnan(a))):
                 raise FileFormatError(path, k, "holds non-finite values")
         if not np.all(np.isin(fields["direction"], (-1, 1))):
             raise FileFormatError(path, "direction", "must be +1 or -1")

@@ -148,7 +148,7 @@ class ServoModel:
 
 
 # Friction of the small servos: the simulator's defaults (fitted to the XM430 on the
-# OpenMANIPULATOR-X) scaled by stall torque. Estimates, until a calibration on that arm.
+# OpenMANIPULATOR-X) scaled by stall torque. Estimates, until a simulator fit on that arm.
 _XM430_FRICTION = dict(coulomb=0.03, static=0.05, viscous=0.01)
 
 
@@ -166,7 +166,7 @@ XM430_W350 = ServoModel(
     supply_voltage=12.0, stall_torque=4.1, stall_current=2.3, no_load_rpm=46.0,
     gear_ratio=353.5,
     current_limit=3.2,  # Current Limit 1193 x 2.69 mA = 3.21 A, as the simulator has used
-    notes="ROBOTIS e-manual xm430-w350; the project's calibrated simulator starts here",
+    notes="ROBOTIS e-manual xm430-w350; the project's simulator fit starts here",
 )
 
 XL430_W250 = ServoModel(

@@ -45,7 +45,13 @@ from jaxinertia.errors import TrainingError, UsageError
 from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.identification import solve_normal
 from jaxinertia.linalg import gram_statistics
-from jaxinertia.networks import TORQUE_MODELS, AttentionModel, PhysicalTorqueModel, TorqueModel
+from jaxinertia.networks import (
+    TORQUE_MODELS,
+    AttentionModel,
+    PhysicalTorqueModel,
+    TorqueModel,
+    parameter_shapes,
+)
 from jaxinertia.samples import Samples
 from jaxinertia.sharding import shard
 from jaxinertia.training_setup import (
@@ -75,8 +81,8 @@ __all__ = [
 
 
 def _features(fc: FeatureConfig, d: Samples) -> jnp.ndarray:
-    return featurize(fc, jnp.asarray(d.q), jnp.asarray(d.q_d), jnp.asarray(d.direction)).astype(
-        jnp.float32)
+    return featurize(fc, jnp.asarray(d.q), jnp.asarray(d.q_d), jnp.asarray(d.direction),
+                     jnp.asarray(d.current_tau)).astype(jnp.float32)
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -89,7 +95,7 @@ def _init_stacked(model, keys, example):
 def _start(model, key, K: int, example, init):
     """K stacked parameter sets: ``init`` (fine-tuning: checked against the model's shapes)
     or fresh ones from ``key``."""
-    fresh = jax.eval_shape(lambda: _init_stacked(model, jax.random.split(key, K), example))
+    fresh = parameter_shapes(model, example.shape[-2], K, example.dtype, example.shape[-1])
     if init is None:
         return _init_stacked(model, jax.random.split(key, K), example)
     if (jax.tree_util.tree_structure(init) != jax.tree_util.tree_structure(fresh) or any(
@@ -389,8 +395,9 @@ def train_attention_models(
     if init is not None and not _any_trainable(init, cfg.trainable):
         # Nothing to train (``trainable="servo"``: the attention fixed): its epochs would
         # change no parameter and keep the start (epoch -1), so none are run or compiled.
-        n_features = jax.eval_shape(lambda: _features(fc, train)).shape[1]
-        start = _start(model, k_init, K, np.zeros((1, n_features), np.float32), init)
+        features = jax.eval_shape(lambda: _features(fc, train))  # (S, N, F): no compile
+        start = _start(model, k_init, K, np.zeros((1,) + features.shape[1:], np.float32),
+                       init)
         return TrainedAttention(model, start, np.zeros((0, 2, K), np.float32),
                                 np.full(K, -1, np.int32))
     sets = jnp.asarray(draw_sets(train.object_id, cfg.attention_sets, cfg.set_size, cfg.seed))

@@ -53,6 +53,8 @@ class TrainConfig:
     #: (:mod:`jaxinertia.session`; 0: off), and the folder records the reference and the
     #: strength, so that a new file is adapted the same way when it is evaluated.
     session_strength: float = 1.0
+    #: The servo's current torque as a fifth input per joint (features.FeatureConfig).
+    current_input: bool = False
 
     def __post_init__(self):
         positive = ("n_models", "torque_epochs", "torque_batch", "attention_epochs",
@@ -96,13 +98,20 @@ FINETUNE_DEFAULTS = {"torque_epochs": 200, "torque_batch": 64, "torque_lr": 1e-4
                      "attention_val_sets": 100}
 
 
-def feature_config_from(data: Samples) -> FeatureConfig:
-    """Min-max bounds of q and the scales of q_d - q and tau (max |.|) from training data."""
+def feature_config_from(data: Samples, *, current_input: bool = False) -> FeatureConfig:
+    """Min-max bounds of q and the scales of q_d - q and tau (max |.|) from training data;
+    ``current_input``: the current torque as a fifth input, scaled like the torque."""
     qe = np.abs(data.q_d - data.q)
     q_min, q_max = data.q.min(axis=0), data.q.max(axis=0)
     pad = np.maximum(1e-3, 1e-6 * (q_max - q_min))
+    tau_scale = np.maximum(np.abs(data.tau).max(axis=0), 1e-4)
+    unsensed = np.flatnonzero(~np.all(np.isfinite(data.current_tau), axis=0))
+    if current_input and unsensed.size:
+        raise UsageError(f"the current input needs a current on every joint; joints "
+                         f"{(unsensed + 1).tolist()} have none (a servo without a current "
+                         "sensor)")
     return FeatureConfig.create(q_min - pad, q_max + pad, np.maximum(qe.max(axis=0), 1e-4),
-                                np.maximum(np.abs(data.tau).max(axis=0), 1e-4))
+                                tau_scale, tau_scale if current_input else None)
 
 
 def split_validation(data: Samples, fraction: float, seed: int) -> tuple[Samples, Samples]:

@@ -48,7 +48,7 @@ import numpy as np
 from jaxinertia.baselines import Baselines
 from jaxinertia.errors import UsageError
 from jaxinertia.estimation import ModelPair, estimate_sets, predict_torques
-from jaxinertia.evaluation import baseline_torques, stack
+from jaxinertia.evaluation import baseline_methods, baseline_torques, stack
 from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.identification import (
     DEFAULT_MAX_CONDITION,
@@ -65,10 +65,10 @@ __all__ = [
     "LEVELS",
     "Identifiability",
     "SetUncertainty",
-    "calibration",
     "coverage",
     "fit_inflation",
     "identifiability",
+    "interval_coverage",
     "intervals",
     "mass_com_covariance",
     "set_uncertainty",
@@ -323,7 +323,8 @@ def validation_torque_error(pair: ModelPair, fc: FeatureConfig, val: Samples) ->
     if val.tau is None or val.n_samples == 0:
         raise UsageError("the validation error needs held-out samples with known torques")
     f64 = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
-    feats = jnp.asarray(featurize(fc, jnp.asarray(val.q, f64), val.q_d, val.direction),
+    feats = jnp.asarray(featurize(fc, jnp.asarray(val.q, f64), val.q_d, val.direction,
+                                  val.current_tau),
                         jnp.float32)
     tau_hat = jax.vmap(lambda tv: predict_torques(pair.torque_model, tv, feats, pair.tau_scale))(
         pair.torque_vars)
@@ -361,7 +362,7 @@ def uncertainty_of(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
     out: dict[str, SetUncertainty] = {}
     if baselines is not None:
         per_obj = [baseline_torques(baselines, o) for o in objects]
-        for m in ("Sensor", "PE"):
+        for m in baseline_methods(objects)[0]:
             tau = jnp.asarray(np.stack([  # padded like stack(): the last sample repeated
                 np.pad(p[m], ((0, batch.A.shape[1] - len(p[m])), (0, 0)), mode="edge")
                 for p in per_obj]))
@@ -378,7 +379,7 @@ def uncertainty_of(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
     return out
 
 
-def calibration(objects: Sequence[Samples], answers: dict[str, SetUncertainty], *,
+def interval_coverage(objects: Sequence[Samples], answers: dict[str, SetUncertainty], *,
                 levels: Sequence[float] = LEVELS, inflate=1.0) -> dict:
     """Coverage of every method's intervals on known objects, over each object's sets
     (``answers`` from :func:`uncertainty_of` on the same objects):

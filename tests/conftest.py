@@ -87,7 +87,7 @@ LONGEST_FIRST = ("test_folds.py",  # 81 s
                  "test_identify.py",  # 27 s
                  "test_kinematics.py",  # 25 s
                  "test_uncertainty.py",  # 22 s
-                 "test_calibration.py",  # 21 s
+                 "test_real_fit.py",  # 21 s
                  "test_hardware_collect.py",  # 20 s
                  "test_reliability.py",  # 20 s
                  "test_statics.py",  # 17 s

@@ -13,7 +13,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxinertia.arm import Arm, MotionTiming, arm_to_dict
+from jaxinertia.arm import Arm, MotionTiming, arm_from_dict, arm_to_dict
 from jaxinertia.arms import ARMS, DEFAULT_ARM, KOCH_V1_1, SO101, get_arm
 from jaxinertia.errors import ConfigError
 from jaxinertia.hardware import collect
@@ -40,7 +40,7 @@ def test_open_manipulator_x_record_is_todays_constants():
     np.testing.assert_array_equal(R, omx.TAG_IN_EE[0])
     np.testing.assert_array_equal(p, omx.TAG_IN_EE[1])
     assert arm.mount_clearance_m == omx.MOUNT_CLEARANCE_M == 0.10
-    assert arm.armature == omx.DEFAULT_ARMATURE and arm.calibration_file == omx.CALIBRATION_FILE
+    assert arm.armature == omx.DEFAULT_ARMATURE and arm.sim_fit_file == omx.SIM_FIT_FILE
     assert arm.servo_models == (XM430_W350,) * 4 and arm.has_current_sensors
     # Motion timing and pre-position: the values spread over the simulator, the driver and
     # the collection until now.
@@ -117,6 +117,13 @@ def test_a_users_arm_from_a_file(tmp_path, suffix):
     assert robot.name == "my_koch" and robot.joint_names == KOCH_V1_1.arm_joints
 
 
+def test_an_arm_file_of_the_older_key_calibration_file_still_reads():
+    """``sim_fit_file`` was ``calibration_file`` in arm files written before the rename."""
+    d = arm_to_dict(omx.ARM)
+    d["calibration_file"] = d.pop("sim_fit_file")
+    assert arm_from_dict(d).sim_fit_file == omx.SIM_FIT_FILE == "open_manipulator_x_sim.json"
+
+
 def test_bad_arms_say_what_is_wrong(tmp_path):
     with pytest.raises(ConfigError, match="not a known arm"):
         get_arm("so100")
@@ -157,7 +164,7 @@ def test_arm_sim_params():
     np.testing.assert_array_equal(np.asarray(koch.robot.armature), [0.005] * 5)
     assert koch.hold_time == KOCH_V1_1.timing.settle_time
     with pytest.raises(ConfigError, match="not the arm 'so101'"):
-        arm_sim_params(SO101, data_path(omx.CALIBRATION_FILE))
+        arm_sim_params(SO101, data_path(omx.SIM_FIT_FILE))
     # Scenario goals inside the arm's workspace, objects on the arm's tag mount.
     for scenario in ("random", "test"):
         for name, obj, (q_d, d) in _scenario_jobs(scenario, 32, None, 0, arm=SO101):
@@ -168,6 +175,7 @@ def test_arm_sim_params():
 
 def test_files_of_one_arm_refuse_another(tmp_path):
     from jaxinertia.app.arm_options import samples_arm
+    from jaxinertia.app.options import flag_wording
     from jaxinertia.checkpoints import load_models
     from jaxinertia.design import PLAN_FORMAT, load_plan
     from jaxinertia.errors import RobotMismatchError, UsageError
@@ -180,8 +188,9 @@ def test_files_of_one_arm_refuse_another(tmp_path):
     with pytest.raises(RobotMismatchError, match="arm 'so101'.*the arm 'koch_v1_1'") as e:
         load_models(folder, robot="koch_v1_1", arm="koch_v1_1")
     assert "\n" not in str(e.value)
-    with pytest.raises(RobotMismatchError, match="train --arm open_manipulator_x"):
+    with pytest.raises(RobotMismatchError, match="train with `arm` open_manipulator_x") as e:
         load_models(folder, arm="open_manipulator_x")
+    assert "train with --arm open_manipulator_x" in flag_wording(str(e.value))  # the CLI's
     # Sample files: the recorded arm against --arm; a file that records none takes --arm's.
     with pytest.raises(RobotMismatchError, match="samples of the arm 'so101', not of --arm "
                        "'koch_v1_1'"):
@@ -211,8 +220,10 @@ def test_arm_option_on_the_commands(tmp_path, capsys):
     capsys.readouterr()
     # Refused in one line before anything is opened or read.
     for argv, said in [
+            # The SO-101 collects through its own (Feetech) driver: its IDs are checked.
             (["collect", "--arm", "so101", "--port", "/dev/null", "--plan", "random",
-              "--object", "cube", "--out", str(tmp_path / "c.npz")], "DYNAMIXEL"),
+              "--object", "cube", "--ids", "1,2,3,4", "--out", str(tmp_path / "c.npz")],
+             "--ids needs 5"),
             (["virtual-robot", "--arm", "koch_v1_1", "--q0", "0", "0"], "--q0 needs 5"),
             (["calibrate", "--arm", "so101"], "lbipe files, which are the open_manipulator_x"),
             (["evaluate", "--arm", "koch_v1_1", "--models", str(tmp_path)], "lbipe files"),

@@ -26,6 +26,7 @@ from scservo_sdk import (
     PacketHandler,
     PortHandler,
 )
+from support.hardware import Client as SdkClient
 
 from jaxinertia.hardware import feetech_table as ft
 from jaxinertia.hardware.feetech_protocol import encode_packet
@@ -53,26 +54,9 @@ class PatientPort(PortHandler):
         self.packet_timeout = max(self.packet_timeout, 2000.0)
 
 
-class Client:
+def Client(path: str, packet=None, port_class=PortHandler) -> SdkClient:  # noqa: N802
     """scservo_sdk on a port, counting transactions (``attempted``, ``failed``)."""
-
-    def __init__(self, path: str, packet=None, port_class=PortHandler):
-        self.port = port_class(path)
-        assert self.port.openPort()
-        self.ph = PacketHandler(0) if packet is None else packet
-        self.attempted = self.failed = 0
-
-    def call(self, fn, *args):
-        """One transaction: (value, result, error) of the SDK."""
-        self.attempted += 1
-        out = fn(self.port, *args)
-        result = out if isinstance(out, int) else out[1] if len(out) == 3 else out[0]
-        if result != COMM_SUCCESS:
-            self.failed += 1
-        return out
-
-    def close(self):
-        self.port.closePort()
+    return SdkClient(port_class(path), PacketHandler(0) if packet is None else packet)
 
 
 @pytest.fixture

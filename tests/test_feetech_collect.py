@@ -5,7 +5,11 @@ journal) runs on it through :class:`jaxinertia.hardware.feetech.FeetechArm`: int
 after two samples and resumed, it loses nothing and records nothing twice.
 
 The tag pose is a fixed stand-in (the kinematic source would compile the SO-101's forward
-kinematics; the journal and the driver are what is tested here). Limits are generous (a
+kinematics; the journal and the driver are what is tested here). Then the command itself:
+``jaxinertia collect --arm so101`` (the arm record's bus picks the Feetech driver) on the
+virtual STS bus with faults injected, interrupted and resumed
+(``support.hardware.collect_interrupted_and_resumed``, as the Koch's in
+``test_hardware_koch``), loses nothing and raises no false alarm. Limits are generous (a
 busy host): waits are for conditions, never sleeps of a set length.
 """
 
@@ -16,11 +20,15 @@ import sys
 import numpy as np
 import pytest
 from scservo_sdk import COMM_SUCCESS
+from support.hardware import collect_interrupted_and_resumed
 
 from jaxinertia.arms import SO101
 from jaxinertia.hardware.collect import Journal, collect, journal_path, plan_digest
 from jaxinertia.hardware.feetech import FeetechArm, feetech_config
 from jaxinertia.plans import random_plan
+from jaxinertia.samples import load_native
+from jaxinertia.virtual.bus import Faults
+from jaxinertia.virtual.sts_bus import StsServoBus
 from jaxinertia.virtual.testing import VirtualRobotProcess
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
@@ -95,3 +103,15 @@ def test_virtual_so101_collect_interrupted_and_resumed_loses_nothing(tmp_path):
         assert rec["at_rest"], i
         # At rest at the goal (no load in the bus model): within a tick.
         assert np.all(np.abs(np.asarray(rec["q"]) - q_d[i]) <= 2 * np.pi / 4096), i
+
+
+def test_collect_command_on_the_so101_interrupted_and_resumed_loses_nothing(
+        tmp_path, monkeypatch, capsys):
+    faults = Faults(drop_rate=0.01, corrupt_rate=0.01, delay_rate=0.01, delay_s=0.05, seed=4)
+    out = tmp_path / "so101-cli.npz"
+    with StsServoBus(tuple(SO101.bus_ids), (SO101.gripper_id,), faults=faults,
+                     speed=10.0) as bus:
+        err = collect_interrupted_and_resumed(bus.path, SO101, out, monkeypatch, capsys)
+    assert int(err.split("bus: ")[1].split()[0]) > 0, "the injected faults were met"
+    samples, meta = load_native(out, only_at_rest=False)
+    assert meta["source"] == "feetech" and samples.has_current  # STS3215: current sensed

@@ -88,7 +88,8 @@ def test_physical_model_round_trips_and_older_folders_read_as_the_paper_network(
     fc = feature_config()
     b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.tau)
     save_models(tmp_path / "m", pair, b, fc, robot="open_manipulator_x")
-    pair2, *_, config = load_models(tmp_path / "m")
+    folder = load_models(tmp_path / "m")
+    pair2, config = folder.pair, folder.config
     assert type(pair2.torque_model) is PhysicalTorqueModel
     assert config["torque_model"]["kind"] == "physical"
     assert_tree_equal(pair2, pair, what="a physical ModelPair after a round trip")
@@ -105,7 +106,7 @@ def test_physical_model_round_trips_and_older_folders_read_as_the_paper_network(
     doc = json.loads((tmp_path / "p" / "config.json").read_text())
     assert doc["torque_model"].pop("kind") == "paper"
     (tmp_path / "p" / "config.json").write_text(json.dumps(doc))
-    assert type(load_models(tmp_path / "p")[0].torque_model) is TorqueModel
+    assert type(load_models(tmp_path / "p").pair.torque_model) is TorqueModel
 
 
 def test_the_physical_model_extrapolates_a_servo_law_in_load():
@@ -128,14 +129,16 @@ def test_the_physical_model_extrapolates_a_servo_law_in_load():
 
 def test_finetuning_starts_from_the_folder_keeps_its_scaling_and_improves(folders, capsys):
     tmp, _, real = folders
-    pair0, _, fc0, _ = load_models(tmp / "m0")
+    folder = load_models(tmp / "m0")
+    pair0, fc0 = folder.pair, folder.features
     out = tmp / "ft"
     assert main(["train", "--init", str(tmp / "m0"), "--data", str(real), "--out", str(out),
                  "--samples-per-object", "60", "--torque-epochs", "30", "--torque-lr", "3e-3",
                  "--attention-epochs", "2", "--attention-sets", "6",
                  "--attention-val-sets", "3", "--set-size", "16"]) == 0
     assert "fine-tuned 2 model pairs" in capsys.readouterr().out
-    pair, _, fc, config = load_models(out)
+    folder = load_models(out)
+    pair, fc, config = folder.pair, folder.features, folder.config
     assert_tree_equal(fc, fc0, what="the fine-tuned folder's feature scaling")
     assert config["fine_tuned_from"]["folder"] == str((tmp / "m0").resolve())
     assert config["samples_per_object"] == 60
@@ -166,14 +169,16 @@ def test_finetuning_never_returns_worse_than_it_started_and_can_freeze_encoders(
     worse than the start: the start (epoch -1) is kept, bit for bit. With the encoders
     frozen they stay bit for bit while the head moves."""
     tmp, sim, real = folders
-    pair0, _, _, cfg0 = load_models(tmp / "m0")
+    folder = load_models(tmp / "m0")
+    pair0, cfg0 = folder.pair, folder.config
     out = tmp / "ft_big_step"
     assert main(["train", "--init", str(tmp / "m0"), "--data", str(sim), "--out", str(out),
                  "--torque-epochs", "3", "--torque-lr", "0.3", "--attention-epochs", "1",
                  "--attention-lr", "0.3", "--attention-sets", "6", "--attention-val-sets", "3",
                  "--set-size", "16", "--val-fraction", str(cfg0["training"]["val_fraction"])
                  ]) == 0
-    pair, _, _, config = load_models(out)
+    folder = load_models(out)
+    pair, config = folder.pair, folder.config
     assert config["best_epoch"] == {"torque": [-1, -1], "attention": [-1, -1]}
     assert_tree_equal(pair.torque_vars, pair0.torque_vars, what="torque start kept")
     out = tmp / "ft_frozen"
@@ -182,7 +187,8 @@ def test_finetuning_never_returns_worse_than_it_started_and_can_freeze_encoders(
                  "--attention-epochs", "1", "--attention-sets", "6",
                  "--attention-val-sets", "3", "--set-size", "16", "--session-of", str(real),
                  "--session-strength", "0.5"]) == 0
-    pair, _, _, config = load_models(out)
+    folder = load_models(out)
+    pair, config = folder.pair, folder.config
     assert config["training"]["trainable"] == "head"
     # --session-of: the real file's own session is the models' reference (its ratio 1),
     # recorded with the strength for evaluate and estimate.
@@ -205,7 +211,7 @@ def test_finetuning_refuses_what_cannot_fit(folders, capsys):
     assert "not a jaxinertia model folder" in capsys.readouterr().err
     with pytest.raises(UsageError, match="do not fit"):
         _start(TorqueModel(hidden=5), jax.random.key(0), 2, jnp.zeros((1, 4, 4)),
-               load_models(tmp / "m0")[0].torque_vars)
+               load_models(tmp / "m0").pair.torque_vars)
     assert not (tmp / "x").exists()
 
 

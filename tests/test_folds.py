@@ -22,7 +22,7 @@ from jaxinertia.app.report import format_folds
 from jaxinertia.checkpoints import load_models
 from jaxinertia.errors import UsageError
 from jaxinertia.samples import load_native, save_lbipe, save_native
-from jaxinertia.sim import calibration
+from jaxinertia.sim import real_fit
 from jaxinertia.training import TrainConfig
 
 #: Training samples (four loads or objects) and configuration of every training here and in
@@ -42,7 +42,7 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
             return f(first, data, *args, **kw)
         return spy
 
-    for name in ("fit_link_gravity", "calibrate_servo_friction", "real_plan"):
+    for name in ("fit_link_gravity", "fit_servo_friction", "real_plan"):
         monkeypatch.setattr(folds, name, spying(getattr(folds, name)))
     read_npz = samples.read_npz
 
@@ -89,7 +89,7 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
         assert cal["identified"]["theta"] == ident["theta"]
         # Fine-tuned on 30 real samples of the fold's object only, from the physical model.
         fold = tmp_path / "folds" / f"fit_{fit_on}"
-        config = load_models(fold / "models_finetuned_30")[3]
+        config = load_models(fold / "models_finetuned_30").config
         assert [Path(e["file"]).name for e in config["data"]] == [f"data_test_{fit_on}.npz"]
         assert config["samples"]["train"] + config["samples"]["validation"] == 30
         assert config["fine_tuned_from"]["folder"] == str((fold / "models_physical").resolve())
@@ -99,8 +99,8 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
         # and no attention epoch ran (none compiled).
         assert config["best_epoch"]["attention"] == [-1] * TRAIN.n_models
         assert config["history"]["attention"] == []
-        assert_tree_equal(load_models(fold / "models_finetuned_30")[0].attention_vars,
-                          load_models(fold / "models_physical")[0].attention_vars,
+        assert_tree_equal(load_models(fold / "models_finetuned_30").pair.attention_vars,
+                          load_models(fold / "models_physical").pair.attention_vars,
                           what="attention kept")
         assert set(f["fine_tuned"]["30"]["objects"]) == set(f["physical"]["objects"]) == {other}
         # Domain randomization: two simulated arms, the spread measured on the fold's object.
@@ -129,8 +129,8 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
 
 def test_fits_refuse_objects_the_folder_does_not_have(small_lbipe_dir, capsys):
     with pytest.raises(UsageError, match="mystery"):
-        calibration.real_files(small_lbipe_dir, ["mystery"])
-    assert [d.name for d in calibration.real_files(small_lbipe_dir, ["white"])] == ["white"]
+        real_fit.real_files(small_lbipe_dir, ["mystery"])
+    assert [d.name for d in real_fit.real_files(small_lbipe_dir, ["white"])] == ["white"]
     assert main(["calibrate", "--lbipe-dir", str(small_lbipe_dir), "--real-objects", "cube",
                  "cube"]) == 2
     assert "--real-objects" in capsys.readouterr().err
@@ -161,8 +161,8 @@ def test_training_on_the_authors_layout_gives_the_models_of_the_native_files(tmp
     np.testing.assert_array_equal(a["history"]["torque"], b["history"]["torque"])
     np.testing.assert_array_equal(a["history"]["attention"], b["history"]["attention"])
     ma, mb = load_models(tmp_path / "a"), load_models(tmp_path / "b")
-    for leaf_a, leaf_b in zip(jax.tree_util.tree_leaves((ma[0], ma[1], ma[2])),
-                              jax.tree_util.tree_leaves((mb[0], mb[1], mb[2]))):
+    for leaf_a, leaf_b in zip(jax.tree_util.tree_leaves((ma.pair, ma.baselines, ma.features)),
+                              jax.tree_util.tree_leaves((mb.pair, mb.baselines, mb.features))):
         np.testing.assert_array_equal(np.asarray(leaf_a), np.asarray(leaf_b))
 
 

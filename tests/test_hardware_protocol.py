@@ -32,7 +32,7 @@ from support.hardware import RETRIES
 
 from jaxinertia.hardware import control_table as ct
 from jaxinertia.hardware.arm_config import arm_config, safety_limits
-from jaxinertia.hardware.driver import DynamixelArm, HardwareError
+from jaxinertia.hardware.driver import DynamixelArm, ServoHardwareError
 from jaxinertia.hardware.protocol import (
     Instruction,
     PacketParser,
@@ -46,7 +46,7 @@ from jaxinertia.hardware.safety import SafetyError, SafetyLimits
 from jaxinertia.hardware.transport import LockedPortHandler, MatchingPacketHandler, PortInUse
 from jaxinertia.objects import resolve
 from jaxinertia.open_manipulator_x import ARM as OMX
-from jaxinertia.open_manipulator_x import calibrated_robot
+from jaxinertia.open_manipulator_x import sim_fit_robot
 from jaxinertia.sim.params import default_sim_params
 from jaxinertia.virtual.bus import open_pty
 from jaxinertia.virtual.physics import ArmPhysics, PhysicsLoop, publish
@@ -197,7 +197,7 @@ def test_overload_sets_the_alert_bit_and_reboot_clears_it(bus, sdk):
 
 
 def test_a_goal_outside_the_limits_is_refused_before_anything_moves(bus):
-    robot = calibrated_robot()
+    robot = sim_fit_robot()
     arm = DynamixelArm(arm_config(OMX, bus.path, retries=RETRIES), robot=robot,
                        safety=safety_limits(OMX, robot))
     with arm:
@@ -336,7 +336,7 @@ def test_a_hardware_error_reading_is_confirmed_before_it_is_reported(bus, monkey
         with bus._lock:  # a real one: ID 13 overloaded
             bus.servos[13].set("hardware_error_status", ct.HW_ERROR_OVERLOAD)
         try:
-            with pytest.raises(HardwareError, match="ID 13: overload") as e:
+            with pytest.raises(ServoHardwareError, match="ID 13: overload") as e:
                 arm.check_hardware_errors()
             assert e.value.errors == {13: ct.HW_ERROR_OVERLOAD}, "confirmed errors"
         finally:

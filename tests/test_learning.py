@@ -130,7 +130,9 @@ def test_checkpoints_round_trip_and_refuse_another_robot(tmp_path):
     b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.tau)
     pair = _tiny_pair()
     save_models(tmp_path / "m", pair, b, _fc(), robot="open_manipulator_x", extra={"a": 1})
-    pair2, b2, fc2, cfg = load_models(tmp_path / "m", robot="open_manipulator_x")
+    folder = load_models(tmp_path / "m", robot="open_manipulator_x")
+    pair2, b2, fc2, cfg = folder.pair, folder.baselines, folder.features, folder.config
+    assert folder.directory == (tmp_path / "m").absolute()
     # Bit for bit, field by field (a failure names the parameter, e.g.
     # .torque_vars['params']['joint0']['hidden']['kernel']): the variables, tau_scale and
     # both module definitions; all the baselines' and the feature configuration's fields.

@@ -215,6 +215,45 @@ def test_a_valid_journal_record_resumes(tmp_path):
     assert list(Journal.open(path, header, resume=True, plan=plan).records) == [0]
 
 
+def test_a_record_of_joints_without_a_current_sensor_resumes(tmp_path):
+    # null: no reading (the Koch's XL430s: Present Load only); the sample file gets NaN.
+    from jaxinertia.hardware.collect import samples_from_records
+    from jaxinertia.robot import open_manipulator_x
+
+    Journal, path, header, plan = _journal(tmp_path, current_tau=[None, None, 0.1, 0.1])
+    records = Journal.open(path, header, resume=True, plan=plan).records
+    s = samples_from_records(records, open_manipulator_x(), None, "cube")
+    np.testing.assert_array_equal(np.isnan(s.current_tau), [[True, True, False, False]])
+    assert not s.has_current
+
+
+def test_the_sensor_baseline_says_it_is_unavailable_without_current_sensors(tmp_path):
+    from jaxinertia.evaluation import evaluate
+    from jaxinertia.uncertainty import uncertainty_of
+
+    d = _samples(seed=3)
+    cur = np.asarray(d.current_tau).copy()
+    cur[:, :2] = np.nan  # joints 0 and 1 read no current
+    d = d.replace(current_tau=cur)
+    b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.tau)
+    assert np.isnan(b.sensor_friction[:2]).all() and np.isfinite(b.sensor_friction[2:]).all()
+    sets = [np.arange(d.n_samples)[None]]
+    res = evaluate([d], sets, baselines=b, l_max=[0.1])
+    assert "Sensor" not in res["objects"]["o0"] and "PE" in res["objects"]["o0"]
+    assert "Sensor" not in res["estimates"] and "Sensor" not in res["torque"]
+    why = res["unavailable"]["Sensor"]
+    assert "joints [0, 1]" in why and "no current sensor" in why, why
+    assert set(uncertainty_of([d], sets, baselines=b)) == {"PE"}
+    # A model folder keeps them (null in config.json: strict JSON) and reads them back.
+    folder = save_models(tmp_path / "m", tiny_pair(), b, feature_config(), robot="koch_v1_1")
+    assert json.loads((folder / "config.json").read_text())["baselines"][
+        "sensor_friction"][:2] == [None, None]
+    back = load_models(folder).baselines
+    for k in ("sensor_friction", "sensor_offset", "pe_gain"):
+        np.testing.assert_array_equal(np.asarray(getattr(back, k)), np.asarray(getattr(b, k)),
+                                      err_msg=k)
+
+
 @pytest.mark.parametrize("change, words", [
     ({"R_base_tag": np.zeros((3, 3)).tolist()}, ["R_base_tag", "not a rotation"]),
     ({"q": [100.0, 0.0, 0.0, 0.0]}, ["line 2 q", "beyond one turn"]),
@@ -275,7 +314,7 @@ def test_a_folder_without_checksums_loads_with_a_note(models, tmp_path, capsys):
     c = json.loads((m / "config.json").read_text())
     del c["checksums"]
     (m / "config.json").write_text(json.dumps(c))
-    assert load_models(m)[3]["n_models"] == 2
+    assert load_models(m).config["n_models"] == 2
     assert "has no checksums" in capsys.readouterr().err
 
 
@@ -446,3 +485,21 @@ def test_orbax_closed_loop_noise_is_dropped_and_nothing_else(monkeypatch):
     other = Unraisable(RuntimeError("something else"))
     cli._quiet_closed_loops(other)
     assert seen == [other]
+
+
+def test_library_messages_name_arguments_and_the_cli_names_flags(tmp_path):
+    """A library error names the caller's argument (`` `overwrite` ``), never a flag; the
+    command line words the same message with the command's flags."""
+    from jaxinertia.app.options import flag_wording
+    from jaxinertia.errors import UsageError
+
+    (tmp_path / "x.npz").write_bytes(b"")
+    with pytest.raises(UsageError) as e:
+        check_output(tmp_path / "x.npz")
+    said = str(e.value)
+    assert "--" not in said and "`out`" in said and "`overwrite`" in said
+    assert flag_wording(said) == (f"--out {tmp_path / 'x.npz'} exists; pass --overwrite to "
+                                  "replace it")
+    assert flag_wording("`objects` ['x']: no", "calibrate") == "--real-objects ['x']: no"
+    assert (flag_wording("`step_deg` and `l_max` mystery=METRES")
+            == "--step-deg and --l-max mystery=METRES")

@@ -185,13 +185,13 @@ def test_load_models_refuses_a_folder_that_does_not_match_itself(model_folder, c
 
 
 def test_load_models_refuses_non_finite_weights(model_folder, tmp_path, monkeypatch):
-    pair = tiny_pair()
+    pair, loaded = tiny_pair(), load_models(model_folder)
     bad = pair.replace(attention_vars=jax.tree_util.tree_map(lambda a: a.at[0].set(np.nan),
                                                              pair.attention_vars))
     with pytest.raises(ModelFolderError, match="non-finite"):  # never written ...
-        save_models(tmp_path / "nan", bad, *load_models(model_folder)[1:3], robot="r")
+        save_models(tmp_path / "nan", bad, loaded.baselines, loaded.features, robot="r")
     monkeypatch.setattr(checkpoints, "_check_finite", lambda *a: None)
-    save_models(tmp_path / "nan", bad, *load_models(model_folder)[1:3], robot="r")
+    save_models(tmp_path / "nan", bad, loaded.baselines, loaded.features, robot="r")
     monkeypatch.undo()
     with pytest.raises(ModelFolderError, match=r"nan.*attention parameters.*non-finite"):
         load_models(tmp_path / "nan")  # ... and never read

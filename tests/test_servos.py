@@ -85,3 +85,35 @@ def test_a_chain_may_mix_models():
     sts = ServoParams.from_model(STS3215_12V, 1)
     duty_per_tick = float(sts.p_gain[0]) / 128.0 / 885.0
     assert duty_per_tick == pytest.approx(16.0 / 1000.0, rel=1e-12)
+
+
+def test_a_load_only_joint_has_no_current_torque_in_the_simulator_as_on_the_bus():
+    import jax
+    import jax.numpy as jnp
+
+    from jaxinertia.arms import KOCH_V1_1
+    from jaxinertia.hardware.arm_config import arm_config
+    from jaxinertia.hardware.driver import DynamixelArm
+    from jaxinertia.objects import resolve
+    from jaxinertia.sim.params import arm_sim_params
+    from jaxinertia.sim.sampling import record
+    from jaxinertia.sim.simulator import SimState
+
+    params = arm_sim_params(KOCH_V1_1)
+    q = jnp.zeros(5)
+    state = SimState.at_rest(q)
+    current = jnp.array([0.1, -0.2, 0.3, -0.05, 0.01])  # [A]
+    state = state.replace(servo=state.servo.replace(current=current))
+    rec = record(params.replace(servo=params.servo.replace(current_noise=jnp.zeros(5))),
+                 params.robot, resolve("none", tag_in_ee=KOCH_V1_1.tag_in_ee), q,
+                 jnp.ones(5), state, jax.random.key(0), at_rest=True, settle_time=0.0)
+    tau = np.asarray(rec.current_tau)
+    # XL430-W250 joints (1-2): Present Load only, no current-based torque; XL330-M288
+    # joints: k_t times the current in its 1 mA steps.
+    assert np.isnan(tau[:2]).all() and np.isfinite(tau[2:]).all(), tau
+    np.testing.assert_allclose(tau[2:], XL330_M288.torque_constant * np.asarray(current[2:]),
+                               rtol=1e-12, err_msg="current_tau of the XL330 joints")
+    # The driver reads the same joints as the simulator records them (NaN where no sensor).
+    driver = DynamixelArm(arm_config(KOCH_V1_1, "/dev/null"))
+    np.testing.assert_array_equal(np.isnan(driver.torque_constants), np.isnan(tau))
+    np.testing.assert_array_equal(driver.torque_constants[2:], XL330_M288.torque_constant)

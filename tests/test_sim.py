@@ -23,15 +23,15 @@ from jaxinertia.features import LBIPE_FEATURES
 from jaxinertia.kinematics import ee_pose, gravity_torques
 from jaxinertia.objects import HeldObject
 from jaxinertia.open_manipulator_x import ARM as OMX
-from jaxinertia.open_manipulator_x import MOUNT_CLEARANCE_M, WORKSPACE_DEG, calibrated_robot
+from jaxinertia.open_manipulator_x import MOUNT_CLEARANCE_M, WORKSPACE_DEG, sim_fit_robot
 from jaxinertia.plans import continuous_plan, planning_plan, random_plan
 from jaxinertia.robot import data_path, open_manipulator_x
 from jaxinertia.samples import load_lbipe
 from jaxinertia.sim import lanes, stream
-from jaxinertia.sim.calibration import fit_link_gravity, real_files
 from jaxinertia.sim.continuous import simulate_continuous, simulate_continuous_run
 from jaxinertia.sim.friction import FrictionParams, friction_bound, solve_box_friction
 from jaxinertia.sim.params import default_sim_params
+from jaxinertia.sim.real_fit import fit_link_gravity, real_files
 from jaxinertia.sim.run import ScenarioRequest, run_plan, run_plans, simulate_scenarios
 from jaxinertia.sim.sampling import simulate_samples
 from jaxinertia.sim.servo import RAD_PER_TICK, ServoParams
@@ -184,7 +184,7 @@ def test_simulated_samples_follow_the_lbipe_conventions(stream_programs):
 
 def test_shipped_link_gravity_reproduces_the_real_tau_g(lbipe_dir):
     """The simulated arm's gravity is the real arm's (base parameters fitted to lbipe)."""
-    robot = calibrated_robot()
+    robot = sim_fit_robot()
     urdf = open_manipulator_x()
     for name in ("cube", "white"):
         ds = load_lbipe(lbipe_dir / "data" / f"data_test_{name}.npz")

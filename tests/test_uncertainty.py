@@ -23,10 +23,10 @@ from jaxinertia.open_manipulator_x import ARM as OMX
 from jaxinertia.samples import Samples, save_native
 from jaxinertia.uncertainty import (
     SetUncertainty,
-    calibration,
     coverage,
     fit_inflation,
     identifiability,
+    interval_coverage,
     mass_com_covariance,
     set_uncertainty,
     standard_errors,
@@ -291,8 +291,8 @@ def test_estimate_reports_standard_errors_intervals_and_covariance(model_folder,
                  "--max-com-se", "1.0"]) == 0
 
 
-def test_coverage_table_and_plot_from_a_calibration(tmp_path):
-    """The report's table shows calibration()'s numbers; the plot is written."""
+def test_coverage_table_and_plot_from_interval_coverage(tmp_path):
+    """The report's table shows interval_coverage()'s numbers; the plot is written."""
     rng = np.random.default_rng(8)
     B = 400
     truths = np.array([[0.05, 0.05 * 0.01, 0.0, 0.05 * 0.02], [0.09, 0.0, 0.09 * 0.01, 0.0]])
@@ -307,7 +307,7 @@ def test_coverage_table_and_plot_from_a_calibration(tmp_path):
                        A=np.zeros((1, 4, 4)), object_id=np.zeros(1, np.int64), x=t[None],
                        tau=np.zeros((1, 4)), names=(name,))
                for t, name in zip(truths, ("a", "b"))]
-    cal = calibration(objects, {"T-A": u})
+    cal = interval_coverage(objects, {"T-A": u})
     for o, name in enumerate(("a", "b")):
         c = cal["objects"][name]["T-A"]
         assert c == coverage(x[o], cov[o], truths[o]) | {"median_se": c["median_se"],

@@ -17,8 +17,8 @@ from jaxinertia.errors import RobotMismatchError, UsageError
 if TYPE_CHECKING:
     from jaxinertia.arm import Arm
 
-__all__ = ["LBIPE_ARM", "add_arm_option", "arm_name", "arm_of", "dynamixel_arm_options",
-           "lbipe_arm_only", "samples_arm"]
+__all__ = ["LBIPE_ARM", "add_arm_option", "arm_name", "arm_of", "bus_arm_options",
+           "dynamixel_arm_options", "lbipe_arm_only", "samples_arm"]
 
 #: The arm of the authors' real files (the lbipe folder).
 LBIPE_ARM = DEFAULT_ARM
@@ -63,16 +63,23 @@ def lbipe_arm_only(args, what: str) -> None:
 
 
 def dynamixel_arm_options(args):
+    """:func:`bus_arm_options` of a DYNAMIXEL arm only (the simulated virtual robot)."""
+    arm = arm_of(args)
+    if arm.bus != "dynamixel2":
+        raise UsageError(f"--arm {args.arm}: its servos speak {arm.bus}; this command drives "
+                         "DYNAMIXEL (Protocol 2.0) servos only")
+    return bus_arm_options(args)
+
+
+def bus_arm_options(args):
     """The ``--arm`` record, its values filling the options left out (IDs, gripper ID,
-    baud rate, position gains, motion timing, initial pose); only DYNAMIXEL arms here."""
+    baud rate, position gains (per joint where they differ), motion timing, initial
+    pose), whatever its bus."""
     import numpy as np  # (light; with the arm's records, which load JAX: at run time)
 
     from jaxinertia.hardware.arm_config import arm_config  # (as above)
 
     arm = arm_of(args)
-    if any(m.protocol != "dynamixel2" for m in arm.servo_models):
-        raise UsageError(f"--arm {args.arm}: its servos speak {arm.servo_models[0].protocol}; "
-                         "this command drives DYNAMIXEL (Protocol 2.0) servos only")
     cfg = arm_config(arm, "")
     given = {"ids": cfg.joint_ids, "gripper_id": cfg.gripper_id, "baudrate": cfg.baudrate,
                 "p_gain": cfg.p_gain, "d_gain": cfg.d_gain,

@@ -23,7 +23,7 @@ import sys
 from pathlib import Path
 
 from jaxinertia import _xla_workarounds  # (light: the environment only, no JAX)
-from jaxinertia.app.options import Parser
+from jaxinertia.app.options import Parser, flag_wording
 from jaxinertia.errors import JaxinertiaError
 from jaxinertia.fileio import command_locks
 
@@ -134,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
         with command_locks():
             return int(args.func(args) or 0)
     except JaxinertiaError as e:
-        print(f"jaxinertia {args.command}: error: {e}", file=sys.stderr, flush=True)
+        print(f"jaxinertia {args.command}: error: {flag_wording(str(e), args.command)}",
+              file=sys.stderr, flush=True)
         sys.unraisablehook = _quiet_closed_loops
         return e.exit_code
     except KeyboardInterrupt:

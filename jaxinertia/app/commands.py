@@ -294,6 +294,10 @@ def _register_train(sub) -> None:
                    help="the paper's network (default) or a physics-structured one: per "
                    "joint stiffness, offset, direction and load friction plus the paper's "
                    "network as a residual")
+    t.add_argument("--current-input", action="store_true", default=None,
+                   help="give the torque model the servo's current torque as a fifth input "
+                   "per joint (the samples then need their current; --init: the folder's "
+                   "inputs are kept)")
     for name, typ in (("n_models", positive_int), ("seed", seed_int),
                       ("torque_epochs", positive_int),
                       ("torque_batch", positive_int), ("torque_lr", positive_float),

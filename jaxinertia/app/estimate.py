@@ -143,11 +143,13 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
     """
     objects, meta = objects_at_rest(sample_file, need_truth=False)
     objects = [o.without_truth() for o in objects]
-    pair, baselines, fc, config = load_models(models, robot=meta.get("robot"),
-                                              arm=samples_arm(sample_file, meta, arm))
-    reference = session_reference(config, session_strength, simulated=is_simulated(meta))
+    folder = load_models(models, robot=meta.get("robot"),
+                         arm=samples_arm(sample_file, meta, arm))
+    pair, baselines, fc = folder.pair, folder.baselines, folder.features
+    reference = session_reference(folder.config, session_strength,
+                                  simulated=is_simulated(meta))
     objects, ratios = adapt_objects(objects, reference)
-    floor, floor_source = training_validation_error(config)
+    floor, floor_source = training_validation_error(folder.config)
     noise = floor if floor is not None else np.full(objects[0].n_joints,
                                                     DEFAULT_TORQUE_NOISE_NM)
     noise_source = ("torque models' validation error" if floor is not None else
@@ -180,6 +182,7 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
         pred_se = np.asarray(ident.se[0])
         out["objects"][obj.name] = {
             "n_samples": obj.n_samples, "methods": methods, "session_ratio": ratio,
+            "unavailable": res["unavailable"],
             "identifiability": {"condition": float(ident.condition[0]),
                                 "predicted_mass_se_kg": float(pred_se[0]),
                                 "predicted_com_se_m": pred_se[1:].tolist(),

@@ -78,6 +78,8 @@ def cmd_estimate(args) -> int:
             lo_hi = [np.asarray(iv["mass_kg"]) * 1e3] + list(np.asarray(iv["com_tag_m"]) * 1e3)
             print(f"{'  95 %':<7} " + " ".join(f"{f'[{lo:.1f}, {hi:.1f}]':>16}"
                                             for lo, hi in lo_hi))
+        for m, why in o.get("unavailable", {}).items():
+            print(f"{m:<7} {why}")
     print(f"torque error floor: {floor['source']}" + (
         "" if floor["Nm"] is None else
         " (" + ", ".join(f"{v * 1e3:.0f}" for v in floor["Nm"]) + " N mm per joint)"))

@@ -13,19 +13,10 @@ from __future__ import annotations
 import sys
 
 from jaxinertia.arm import Arm
-from jaxinertia.errors import UsageError
 from jaxinertia.virtual.bus import Faults
 from jaxinertia.virtual.sts_bus import StsServoBus
 
-__all__ = ["is_feetech", "virtual_sts_robot"]
-
-
-def is_feetech(arm: Arm) -> bool:
-    """Whether ``arm``'s joint servos are Feetech STS servos."""
-    families = {m.protocol for m in arm.servo_models}
-    if len(families) > 1 and "feetech_sts" in families:
-        raise UsageError(f"--arm {arm.name}: one bus cannot mix {sorted(families)} servos")
-    return families == {"feetech_sts"}
+__all__ = ["virtual_sts_robot"]
 
 
 def virtual_sts_robot(args, arm: Arm, faults: Faults, serve) -> int:

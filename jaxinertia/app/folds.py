@@ -6,7 +6,7 @@ One fold per real file ``fit_on``:
 
 1. calibrate the simulator from the datasheet start (never the shipped calibration, which
    saw every real file) on ``fit_on``'s real samples only: link gravity from its ``tau_g``,
-   then servo, friction and the constant joint torques (:mod:`jaxinertia.sim.calibration`);
+   then servo, friction and the constant joint torques (:mod:`jaxinertia.sim.real_fit`);
 2. replay every other object's real plan (goals, directions, the object) in that simulator
    and compare its baseline statistics with the real ones (per-joint PE gain and
    intercept): does the load dependence come out of the physics?
@@ -53,16 +53,16 @@ from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import evaluate
 from jaxinertia.fileio import write_json
 from jaxinertia.session import ServoSession, servo_session
-from jaxinertia.sim.calibration import (
-    baseline_statistics,
-    calibrate_servo_friction,
-    fit_link_gravity,
-    real_plan,
-    simulate_real_plan,
-)
 from jaxinertia.sim.identify import ESConfig, identify
 from jaxinertia.sim.params import datasheet_sim_params, params_to_dict
 from jaxinertia.sim.randomize import spread_from_samples
+from jaxinertia.sim.real_fit import (
+    baseline_statistics,
+    fit_link_gravity,
+    fit_servo_friction,
+    real_plan,
+    simulate_real_plan,
+)
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
 
 __all__ = ["FoldScale", "SESSION_STRENGTHS", "choose_recipe", "run_folds"]
@@ -129,12 +129,13 @@ class _Fold:
         idx = self.held_index
         objects = [self.real.objects[i] for i in idx]
         sets, l_max = [self.real.sets[i] for i in idx], [self.real.l_max[i] for i in idx]
-        pair, baselines, fc, config = load_models(models)
-        own = session_reference(config)
+        folder = load_models(models)
+        own = session_reference(folder.config)
         out = {"by_strength": {}}
         for s in self.scale.session_strengths:
-            adapted, ratios = adapt_objects(objects, session_reference(config, s))
-            res = evaluate(adapted, sets, pair=pair, baselines=baselines, fc=fc, l_max=l_max)
+            adapted, ratios = adapt_objects(objects, session_reference(folder.config, s))
+            res = evaluate(adapted, sets, pair=folder.pair, baselines=folder.baselines,
+                           fc=folder.features, l_max=l_max)
             out["by_strength"][str(s)] = res["objects"]
             if own is None or own.strength == s:
                 out.update(objects=res["objects"], torque=res["torque"],
@@ -184,7 +185,7 @@ def _run_fold(fold: _Fold) -> dict:
         finally:
             wall[name] = time.perf_counter() - t
 
-    params, replay = timed("calibrate", _calibrate, fold)
+    params, replay = timed("calibrate", _fit_simulator, fold)
     wanted = [(fold.dir / "data" / "train_random.npz", "random", fold.scale.random_per_load,
                fold.seed)]
     if fold.scale.planning:
@@ -216,14 +217,14 @@ def _stats(d: dict) -> dict:
     return {k: st[k].tolist() for k in ("k", "c", "pe_mae")}
 
 
-def _calibrate(fold: _Fold):
-    """The simulator calibrated on ``fit_on`` alone (then identified, when asked), written
+def _fit_simulator(fold: _Fold):
+    """The simulator fitted to ``fit_on`` alone (then identified, when asked), written
     to ``calibration.json``; the held-out objects' real plans replayed in it."""
     scale, seed = fold.scale, fold.seed
     params = datasheet_sim_params()
     fit = [fold.record(fold.fit_on)]  # the only real samples the fold's fits look at
     robot, gravity = fit_link_gravity(params.robot, fit)
-    params, info = calibrate_servo_friction(
+    params, info = fit_servo_friction(
         params.replace(robot=robot), fit, iterations=scale.calibration_iterations,
         seed=seed, fit_offset=True, log=lambda m: None, progress=False,
         programs=stream_programs())

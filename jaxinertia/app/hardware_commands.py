@@ -11,8 +11,9 @@ disappears; a collection stopped by the bus or a servo: the journal is kept and
 collection is not an error: the command says where the journal is and returns 130.
 
 One module for both: they share the bus options, the arm record's defaults for them
-(``arm_options.dynamixel_arm_options``) and the serving loop; the Feetech bus is served
-from ``feetech_commands``.
+(``arm_options.bus_arm_options``) and the serving loop; the Feetech bus is served
+from ``feetech_commands``. ``collect`` drives whatever bus the arm record names
+(``hardware.drivers``).
 """
 
 from __future__ import annotations
@@ -25,10 +26,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from jaxinertia.app import defaults
-from jaxinertia.app.arm_options import add_arm_option, arm_of, dynamixel_arm_options
+from jaxinertia.app.arm_options import (
+    add_arm_option,
+    arm_of,
+    bus_arm_options,
+    dynamixel_arm_options,
+)
 from jaxinertia.app.options import (
     check_memory,
     finite_float,
+    flag_wording,
     nonnegative_float,
     positive_float,
     positive_int,
@@ -38,7 +45,7 @@ from jaxinertia.errors import HardwareError, UsageError
 from jaxinertia.fileio import check_output
 
 if TYPE_CHECKING:
-    import numpy as np
+    from jaxinertia.plans import Goals
 
 __all__ = ["register"]
 
@@ -48,6 +55,9 @@ EXIT_INTERRUPTED = 130
 #: What one goal of a plan takes while it is drawn and checked (its pre-position, forward
 #: kinematics of both against the safety limits) [bytes], generous.
 PLAN_BYTES_PER_POSE = 4096
+
+#: A collected sample file's ``source``, by the arm's bus (``Arm.bus``).
+SOURCE_OF_BUS = {"dynamixel2": "dynamixel", "feetech_sts": "feetech"}
 
 #: ``collect --object unknown``: no ground truth (the file has no tau and no x).
 UNKNOWN = "unknown"
@@ -117,7 +127,8 @@ def cmd_virtual_robot(args) -> int:
     import numpy as np  # (as above)
 
     from jaxinertia import objects  # (as above)
-    from jaxinertia.app.feetech_commands import is_feetech, virtual_sts_robot  # (as above)
+    from jaxinertia.app.feetech_commands import virtual_sts_robot  # (as above)
+    from jaxinertia.servos import servo_model  # (as above)
     from jaxinertia.sim.params import arm_sim_params  # (as above)
     from jaxinertia.virtual.bus import Faults  # (as above)
     from jaxinertia.virtual.robot import VirtualServoBus  # (as above)
@@ -127,16 +138,21 @@ def cmd_virtual_robot(args) -> int:
                     delay_rate=args.delay_rate, delay_s=args.delay_ms / 1000.0,
                     overload_id=args.overload_id, overload_after=args.overload_after,
                     seed=args.fault_seed)
-    if is_feetech(arm_of(args)):  # the arm record names the servo family
+    if arm_of(args).bus == "feetech_sts":  # the arm record names the servo family
         return virtual_sts_robot(args, arm_of(args), faults, _serve)
     arm = dynamixel_arm_options(args)
     obj = objects.resolve(args.object, tag_in_ee=arm.tag_in_ee)
     params = arm_sim_params(arm, args.calibration)
     _check_ids(args, params.robot.n_joints)
+    gripper = () if args.gripper_id is None else (arm.gripper_servo or arm.servos[0],)
+    # Each servo answers as its model (the Koch's XL430s with Present Load); each joint's
+    # simulated gain belongs to its P register (the arm's, or the servo model's).
     bus = VirtualServoBus(params, obj, ids=args.ids,
                           extra_ids=() if args.gripper_id is None else (args.gripper_id,),
                           q0=np.radians(args.q0), speed=args.speed, faults=faults,
-                          seed=args.seed)
+                          seed=args.seed,
+                          servo_models=[servo_model(m) for m in (*arm.servos, *gripper)],
+                          gain_registers=[g[0] for g in arm.joint_gains])
     bus.compile()  # every physics path, so that no reply waits on a compilation
     return _serve(bus, f"virtual {arm.name} servos {list(bus.servos)} on {bus.path}, object "
                        f"{args.object}, {args.speed:g}x real time")
@@ -176,7 +192,7 @@ def _check_collect_options(args) -> None:
                          f"{args.settle_time:g} s")
 
 
-def _collect_plan(args, arm, robot) -> tuple[np.ndarray, np.ndarray]:
+def _collect_plan(args, arm, robot) -> Goals:
     """The goals and approach directions of ``--plan`` (the arm's planning grid, random
     goals in its workspace, or a plan file of ``jaxinertia plan-poses`` for that arm;
     ``--n`` cuts the planning grid or a file's plan)."""
@@ -196,7 +212,7 @@ def _collect_plan(args, arm, robot) -> tuple[np.ndarray, np.ndarray]:
         q_d, direction = load_plan(args.plan, arm=arm.name)
     if args.n is not None:
         q_d, direction = q_d[: args.n], direction[: args.n]
-    return q_d, direction
+    return plans.Goals(q_d, direction)
 
 
 def _collect_request(args):
@@ -204,16 +220,16 @@ def _collect_request(args):
     against the limits: all that can be refused, before the port is opened."""
     from jaxinertia import objects  # the work's modules: imported when the command runs
     from jaxinertia.hardware.arm_config import safety_limits  # (as above)
-    from jaxinertia.open_manipulator_x import calibrated_robot  # (as above)
+    from jaxinertia.open_manipulator_x import sim_fit_robot  # (as above)
     from jaxinertia.sim.params import arm_sim_params  # (as above)
 
-    arm = dynamixel_arm_options(args)
+    arm = bus_arm_options(args)  # any bus: the record names its driver
     _check_collect_options(args)
     obj = None if args.object == UNKNOWN else objects.resolve(args.object,
                                                             tag_in_ee=arm.tag_in_ee)
     # The calibrated bare arm: A and tau_g (as the simulator records them) and the FK of
     # the kinematic tag pose (an arm without a calibration: its description's links).
-    robot = (calibrated_robot(args.calibration) if arm.calibration_file is not None
+    robot = (sim_fit_robot(args.calibration) if arm.sim_fit_file is not None
              else arm_sim_params(arm, args.calibration).robot)
     q_d, direction = _collect_plan(args, arm, robot)
     _check_ids(args, robot.n_joints)
@@ -244,7 +260,8 @@ def cmd_collect(args) -> int:
         plan_digest,
         samples_from_records,
     )
-    from jaxinertia.hardware.driver import DynamixelArm, PortError  # (as above)
+    from jaxinertia.hardware.driver import PortError  # (as above)
+    from jaxinertia.hardware.drivers import driver_class  # (as above)
     from jaxinertia.hardware.safety import SafetyError  # (as above)
     from jaxinertia.samples import save_native  # (as above)
 
@@ -270,7 +287,7 @@ def cmd_collect(args) -> int:
               file=sys.stderr)
     R_ee_tag, p_ee_tag = arm.tag_in_ee
     tag_source = KinematicTagPose(robot, R_ee_tag, p_ee_tag)
-    dxl = DynamixelArm(config, robot=robot, safety=safety)
+    dxl = driver_class(arm)(config, robot=robot, safety=safety)  # the arm's bus
 
     def where() -> str:
         if not journal.path.exists():
@@ -287,7 +304,7 @@ def cmd_collect(args) -> int:
         raise SafetyError(f"refused: {e}") from e
     except PortError:  # nothing has moved; the journal is as it was
         raise
-    except HardwareError as e:  # the bus or a servo (driver.CommError, driver.HardwareError)
+    except HardwareError as e:  # the bus or a servo (CommError, ServoHardwareError)
         raise HardwareError(f"stopped ({config.on_stop}): {e}; {where()}") from e
     except KeyboardInterrupt:
         print(f"jaxinertia collect: interrupted ({config.on_stop}); {where()}",
@@ -296,7 +313,7 @@ def cmd_collect(args) -> int:
     finally:
         journal.close()
         dxl.close()
-    print(f"bus: {dxl.bus_report()}", file=sys.stderr)
+    print(f"bus: {flag_wording(dxl.bus_report())}", file=sys.stderr)
     x = None if obj is None else np.asarray(obj.x)
     samples = samples_from_records(journal.records, robot, x, args.object)
     path = save_native(out, samples, _collected_meta(args, arm, robot, journal, header))
@@ -310,7 +327,7 @@ def _collected_meta(args, arm, robot, journal, header) -> dict:
     """What a collected sample file records of its collection."""
     from jaxinertia import __version__  # (light; the package's own version)
 
-    return {"version": __version__, "source": "dynamixel", "port": args.port,
+    return {"version": __version__, "source": SOURCE_OF_BUS[arm.bus], "port": args.port,
             "plan": args.plan, "object": args.object,
             "scenario": args.plan if args.plan in ("planning", "random") else "plan",
             "objects": [args.object], "seed": args.seed, "servo_ids": list(args.ids),
@@ -336,9 +353,9 @@ def _register_virtual_robot(sub, names: str) -> None:
         "virtual-robot",
         help="a simulated chain of DYNAMIXEL servos on a pseudo-terminal",
         description="Opens a pseudo-terminal, prints its path as the first line of stdout "
-        "and answers there as DYNAMIXEL servos (Protocol 2.0, the XM430's control table) "
-        "whose joints are the simulated arm (default: the OpenMANIPULATOR-X). Runs until "
-        "SIGTERM or Ctrl-C.",
+        "and answers there as the arm's servos (DYNAMIXEL Protocol 2.0, each servo its "
+        "model's control table; Feetech STS for the SO-101) whose joints are the simulated "
+        "arm (default: the OpenMANIPULATOR-X). Runs until SIGTERM or Ctrl-C.",
     )
     add_arm_option(v)  # Feetech servos (so101) are served by the STS bus model
     v.add_argument("--object", default="none",

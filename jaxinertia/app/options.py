@@ -1,7 +1,8 @@
 """What the command modules share: option types that check every number when it is
 parsed (``must be a positive integer, got '0'``), a :class:`Parser` that prints argparse's
 errors as one line with exit code 2, and the checks every command runs before its work
-(outputs, repeated names, the memory a request needs) and its ``--json`` writer.
+(outputs, repeated names, the memory a request needs) and its ``--json`` writer; the
+wording of library messages as flags (:func:`flag_wording`).
 
 Light on purpose: the parsers (and ``--help``) need only this module, never JAX.
 """
@@ -11,18 +12,31 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 
 from jaxinertia.errors import UsageError
 from jaxinertia.fileio import check_output, write_json
 
 __all__ = ["MEMORY_ENV", "Parser", "check_memory", "check_outputs", "distinct", "enable_x64",
-           "finite_float", "fraction", "memory_limit_bytes", "nonnegative_float",
+           "finite_float", "flag_wording", "fraction", "memory_limit_bytes", "nonnegative_float",
            "positive_float", "positive_int", "seed_int", "unit_fraction", "write_json_option",
            "zero_to_one"]
 
 #: Environment variable: the memory [GB] a request may need before it is refused
 #: (default: half the machine's memory).
 MEMORY_ENV = "JAXINERTIA_MAX_MEMORY_GB"
+
+#: Arguments whose flag is not the argument's name with dashes, by command.
+_FLAGS = {"calibrate": {"objects": "--real-objects"}}
+_ARGUMENT = re.compile(r"`([a-z][a-z0-9_]*)`")
+
+
+def flag_wording(message: str, command: str | None = None) -> str:
+    """A library message as the command line says it: each argument it names in
+    back-quotes (`` `step_deg` ``) becomes the command's flag (``--step-deg``)."""
+    flags = _FLAGS.get(command, {})
+    return _ARGUMENT.sub(lambda m: flags.get(m[1], "--" + m[1].replace("_", "-")), message)
+
 
 #: Seeds: what numpy and JAX both take (``--seed -1`` or ``1e23`` are refused when parsed).
 SEED_MAX = 2**32 - 1
@@ -103,9 +117,10 @@ def check_outputs(args, *options: str) -> None:
     """Checks every output option given, before any work (``fileio.check_output``; the
     command has ``--overwrite``)."""
     for option in options:
-        path = getattr(args, option.lstrip("-").replace("-", "_"))
+        name = option.lstrip("-").replace("-", "_")
+        path = getattr(args, name)
         if path is not None:
-            check_output(path, overwrite=args.overwrite, option=option)
+            check_output(path, overwrite=args.overwrite, option=name)
 
 
 def write_json_option(args, obj) -> int:

@@ -81,15 +81,13 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
     check_output(out, overwrite=overwrite, folder=True)
     files, robot = _training_files(sample_files, arm)
     parts, metas = [f.samples for f in files], [f.meta for f in files]
-    start = None
-    if init is not None:
-        pair0, _, fc0, config0 = load_models(init, robot=robot)
-        robot = robot or config0.get("robot")
-        cfg = cfg.replace(n_models=pair0.n_models,
-                          torque_model=torque_model_kind(pair0.torque_model))
-        start = (pair0, fc0, config0)
+    start = None if init is None else load_models(init, robot=robot)
+    if start is not None:
+        robot = robot or start.config.get("robot")
+        cfg = cfg.replace(n_models=start.pair.n_models,
+                          torque_model=torque_model_kind(start.pair.torque_model))
     parts, (reference, sim_reference), ratios = _sessions_read(
-        parts, metas, float(cfg.session_strength), None if start is None else start[2], session)
+        parts, metas, float(cfg.session_strength), start and start.config, session)
     data = Samples.concatenate(parts)
     if samples_per_object is not None:
         data = per_object_subset(data, samples_per_object, cfg.seed)
@@ -99,9 +97,11 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
         raise UsageError(f"{data.n_samples} samples and --val-fraction {cfg.val_fraction} leave "
                          f"{train_set.n_samples} for training and {val_set.n_samples} for "
                          "validation: both need samples")
-    fc = feature_config_from(train_set) if start is None else start[1]
+    fc = (feature_config_from(train_set, current_input=cfg.current_input) if start is None
+          else start.features)
+    cfg = cfg.replace(current_input=fc.current_scale is not None)  # fine-tuning: the folder's
     pair, baselines, torque, attention, t1 = _fit(cfg, fc, train_set, val_set,
-                                                  None if start is None else start[0], progress)
+                                                  None if start is None else start.pair, progress)
     t2 = time.perf_counter()
     info = {
         "training": cfg.to_dict(),
@@ -111,7 +111,7 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
         "session": reference.to_dict(),
         "simulator_session": None if sim_reference is None else sim_reference.to_dict(),
         "samples_per_object": samples_per_object,
-        "simulator": metas[0].get("simulator") or (start[2].get("simulator") if start else None),
+        "simulator": metas[0].get("simulator") or (start and start.config.get("simulator")),
         "samples": {"train": train_set.n_samples, "validation": val_set.n_samples},
         # What the uncertainty's floor needs: the torque models' error on this run's own
         # validation split (per joint, RMS over the pairs) [N m].
@@ -123,8 +123,8 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
     }
     if start is not None:
         info["fine_tuned_from"] = {"folder": str(Path(init).resolve()),
-                                   "data": start[2].get("data"),
-                                   "training": start[2].get("training")}
+                                   "data": start.config.get("data"),
+                                   "training": start.config.get("training")}
     save_models(out, pair, baselines, fc, robot=robot, extra=info, arm=arm)  # atomic
     return info
 
@@ -245,7 +245,8 @@ def copy_models(src: str | os.PathLike, dst: str | os.PathLike, *,
                 session_strength: float | None = None) -> Path:
     """A model folder written anew at ``dst`` (replacing it), with the session strength
     changed when given; the weights, baselines and the rest of its record unchanged."""
-    pair, baselines, fc, config = load_models(src)
+    folder = load_models(src)
+    config = folder.config
     standard = ("format", "format_version", "robot", "arm", "n_models", "torque_model",
                 "attention_model", "features", "baselines")
     extra = {k: v for k, v in config.items() if k not in standard}
@@ -253,8 +254,8 @@ def copy_models(src: str | os.PathLike, dst: str | os.PathLike, *,
         ref = session_reference(config, session_strength, simulated=simulated)
         extra[key] = None if ref is None else ref.to_dict()
     extra["copied_from"] = str(Path(src).resolve())
-    return save_models(dst, pair, baselines, fc, robot=config.get("robot"), extra=extra,
-                       arm=config.get("arm"))
+    return save_models(dst, folder.pair, folder.baselines, folder.features,
+                       robot=config.get("robot"), extra=extra, arm=config.get("arm"))
 
 
 def session_reference(config: dict, strength: float | None = None, *,
@@ -284,13 +285,14 @@ def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
     """A model folder (its pairs and baselines) on known objects over the given sets, each
     object read in the folder's session (``simulated``: objects the simulator made, read in
     its session; ``session_strength``: override, 0 = off)."""
-    pair, baselines, fc, config = load_models(models, robot=robot, arm=arm)
-    objects, ratios = adapt_objects(objects, session_reference(config, session_strength,
+    folder = load_models(models, robot=robot, arm=arm)
+    objects, ratios = adapt_objects(objects, session_reference(folder.config, session_strength,
                                                                simulated=simulated))
     t = time.perf_counter()
-    res = evaluate(objects, sets, pair=pair, baselines=baselines, fc=fc, l_max=l_max)
+    res = evaluate(objects, sets, pair=folder.pair, baselines=folder.baselines,
+                   fc=folder.features, l_max=l_max)
     res["wall_time_s"] = time.perf_counter() - t
-    res["config"] = config
+    res["config"] = folder.config
     res["session_ratio"] = {o.name: r for o, r in zip(objects, ratios)}
     return res
 

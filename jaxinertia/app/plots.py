@@ -13,7 +13,7 @@ from jaxinertia.baselines import fit_pe_law, pe_rows
 from jaxinertia.fileio import replacing
 from jaxinertia.samples import Samples
 
-__all__ = ["plot_calibration", "plot_continuous", "plot_lbipe_estimates", "plot_table1",
+__all__ = ["plot_sim_fit", "plot_continuous", "plot_lbipe_estimates", "plot_table1",
            "plot_training", "pyplot"]
 
 
@@ -74,7 +74,7 @@ def plot_lbipe_estimates(objects: Sequence[Samples], estimates: dict, path: str 
     return _save(fig, path, dpi=120)
 
 
-def plot_calibration(real: dict, sim: dict, path: str | os.PathLike) -> Path:
+def plot_sim_fit(real: dict, sim: dict, path: str | os.PathLike) -> Path:
     """Per joint: q_d - q against tau by direction, real beside simulated, and the
     residual histograms of the position-error baseline fit on each."""
     plt = pyplot()

@@ -9,9 +9,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from jaxinertia.evaluation import METHODS, average
-from jaxinertia.sim.calibration import baseline_statistics
+from jaxinertia.sim.real_fit import baseline_statistics
 
-__all__ = ["calibration_report", "coverage_table", "format_folds", "recipe_table", "render",
+__all__ = ["sim_fit_report", "coverage_table", "format_folds", "recipe_table", "render",
            "reproduce_report", "table1", "table2", "table3"]
 
 _T1_COLS = (("mass_MAE_g", "mass MAE [g]"), ("mass_NMAE_pct", "mass NMAE [%]"),
@@ -79,7 +79,7 @@ def coverage_table(objects: dict, title: str, *, style: str = "markdown",
                    methods: Sequence[str] = ("T", "T-A")) -> str:
     """How often the 68 % and 95 % intervals hold the truth, per object and method (and
     their average), beside the median standard error and the RMS error: ``objects`` as
-    :func:`jaxinertia.uncertainty.calibration` gives them (``{name: {method: ...}}``)."""
+    :func:`jaxinertia.uncertainty.interval_coverage` gives them (``{name: {method: ...}}``)."""
     def row(c):
         se, err = c["median_se"], c["rms_error"]
         return [f"{100 * c[0.68]['mass']:.1f}", f"{100 * c[0.95]['mass']:.1f}",
@@ -107,7 +107,7 @@ _CAL_ROWS = (("k [N m/rad]", "k", 1, 1), ("c [N mm]", "c", 1e3, 0), ("f0 [N mm]"
              ("max abs tau [N m]", "tau_max", 1, 3))
 
 
-def calibration_report(real: dict, sim: dict, *, source: str | os.PathLike, iterations: int,
+def sim_fit_report(real: dict, sim: dict, *, source: str | os.PathLike, iterations: int,
                        parameters: str | os.PathLike, figure: str) -> str:
     """``jaxinertia calibrate``'s report: the baseline statistics of the real and the
     simulated samples side by side (markdown)."""
@@ -200,6 +200,9 @@ def reproduce_report(results: dict, figs: dict, *, full: bool, seed: int, scale,
         "model.", "",
         "## Simulated test objects", "",
         table1(sim["objects"], "Table I: mass and COM"), "",
+        # A baseline the arm's servos cannot give (the Koch's XL430s: no current sensor).
+        *(line for m, why in sim.get("unavailable", {}).items()
+          for line in (f"{m} baseline {why}.", "")),
         table2(sim["torque"], "Table II: joint torque (all test samples)"), "",
         table3(sim["objects"], "Table III: mean attention weights"), "",
         f"![Table I]({figs['table1'].name})", "",

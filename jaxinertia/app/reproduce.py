@@ -45,14 +45,14 @@ from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import choose_sets, continuous_force
 from jaxinertia.fileio import replacing, write_json, write_text
 from jaxinertia.lbipe import default_lbipe_dir
-from jaxinertia.open_manipulator_x import load_calibration
+from jaxinertia.open_manipulator_x import load_sim_fit
 from jaxinertia.samples import SampleFile
 from jaxinertia.session import ServoSession, servo_session
 from jaxinertia.sim.continuous import simulate_continuous_run
 from jaxinertia.sim.params import arm_sim_params
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
 from jaxinertia.uncertainty import (
-    calibration,
+    interval_coverage,
     training_validation_error,
     uncertainty_of,
     z_of,
@@ -134,17 +134,18 @@ def _coverage(models: Path, test_file: SampleFile, real: RealData | None, *, n_s
               set_size: int, seed: int) -> dict:
     """Coverage of the trained models' intervals on the simulated test objects (the sets of
     the evaluate stage) and, when there are real files, on them."""
-    pair, _, fc, config = load_models(models)
+    folder = load_models(models)
+    pair, fc, config = folder.pair, folder.features, folder.config
     floor, why = training_validation_error(config)
     objects, _ = adapt_objects(test_file.samples.by_object(),
                                session_reference(config, simulated=True))
     sets, _ = choose_sets(objects, n_sets=n_sets, set_size=set_size, seed=seed)
     out = {"floor": {"Nm": None if floor is None else floor.tolist(), "source": why},
-           "simulated": calibration(objects, uncertainty_of(objects, sets, pair=pair, fc=fc,
+           "simulated": interval_coverage(objects, uncertainty_of(objects, sets, pair=pair, fc=fc,
                                                             floor=floor))}
     if real is not None:
         real_objects, _ = adapt_objects(real.objects, session_reference(config))
-        out["real"] = calibration(real_objects, uncertainty_of(
+        out["real"] = interval_coverage(real_objects, uncertainty_of(
             real_objects, real.sets, pair=pair, fc=fc, floor=floor))
     return out
 
@@ -155,11 +156,11 @@ DEFAULT_RECIPE = {"candidate": "physical, servo part fine-tuned", "session_stren
                   "finetune_samples": None, "chosen_by": "default (no held-out folds)"}
 
 
-def calibration_session(real: RealData | None) -> ServoSession | None:
-    """The session of the real files the shipped simulator calibration was fitted on (its
+def sim_fit_session(real: RealData | None) -> ServoSession | None:
+    """The session of the real files the shipped simulator fit was fitted on (its
     ``link_gravity.source``), pooled, when the folder has them: the servo state that the
     simulated data imitate, the reference of models trained on them."""
-    names = set(load_calibration()["link_gravity"].get("source", ()))
+    names = set(load_sim_fit()["link_gravity"].get("source", ()))
     used = [o for o in (real.objects if real else ()) if o.name in names]
     return servo_session(used) if used else None
 
@@ -296,8 +297,7 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
         "machine": _machine(), "arm": arm.name, "real_skipped": real_skipped,
         "scale": dataclasses.asdict(scale), "timings_s": stage.total(),
         "training": {k: info[k] for k in ("samples", "best_epoch", "wall_time_s", "data")},
-        "simulated": {"objects": ev["objects"], "torque": ev["torque"],
-                      "diagnostics": ev["diagnostics"]},
+        "simulated": {k: ev[k] for k in ("objects", "torque", "diagnostics", "unavailable")},
         "continuous": {m: v["MAE_N"] for m, v in cres["methods"].items()},
         "real": None if s2r is None else {k: v for k, v in s2r.items() if k != "note"},
         "held_out": folds,
@@ -329,7 +329,7 @@ def _simulated_stages(out: Path, scale: Scale, arm: Arm, real: RealData | None,
         test_file, *train_files = simulate_files(params, wanted, progress=progress, arm=arm)
     with stage("simulate continuous"):
         cont_file = _continuous(params, data_dir / "continuous.npz", scale, seed, arm)
-    session = calibration_session(real)
+    session = sim_fit_session(real)
     with stage("train"):
         info = train(train_files, out / "models", scale.train.replace(seed=seed), overwrite=True,
                      progress=progress, session=session, arm=arm.name)
@@ -351,10 +351,11 @@ def _simulated_stages(out: Path, scale: Scale, arm: Arm, real: RealData | None,
 
 def _continuous_force(models: Path, cont_file: SampleFile) -> tuple[dict, dict]:
     """The switching-load run's vertical force by every method, and what it held."""
-    pair, baselines, fc, _ = load_models(models)
+    folder = load_models(models)
     run = cont_file.samples
     names = [run.names[i] for i in run.object_id]
-    return continuous_force(run, pair, baselines, fc), {"n": len(names), "objects": names}
+    return (continuous_force(run, folder.pair, folder.baselines, folder.features),
+            {"n": len(names), "objects": names})
 
 
 def _figures(out: Path, info: dict, sim: dict, cres: dict, coverage: dict,

@@ -134,24 +134,24 @@ def cmd_calibrate(args) -> int:
                          "over the shipped calibration (pass it to simulate --calibration)")
     check_outputs(args, "--out")
     for name in ("report.md", "calibration.png"):
-        check_output(args.report / name, overwrite=args.overwrite, option="--report")
+        check_output(args.report / name, overwrite=args.overwrite, option="report")
     enable_x64()
     # The work's modules (JAX, matplotlib): imported when the command runs, not for --help.
     import numpy as np
 
-    from jaxinertia.app.plots import plot_calibration  # (as above)
+    from jaxinertia.app.plots import plot_sim_fit  # (as above)
     from jaxinertia.app.programs import stream_programs  # (as above)
-    from jaxinertia.app.report import calibration_report  # (as above)
+    from jaxinertia.app.report import sim_fit_report  # (as above)
     from jaxinertia.fileio import write_json, write_text  # (as above: light, used here only)
-    from jaxinertia.sim.calibration import (  # (as above)
-        calibrate_servo_friction,
-        fit_link_gravity,
-        real_files,
-    )
     from jaxinertia.sim.params import (  # (as above)
         datasheet_sim_params,
         default_sim_params,
         params_to_dict,
+    )
+    from jaxinertia.sim.real_fit import (  # (as above)
+        fit_link_gravity,
+        fit_servo_friction,
+        real_files,
     )
 
     lbipe_dir = lbipe_dir_of(args)
@@ -163,7 +163,7 @@ def cmd_calibrate(args) -> int:
     data = real_files(lbipe_dir, args.real_objects)  # read once, handed to both fits
     robot, gravity_info = fit_link_gravity(params.robot, data)
     params = params.replace(robot=robot)
-    params, info = calibrate_servo_friction(
+    params, info = fit_servo_friction(
         params, data, iterations=args.iterations, seed=args.seed,
         kinetic_ratio=args.kinetic_ratio, fit_offset=args.fit_offset, progress=True,
         programs=stream_programs())
@@ -183,8 +183,8 @@ def cmd_calibrate(args) -> int:
     real = {k: np.concatenate([getattr(d, k) for _, _, d in info["plans"]])
             for k in ("q_d", "q", "direction", "tau", "current_tau")}
     sim = {k: v[info["sim_samples"]["at_rest"]] for k, v in info["sim_samples"].items()}
-    png = plot_calibration(real, sim, report / "calibration.png")
-    text = calibration_report(real, sim, source=lbipe_dir, iterations=args.iterations,
+    png = plot_sim_fit(real, sim, report / "calibration.png")
+    text = sim_fit_report(real, sim, source=lbipe_dir, iterations=args.iterations,
                               parameters=out, figure=png.name)
     write_text(report / "report.md", text)
     print(f"wrote {report / 'report.md'} and {png}")

@@ -89,6 +89,7 @@ def simulate_files(params, wanted: list[tuple[Path, str, int | None, int]], *,
             done[path] = f
         else:
             missing.append((path, scenario, n, seed))
+    results: list = []  # every file reused: nothing to simulate
     if missing and spread is None:
         results = simulate_scenarios(
             params, [ScenarioRequest(scenario, n, None, seed) for _, scenario, n, seed in missing],

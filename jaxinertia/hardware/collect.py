@@ -12,6 +12,11 @@ than its last line (a corrupt record, a torn header) is a :class:`JournalError` 
 the line. At the end the native sample file is written from the
 journal, with ``A`` and ``tau_g`` of the bare arm computed at the measured ``q`` and
 tag pose.
+
+The current-based torque of a joint is its servo's torque constant times its Present
+Current (:attr:`DynamixelArm.torque_constants`); a servo without a current sensor (the
+XL430-W250) has none: its ``current`` and ``current_tau`` are ``null`` in the journal and
+NaN in the sample file (the Sensor baseline is then unavailable, and says so).
 """
 
 from __future__ import annotations
@@ -27,12 +32,13 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from jaxinertia.errors import FileFormatError, UsageError
+from jaxinertia.fileio import nan_to_null, null_to_nan
 from jaxinertia.hardware.driver import DynamixelArm
 from jaxinertia.kinematics import gravity_torques
+from jaxinertia.plans import Goals
 from jaxinertia.robot import Robot
 from jaxinertia.samples import Samples
 from jaxinertia.statics import load_regressor, tag_pose
-from jaxinertia.xm430 import NOMINAL_TORQUE_CONSTANT
 
 __all__ = [
     "DELTA",
@@ -125,7 +131,7 @@ MAX_ABS_Q = 2 * np.pi
 
 
 def _check_values(path: Path, number: int, rec: dict, n_joints: int,
-                  plan: tuple[np.ndarray, np.ndarray] | None) -> None:
+                  plan: Goals | None) -> None:
     """A record's values as a sample file's are checked (shapes, finite, directions +-1, a
     rotation, angles a servo can read), and its goal the plan's: before anything moves, a
     damaged record is an error naming the line and the field, never a sample."""
@@ -138,13 +144,19 @@ def _check_values(path: Path, number: int, rec: dict, n_joints: int,
               "timestamp": ()}
     values = {}
     for field, shape in shapes.items():
+        value = rec[field]
+        # null: a joint whose servo senses no current (nothing else may be missing, and a
+        # NaN written as a number is damage, not a missing reading)
+        unread = ([v is None for v in value] if field == "current_tau"
+                  and isinstance(value, list) else False)
         try:
-            a = np.asarray(rec[field], np.float64)
+            a = np.asarray([np.nan if u else v for u, v in zip(unread, value)]
+                           if unread else value, np.float64)
         except (TypeError, ValueError):
             raise bad(field, f"not numbers: {rec[field]!r}"[:200]) from None
         if a.shape != shape:
             raise bad(field, f"shape {a.shape}, expected {shape}")
-        if not np.all(np.isfinite(a)):
+        if not np.all(np.isfinite(a) | np.asarray(unread)):
             raise bad(field, "holds non-finite values")
         values[field] = a
     if not isinstance(rec["at_rest"], bool):
@@ -177,7 +189,7 @@ class Journal:
 
     @classmethod
     def open(cls, path: str | os.PathLike, header: dict, *, resume: bool,
-             plan: tuple[np.ndarray, np.ndarray] | None = None) -> Journal:
+             plan: Goals | None = None) -> Journal:
         """A new journal, or (``resume``) the existing one after checking its header.
 
         Raises :class:`JournalExists` (a FileExistsError) when a journal exists and
@@ -192,7 +204,7 @@ class Journal:
         numbers: dict[int, int] = {}  # each record's line
         if path.exists() and path.stat().st_size:
             if not resume:
-                raise JournalExists(f"{path} exists: pass --resume to continue it, or "
+                raise JournalExists(f"{path} exists: pass `resume` to continue it, or "
                                       "remove it to start over")
             lines = path.read_bytes().split(b"\n")
             # A crash can tear the last line only (every line is flushed before the next);
@@ -277,8 +289,8 @@ def collect(
             R, p = tag_pose(state.q)
             journal.append({
                 "index": i, "q_d": goal.tolist(), "q": state.q.tolist(),
-                "current": state.current.tolist(),
-                "current_tau": (NOMINAL_TORQUE_CONSTANT * state.current).tolist(),
+                "current": nan_to_null(state.current),
+                "current_tau": nan_to_null(arm.torque_constants * state.current),
                 "direction": s.tolist(), "R_base_tag": np.asarray(R).tolist(),
                 "p_base_tag": np.asarray(p).tolist(), "at_rest": bool(ok_pre and ok),
                 "settle_time": settle, "timestamp": state.timestamp,
@@ -304,7 +316,8 @@ def samples_from_records(records: dict[int, dict], robot: Robot, x: np.ndarray |
     idx = sorted(records)
     cols = ("q_d", "q", "current_tau", "direction", "R_base_tag", "p_base_tag", "at_rest",
             "settle_time", "timestamp", "temperature", "voltage")
-    f = {k: np.asarray([records[i][k] for i in idx]) for k in cols}
+    f = {k: np.asarray([records[i][k] for i in idx]) for k in cols if k != "current_tau"}
+    f["current_tau"] = np.asarray([null_to_nan(records[i]["current_tau"]) for i in idx])
     f["at_rest"] = f["at_rest"].astype(bool)
     q = f["q"].astype(np.float64)
     A, tau_g = (np.asarray(v) for v in _statics(robot, q, f["R_base_tag"], f["p_base_tag"]))

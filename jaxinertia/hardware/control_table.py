@@ -1,4 +1,5 @@
-"""The XM430-W350-T control table (ROBOTIS e-manual), and the conversions at the servo boundary.
+"""The DYNAMIXEL X control tables (ROBOTIS e-manual) of the XM430-W350-T, XL430-W250-T and
+XL330-M288-T, and the conversions at the servo boundary.
 
 Registers are little-endian. Addresses 0-63 are EEPROM (writable only with the torque off),
 64 and up RAM. Only the items that the driver and the virtual servo use are listed;
@@ -7,6 +8,19 @@ everything else in the table reads as zero on the virtual servo.
 Units: position 4096 ticks/rev with 2048 = 0 rad (OpenMANIPULATOR-X's joint zero), present
 current 2.69 mA, velocity 0.229 rev/min, profile acceleration 214.577 rev/min^2, input
 voltage 0.1 V, temperature 1 degC, PWM 885 = 100 %.
+
+The three models share every address the driver uses (the X series' layout); they differ
+in what address 126 holds and in some initial values (:data:`TABLES`, by model number):
+
+* XL430-W250-T (model number 1060; https://emanual.robotis.com/docs/en/dxl/x/xl430-w250/,
+  ROBOTIS-GIT/emanual ``docs/en/dxl/x/xl430-w250.md``): **no current sensor**: 126 is
+  Present Load (signed, 0.1 % of the maximum torque, -1000..1000), and there is no Current
+  Limit (38) or Goal Current (102); Position D/I/P Gain 4000/0/640, Velocity I/P 1000/100,
+  Temperature Limit 72, Max/Min Voltage Limit 140/60, Velocity Limit 265, Shutdown 52.
+* XL330-M288-T (model number 1200; https://emanual.robotis.com/docs/en/dxl/x/xl330-m288/,
+  ``docs/en/dxl/x/xl330-m288.md``): 126 is Present Current in **1 mA**; Current Limit
+  1750 (1 mA); Position D/I/P Gain 0/0/400, Velocity I/P 1600/180, Temperature Limit 70,
+  Max/Min Voltage Limit 70/35, Velocity Limit 445, Shutdown 53.
 """
 
 from __future__ import annotations
@@ -19,8 +33,12 @@ from jaxinertia.xm430 import CURRENT_LSB_A, RAD_PER_TICK
 
 __all__ = [
     "ITEMS",
+    "TABLES",
+    "XL330_M288_MODEL",
+    "XL430_W250_MODEL",
     "XM430_W350_MODEL",
     "Item",
+    "items_of",
     "current_to_register",
     "rad_to_ticks",
     "register_to_current",
@@ -28,6 +46,8 @@ __all__ = [
 ]
 
 XM430_W350_MODEL = 1020
+XL430_W250_MODEL = 1060
+XL330_M288_MODEL = 1200
 ZERO_TICKS = 2048
 VELOCITY_LSB = 0.229 * 2.0 * np.pi / 60.0  # [rad/s]
 ACCELERATION_LSB = 214.577 * 2.0 * np.pi / 3600.0  # [rad/s^2]
@@ -98,6 +118,46 @@ ITEMS: dict[str, Item] = {
     "present_temperature": Item(146, 1, 30, writable=False),
 }
 
+
+
+def _variant(model_number: int, drop: tuple[str, ...] = (), add: dict | None = None,
+             **defaults: int) -> dict[str, Item]:
+    """The XM430's table with items dropped, added and initial values changed."""
+    items = {k: v for k, v in ITEMS.items() if k not in drop}
+    items.update(add or {})
+    items["model_number"] = items["model_number"]._replace(default=model_number)
+    for name, value in defaults.items():
+        items[name] = items[name]._replace(default=value)
+    return dict(sorted(items.items(), key=lambda kv: kv[1].address))
+
+
+#: Control table by model number (what a ping returns); initial values from the e-manual
+#: pages named in the module docstring.
+TABLES: dict[int, dict[str, Item]] = {
+    XM430_W350_MODEL: ITEMS,
+    XL430_W250_MODEL: _variant(
+        XL430_W250_MODEL, drop=("current_limit", "goal_current", "present_current"),
+        add={"present_load": Item(126, 2, 0, writable=False, signed=True)},
+        temperature_limit=72, max_voltage_limit=140, min_voltage_limit=60,
+        velocity_limit=265, shutdown=52, velocity_i_gain=1000, velocity_p_gain=100,
+        position_d_gain=4000, position_i_gain=0, position_p_gain=640),
+    XL330_M288_MODEL: _variant(
+        XL330_M288_MODEL, temperature_limit=70, max_voltage_limit=70, min_voltage_limit=35,
+        current_limit=1750, goal_current=1750, velocity_limit=445, shutdown=53,
+        velocity_i_gain=1600, velocity_p_gain=180, position_d_gain=0, position_i_gain=0,
+        position_p_gain=400),
+}
+
+
+def items_of(model_number: int) -> dict[str, Item]:
+    """The control table of the servo that pings as ``model_number``."""
+    try:
+        return TABLES[model_number]
+    except KeyError:
+        raise KeyError(f"no DYNAMIXEL control table for model number {model_number} "
+                       f"(known: {sorted(TABLES)})") from None
+
+
 #: Hardware Error Status bits (address 70).
 HW_ERROR_VOLTAGE = 1 << 0
 HW_ERROR_OVERHEATING = 1 << 2
@@ -131,10 +191,13 @@ def ticks_to_rad(ticks: np.ndarray) -> np.ndarray:
     return (np.asarray(ticks, np.float64) - ZERO_TICKS) * RAD_PER_TICK
 
 
-def register_to_current(value: np.ndarray) -> np.ndarray:
-    """Present Current (signed register) -> [A]."""
-    return np.asarray(value, np.float64) * CURRENT_LSB_A
+def register_to_current(value: np.ndarray, lsb: float | np.ndarray = CURRENT_LSB_A
+                        ) -> np.ndarray:
+    """Present Current (signed register) -> [A] (``lsb``: the servo's unit, the XM430's
+    2.69 mA by default)."""
+    return np.asarray(value, np.float64) * lsb
 
 
-def current_to_register(current: np.ndarray) -> np.ndarray:
-    return np.round(np.asarray(current) / CURRENT_LSB_A).astype(np.int64)
+def current_to_register(current: np.ndarray, lsb: float | np.ndarray = CURRENT_LSB_A
+                        ) -> np.ndarray:
+    return np.round(np.asarray(current) / lsb).astype(np.int64)

@@ -1,8 +1,15 @@
-"""The OpenMANIPULATOR-X on DYNAMIXEL XM430-W350-T servos, through dynamixel-sdk (Protocol 2.0).
+"""An arm on DYNAMIXEL X servos (the OpenMANIPULATOR-X's XM430-W350-T; the Koch v1.1's
+XL430-W250-T and XL330-M288-T), through dynamixel-sdk (Protocol 2.0).
 
 Everything this class returns is SI (rad, A, N m, V, degC, s); ticks and register LSBs
-exist only inside it (``control_table``). A move follows the paper's protocol one goal at a
-time: :meth:`DynamixelArm.move_and_settle` commands the goal (GroupSyncWrite), then polls
+exist only inside it (``control_table``). Each servo is read per its model
+(``ArmConfig.servo_models``): it must ping with that model number, and address 126 is
+Present Current in its unit (2.69 mA on the XM430, 1 mA on the XL330) or, on the XL430,
+Present Load (0.1 %): that joint's ``ArmState.current`` is then NaN (no current sensor;
+``load`` holds the reading) and so is its current-based torque (:attr:`torque_constants`).
+
+A move follows the paper's protocol one goal at a time:
+:meth:`DynamixelArm.move_and_settle` commands the goal (GroupSyncWrite), then polls
 (GroupSyncRead) until no servo reports Moving and no Present Position tick changed for
 ``settle_time``. Every goal is checked against joint limits and a workspace box first, and
 the servos' own Min/Max Position Limit registers are set to the same joint limits.
@@ -15,13 +22,13 @@ The bus is :mod:`jaxinertia.hardware.transport`: the port is locked while open, 
 status packet is matched to its request (late ones are discarded), and the bus is drained
 before a failed transaction is retried. A Hardware Error Status reading, or an alert bit,
 is confirmed by reading register 70 of each servo concerned on its own before
-:class:`HardwareError` tells the user to power-cycle; an unconfirmed one is counted
+:class:`ServoHardwareError` tells the user to power-cycle; an unconfirmed one is counted
 (``unconfirmed_alarms``) and the collection goes on. A device that cannot be opened, is
 locked by another program or disappears (``OSError``, pyserial's ``SerialException``,
 ``termios.error``) is a :class:`CommError` (:class:`PortError` when opening).
 
-One class, whose bus primitives, lifecycle and motion share the port, the retry policy
-and the bus diagnostics; its configuration, readings and errors are
+One module, one class, whose bus primitives, lifecycle and motion share the port, the
+retry policy and the bus diagnostics; its configuration, readings and errors are
 :mod:`jaxinertia.hardware.driver_config` (re-exported here).
 """
 
@@ -41,8 +48,8 @@ from jaxinertia.hardware.driver_config import (
     ArmConfig,
     ArmState,
     CommError,
-    HardwareError,
     PortError,
+    ServoHardwareError,
 )
 from jaxinertia.hardware.safety import SafetyLimits
 from jaxinertia.hardware.transport import (
@@ -52,8 +59,10 @@ from jaxinertia.hardware.transport import (
     drain,
 )
 from jaxinertia.robot import Robot
+from jaxinertia.servos import ServoModel, servo_model
 
-__all__ = ["ArmConfig", "ArmState", "CommError", "DynamixelArm", "HardwareError", "PortError"]
+__all__ = ["ArmConfig", "ArmState", "CommError", "DynamixelArm", "PortError",
+           "ServoHardwareError"]
 
 
 class DynamixelArm:
@@ -61,11 +70,10 @@ class DynamixelArm:
     on entry; on exit (also on an exception or Ctrl-C) :meth:`stop`, then the port closes."""
 
     #: What another servo family's driver (hardware.feetech) changes.
-    model = (ct.XM430_W350_MODEL, "XM430-W350")  # what a ping must return, its name
     sync_read_class = GroupSyncRead
     refused_bits = 0x7F
     error_register = "hardware_error_status"
-    hardware_error = HardwareError
+    hardware_error = ServoHardwareError
 
     def __init__(self, config: ArmConfig, *, robot: Robot | None = None,
                  safety: SafetyLimits | None = None) -> None:
@@ -80,6 +88,7 @@ class DynamixelArm:
                                        else config.joint_limits, np.float64)
         self.port = LockedPortHandler(config.port)
         self.packet = MatchingPacketHandler()
+        self.servo_of = self._servo_models(config)
         self._connected = False
         # Diagnostics: bus transactions that were retried, hardware-error readings that
         # register 70 did not confirm, state readings older than the last one (discarded).
@@ -88,10 +97,35 @@ class DynamixelArm:
         self.unconfirmed_alarms = 0
         self.stale_readings = 0
 
+    @staticmethod
+    def _servo_models(c: ArmConfig) -> dict[int, ServoModel]:
+        """The servo model of each bus ID (joints, then the gripper)."""
+        names = tuple(c.servo_models)
+        if len(names) != len(c.joint_ids):
+            if len(set(names)) != 1:
+                raise errors.UsageError(f"{len(names)} servo models for {len(c.joint_ids)} "
+                                        "joints")
+            names = names[:1] * len(c.joint_ids)
+        out = {i: servo_model(n) for i, n in zip(c.joint_ids, names)}
+        if c.gripper_id is not None:
+            out[c.gripper_id] = servo_model(c.gripper_model or names[0])
+        return out
+
+    @property
+    def torque_constants(self) -> np.ndarray:
+        """(N,) output torque per motor current of each joint's servo [N m/A] (the
+        datasheet's stall point; NaN where the servo senses no current)."""
+        return np.array([m.torque_constant if m.has_current_sensor else np.nan
+                         for m in (self.servo_of[i] for i in self.config.joint_ids)])
+
+    def _items(self, dxl_id: int) -> dict[str, ct.Item]:
+        """The control table of servo ``dxl_id``'s model."""
+        return ct.items_of(self.servo_of[dxl_id].model_number)
+
     def bus_report(self) -> str:
         """One line of bus diagnostics (starts with the number of retried transactions)."""
         return (f"{self.failed_transactions} failed transactions retried (at most "
-                f"{self.most_attempts} attempts of --retries + 1 = {self.config.retries + 1} "
+                f"{self.most_attempts} attempts of `retries` + 1 = {self.config.retries + 1} "
                 f"for one), {self.packet.stale_packets} late status packets discarded, "
                 f"{self.unconfirmed_alarms} unconfirmed hardware-error readings, "
                 f"{self.stale_readings} late readings skipped")
@@ -128,7 +162,7 @@ class DynamixelArm:
                         f"({self.config.retries + 1} attempts)")
 
     def _write(self, dxl_id: int, name: str, value: int) -> None:
-        item = ct.ITEMS[name]
+        item = self._items(dxl_id)[name]
         fn = {1: self.packet.write1ByteTxRx, 2: self.packet.write2ByteTxRx,
               4: self.packet.write4ByteTxRx}[item.size]
         raw = ct.to_unsigned(value, item.size)
@@ -138,7 +172,7 @@ class DynamixelArm:
             self._confirm_hardware_errors({*self.config.joint_ids, dxl_id})
 
     def _read(self, dxl_id: int, name: str) -> int:
-        item = ct.ITEMS[name]
+        item = self._items(dxl_id)[name]
         fn = {1: self.packet.read1ByteTxRx, 2: self.packet.read2ByteTxRx,
               4: self.packet.read4ByteTxRx}[item.size]
         raw, _ = self._retry(f"read {name} of ID {dxl_id}",
@@ -188,12 +222,13 @@ class DynamixelArm:
         for dxl_id in ids:
             model, _ = self._retry(f"ping ID {dxl_id}",
                                    lambda i=dxl_id: self.packet.ping(self.port, i))
-            if model != self.model[0]:
-                raise CommError(f"ID {dxl_id} is model {model}, expected {self.model[1]} "
-                                f"({self.model[0]})")
+            want = self.servo_of[dxl_id]
+            if model != want.model_number:
+                raise CommError(f"ID {dxl_id} is model {model}, expected {want.name} "
+                                f"({want.model_number})")
         try:
             self.check_hardware_errors()
-        except HardwareError as e:
+        except ServoHardwareError as e:
             if not self.config.reboot_on_error:
                 raise
             for dxl_id in e.errors:
@@ -264,7 +299,7 @@ class DynamixelArm:
     # ---- state and motion --------------------------------------------------------------
 
     def check_hardware_errors(self) -> None:
-        """Raises :class:`HardwareError` if any joint servo has Hardware Error Status set
+        """Raises :class:`ServoHardwareError` if any joint servo has Hardware Error Status set
         (a nonzero reading is confirmed first: :meth:`_confirm_hardware_errors`)."""
         item = ct.ITEMS["hardware_error_status"]
         data = self._sync_read(item.address, item.size)
@@ -274,7 +309,7 @@ class DynamixelArm:
 
     def _confirm_hardware_errors(self, ids) -> None:
         """Reads Hardware Error Status (70) of each servo in ``ids`` on its own, on a
-        drained bus: raises :class:`HardwareError` for those where it is set (the register
+        drained bus: raises :class:`ServoHardwareError` for those where it is set (the register
         latches until a reboot, so a real error reads the same again); otherwise the
         reading or alert bit was not the servos' and is counted in ``unconfirmed_alarms``."""
         self._drain()
@@ -293,21 +328,27 @@ class DynamixelArm:
         t = time.time()
 
         def field_of(name: str) -> np.ndarray:
-            item = ct.ITEMS[name]
+            item = ct.ITEMS[name]  # (the same address on every X servo)
             k = item.address - address
             raw = [int.from_bytes(data[i][k:k + item.size], "little")
                    for i in self.config.joint_ids]
             return np.array([ct.to_signed(r, item.size) if item.signed else r for r in raw])
 
+        # Address 126: Present Current in the servo's unit, or Present Load (XL430).
+        models = [self.servo_of[i] for i in self.config.joint_ids]
+        sensed = field_of("present_current").astype(np.float64)
+        has_current = np.array([m.has_current_sensor for m in models])
+        lsb = np.array([m.sensed_lsb for m in models])
         ticks = field_of("present_position")
         return ArmState(
             q=ct.ticks_to_rad(ticks),
             velocity=field_of("present_velocity") * ct.VELOCITY_LSB,
-            current=ct.register_to_current(field_of("present_current")),
+            current=np.where(has_current, ct.register_to_current(sensed, lsb), np.nan),
             moving=field_of("moving").astype(bool),
             temperature=field_of("present_temperature").astype(np.float64),
             voltage=field_of("present_input_voltage") * ct.VOLTAGE_LSB,
-            ticks=ticks, servo_clock=int(field_of("realtime_tick")[0]), timestamp=t)
+            ticks=ticks, servo_clock=int(field_of("realtime_tick")[0]), timestamp=t,
+            load=np.where(has_current, np.nan, sensed * lsb))
 
     def check_goal(self, q_goal: np.ndarray) -> None:
         """Joint limits and workspace (raises :class:`SafetyError`; nothing is sent)."""

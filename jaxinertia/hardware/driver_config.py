@@ -13,7 +13,7 @@ import numpy as np
 from jaxinertia import errors
 from jaxinertia.hardware import control_table as ct
 
-__all__ = ["BUS_ERRORS", "ArmConfig", "ArmState", "CommError", "HardwareError", "PortError"]
+__all__ = ["BUS_ERRORS", "ArmConfig", "ArmState", "CommError", "PortError", "ServoHardwareError"]
 
 #: What the serial device raises when it fails or disappears (pyserial's SerialException is
 #: an OSError; tcflush on a vanished tty raises termios.error, which is not).
@@ -29,7 +29,7 @@ class PortError(CommError):
     """The serial device cannot be opened or is locked by another program (exit code 3)."""
 
 
-class HardwareError(errors.HardwareError):
+class ServoHardwareError(errors.HardwareError):
     """A servo reported a hardware error (Hardware Error Status, alert bit; exit code 3)."""
 
     #: The error register's bits (Hardware Error Status, address 70).
@@ -57,9 +57,14 @@ class ArmConfig:
     baudrate: int = 1_000_000
     joint_ids: tuple[int, ...] = (11, 12, 13, 14)
     gripper_id: int | None = 15
-    p_gain: int = 800
-    i_gain: int = 0
-    d_gain: int = 0
+    #: Servo model per joint and the gripper's (``jaxinertia.servos.SERVO_MODELS`` names):
+    #: what each must ping as, its control table and units (one name: every joint's).
+    servo_models: tuple[str, ...] = ("xm430_w350",) * 4
+    gripper_model: str | None = "xm430_w350"
+    #: Position P/I/D registers: one value for every joint, or one per joint.
+    p_gain: int | tuple[int, ...] = 800
+    i_gain: int | tuple[int, ...] = 0
+    d_gain: int | tuple[int, ...] = 0
     pwm_limit: int = 885
     profile_velocity: float = 0.5  # [rad/s], the simulator's profile
     profile_acceleration: float = 2.0  # [rad/s^2]
@@ -80,10 +85,15 @@ class ArmState:
 
     q: np.ndarray  # Present Position [rad] (integer ticks)
     velocity: np.ndarray  # [rad/s]
-    current: np.ndarray  # Present Current [A] (2.69 mA steps)
+    #: Present Current [A] (in the servo's steps: 2.69 mA on the XM430); NaN on a joint
+    #: whose servo senses no current (XL430-W250: Present Load only).
+    current: np.ndarray
     moving: np.ndarray  # Moving flag (bool)
     temperature: np.ndarray  # [degC]
     voltage: np.ndarray  # [V]
     ticks: np.ndarray  # Present Position register (int)
     servo_clock: int  # Realtime Tick of the first joint servo [ms, mod 32768]
     timestamp: float  # time.time() of the reading [s]
+    #: Present Load [fraction of the maximum torque], signed; NaN where the servo reports
+    #: no load (the XM430 and XL330 report their current instead).
+    load: np.ndarray | None = None

@@ -33,14 +33,15 @@ from dataclasses import dataclass
 import numpy as np
 from scservo_sdk import GroupSyncRead, GroupSyncWrite
 
-from jaxinertia.arm import Arm, MotionTiming
+from jaxinertia.arm import Arm
 from jaxinertia.hardware import feetech_table as ft
+from jaxinertia.hardware.arm_config import arm_config
 from jaxinertia.hardware.driver import (
     ArmConfig,
     ArmState,
     CommError,
     DynamixelArm,
-    HardwareError,
+    ServoHardwareError,
 )
 from jaxinertia.hardware.feetech_transport import LockedScsPortHandler, StsMatchingPacketHandler
 from jaxinertia.hardware.safety import SafetyLimits
@@ -53,7 +54,7 @@ __all__ = ["FeetechArm", "FeetechState", "StsHardwareError", "feetech_config"]
 ACCELERATION_LSB = 100.0 * ft.RAD_PER_TICK  # [rad/s^2]
 
 
-class StsHardwareError(HardwareError):
+class StsHardwareError(ServoHardwareError):
     """A servo's Status (65) reports a protection stop (exit code 3)."""
 
     bit_names = ft.STATUS_NAMES
@@ -62,26 +63,15 @@ class StsHardwareError(HardwareError):
 @dataclass(frozen=True)
 class FeetechState(ArmState):
     """One synchronous reading of the joint servos: :class:`ArmState` (``servo_clock`` is
-    the host's, in ms) and Present Load [fraction of the maximum torque]."""
-
-    load: np.ndarray
+    the host's, in ms; ``load``, Present Load [fraction of the maximum torque], and
+    ``current`` both read on every joint)."""
 
 
 def feetech_config(port: str, arm: Arm, **overrides) -> ArmConfig:
-    """The driver's configuration for ``arm`` (``arms.SO101``) on ``port``; ``overrides``
-    replace any field."""
-    p, i, d = arm.servo_models[0].gains
-    timing: MotionTiming = arm.timing
-    w = np.radians(np.asarray(arm.workspace_deg, np.float64))
-    margin = np.radians(arm.safety_margin_deg)
-    values = dict(baudrate=arm.baudrate, joint_ids=tuple(arm.bus_ids),
-                  gripper_id=arm.gripper_id, p_gain=int(p), i_gain=int(i), d_gain=int(d),
-                  pwm_limit=1000, profile_velocity=timing.profile_velocity,
-                  profile_acceleration=timing.profile_acceleration,
-                  joint_limits=w + np.array([-margin, margin]),
-                  settle_time=timing.settle_time, move_timeout=timing.move_timeout)
-    values.update(overrides)
-    return ArmConfig(port=port, **values)
+    """The driver's configuration for ``arm`` (``arms.SO101``) on ``port``
+    (:func:`jaxinertia.hardware.arm_config.arm_config`: PWM limit 1000, the STS's full
+    scale); ``overrides`` replace any field."""
+    return arm_config(arm, port, **overrides)
 
 
 class FeetechArm(DynamixelArm):
@@ -89,7 +79,6 @@ class FeetechArm(DynamixelArm):
     :class:`DynamixelArm` is (``connect`` and ``configure`` on entry, :meth:`stop` and
     close on exit)."""
 
-    model = (ft.STS3215_MODEL, "STS3215")
     sync_read_class = GroupSyncRead
     refused_bits = 0  # the STS status byte has hardware-error bits only
     error_register = "status"

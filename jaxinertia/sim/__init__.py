@@ -7,10 +7,10 @@ Modules, each importing only those above it:
   ``batched``: the same step for a batch, batch-last;
 * ``sampling``: the paper's sampling protocol and the per-sample record
   (:class:`~jaxinertia.sim.sampling.Record`);
-* ``params``: the calibrated default parameters (``default_sim_params``);
+* ``params``: the default parameters fitted to the real arm (``default_sim_params``);
 * ``lanes``: the lane program (pure functions: refill, steps, finish);
   ``stream``: its host runner (compilation in the background, scheduling, progress);
 * ``run``: checked plans and scenarios through the stream; ``continuous``: the
   switching-load run;
-* ``calibration``: fitting the parameters to the real arm's data.
+* ``real_fit``: the simulator fit: the parameters fitted to the real arm's data.
 """

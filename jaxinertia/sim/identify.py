@@ -1,6 +1,6 @@
 """Identification of the simulator from real samples, sample by sample (a population ES).
 
-:func:`jaxinertia.sim.calibration.calibrate_servo_friction` matches summary statistics of a
+:func:`jaxinertia.sim.real_fit.fit_servo_friction` matches summary statistics of a
 real file (one PE gain, friction level and load slope per joint). Here every real sample of
 the object is *replayed* (its goal ``q_d``, approach direction, the object and its fitted
 tag pose) in candidate simulators, and the candidates are scored on how the simulated rest
@@ -177,9 +177,9 @@ def identify(base: SimParams, obj: HeldObject, real, *, config: ESConfig = ESCon
     """Identifies ``base``'s servo, friction and torque offsets on one real object's samples.
 
     Args:
-      base: the starting simulator (e.g. the fixed-point calibration on the same object).
+      base: the starting simulator (e.g. the fixed-point simulator fit on the same object).
       obj: the held object (mass, COM, fitted tag pose), as
-        :func:`jaxinertia.sim.calibration.real_plan` builds it.
+        :func:`jaxinertia.sim.real_fit.real_plan` builds it.
       real: the object's real samples (``q_d``, ``q``, ``direction``, ``tau``,
         ``current_tau``; (S, N) each).
     Returns the identified simulator and the history (score of the mean and of the best

@@ -1,10 +1,10 @@
-"""The simulated arm's parameters: the calibrated default, a calibration file's servo,
-friction and armature values applied, and the parameters as plain data.
+"""The simulated arm's parameters: the default fitted to the real arm, a simulator-fit
+file's servo, friction and armature values applied, and the parameters as plain data.
 
-``default_sim_params`` reads the calibration file that ``jaxinertia calibrate`` writes
-(:mod:`jaxinertia.sim.calibration` fits it); the arm's constants and the file's link
-gravity come from :mod:`jaxinertia.open_manipulator_x`. Every per-joint array is sized
-from the robot (``robot.n_joints``).
+``default_sim_params`` reads the simulator-fit file that ``jaxinertia calibrate`` writes
+(:mod:`jaxinertia.sim.real_fit` fits it; ``--calibration FILE`` on the command line); the
+arm's constants and the file's link gravity come from :mod:`jaxinertia.open_manipulator_x`.
+Every per-joint array is sized from the robot (``robot.n_joints``).
 """
 
 from __future__ import annotations
@@ -18,10 +18,10 @@ from jaxinertia.arm import Arm
 from jaxinertia.errors import ConfigError
 from jaxinertia.open_manipulator_x import ARM as OMX_ARM
 from jaxinertia.open_manipulator_x import (
-    CALIBRATION_FILE,
     DEFAULT_ARMATURE,
-    calibrated_robot,
-    load_calibration,
+    SIM_FIT_FILE,
+    load_sim_fit,
+    sim_fit_robot,
 )
 from jaxinertia.robot import Robot, open_manipulator_x
 from jaxinertia.sim.friction import FrictionParams
@@ -32,17 +32,17 @@ __all__ = ["apply_servo_friction", "arm_sim_params", "datasheet_sim_params",
            "default_sim_params", "params_to_dict"]
 
 
-def default_sim_params(calibration_file: str | os.PathLike | None = None) -> SimParams:
-    """The simulated OpenMANIPULATOR-X as calibrated to the real arm (default: the shipped
+def default_sim_params(sim_fit_file: str | os.PathLike | None = None) -> SimParams:
+    """The simulated OpenMANIPULATOR-X as fitted to the real arm (default: the shipped
     ``data/open_manipulator_x_sim.json``: link gravity, servo and friction), falling back
-    to datasheet servos and default friction where the file has no servo calibration."""
-    calibration = load_calibration(calibration_file)
-    where = calibration_file or CALIBRATION_FILE
+    to datasheet servos and default friction where the file has no servo fit."""
+    fit = load_sim_fit(sim_fit_file)
+    where = sim_fit_file or SIM_FIT_FILE
     try:
-        robot = calibrated_robot(calibration)
+        robot = sim_fit_robot(fit)
         n = robot.n_joints
         params = SimParams(robot, ServoParams.xm430_w350(n), FrictionParams.create(n))
-        params = apply_servo_friction(params, calibration)
+        params = apply_servo_friction(params, fit)
     except (KeyError, TypeError, ValueError) as e:  # a field missing or of the wrong shape
         raise ConfigError(where, None, f"not a usable calibration ({type(e).__name__}: "
                           f"{e})") from None
@@ -55,9 +55,9 @@ def default_sim_params(calibration_file: str | os.PathLike | None = None) -> Sim
 
 
 def datasheet_sim_params(robot: Robot | None = None) -> SimParams:
-    """The arm before any calibration: the description's link parameters (the embedded
+    """The arm before any simulator fit: the description's link parameters (the embedded
     OpenMANIPULATOR-X by default), the default armature, datasheet XM430 servos and default
-    friction; the start of a calibration that must not see the shipped one (a held-out
+    friction; the start of a simulator fit that must not see the shipped one (a held-out
     fold)."""
     robot = open_manipulator_x() if robot is None else robot
     n = robot.n_joints
@@ -66,20 +66,20 @@ def datasheet_sim_params(robot: Robot | None = None) -> SimParams:
 
 
 def arm_sim_params(arm: Arm | None = None,
-                   calibration_file: str | os.PathLike | None = None) -> SimParams:
+                   sim_fit_file: str | os.PathLike | None = None) -> SimParams:
     """The simulated ``arm`` (an :class:`jaxinertia.arm.Arm`; default the
     OpenMANIPULATOR-X), its motion timing and pre-position from the record.
 
-    An arm with a calibration (``calibration_file``, else the record's shipped one) gets
+    An arm with a simulator fit (``sim_fit_file``, else the record's shipped one) gets
     :func:`default_sim_params` of it (the OpenMANIPULATOR-X: exactly what it always got);
     one without is simulated from its description's links and its servos' datasheet
     values (:meth:`ServoParams.from_model`, the record's gain overrides; each servo model's
     friction, else the simulator's defaults)."""
     arm = OMX_ARM if arm is None else arm
-    if calibration_file is not None or arm.calibration_file is not None:
-        params = default_sim_params(calibration_file)
+    if sim_fit_file is not None or arm.sim_fit_file is not None:
+        params = default_sim_params(sim_fit_file)
         if params.robot.name != arm.name:
-            raise ConfigError(calibration_file or arm.calibration_file, None,
+            raise ConfigError(sim_fit_file or arm.sim_fit_file, None,
                               f"calibrates {params.robot.name!r}, not the arm {arm.name!r}")
     else:
         robot = arm.robot()
@@ -92,7 +92,14 @@ def arm_sim_params(arm: Arm | None = None,
         base = FrictionParams.create(1)
         friction = {k: [m.friction.get(k, float(getattr(base, k)[0])) for m in models]
                     for k in keys}
-        params = SimParams(robot, servo, FrictionParams.create(n, **friction))
+        # What each servo reports (the XL430: Present Load, no current-based torque).
+        params = SimParams(robot, servo, FrictionParams.create(n, **friction),
+                           current_lsb=jnp.asarray([m.sensed_lsb if m.has_current_sensor
+                                                    else m.sensed_lsb * m.stall_current
+                                                    for m in models]),
+                           current_torque_constant=jnp.asarray(
+                               [m.torque_constant if m.has_current_sensor else np.nan
+                                for m in models]))
     t = arm.timing
     return params.replace(profile_velocity=t.profile_velocity,
                           profile_acceleration=t.profile_acceleration,
@@ -100,9 +107,9 @@ def arm_sim_params(arm: Arm | None = None,
                           pre_position=arm.pre_position)
 
 
-def apply_servo_friction(params: SimParams, calibration: dict) -> SimParams:
-    """Sets the servo, friction and armature values of a calibration file, where present."""
-    c = calibration.get("servo_friction")
+def apply_servo_friction(params: SimParams, fit: dict) -> SimParams:
+    """Sets the servo, friction and armature values of a simulator-fit file, where present."""
+    c = fit.get("servo_friction")
     if not c:
         return params
     n = params.robot.n_joints
@@ -114,7 +121,7 @@ def apply_servo_friction(params: SimParams, calibration: dict) -> SimParams:
 
 
 def params_to_dict(params: SimParams) -> dict:
-    """The servo, friction and armature values as a calibration file stores them
+    """The servo, friction and armature values as a simulator-fit file stores them
     (``servo_friction``; :func:`apply_servo_friction` reads them back)."""
     return {
         "dt": params.dt,

@@ -1,6 +1,6 @@
 """Domain randomization: simulated arms drawn around the identified one.
 
-The calibration (:mod:`jaxinertia.sim.calibration`) fits one servo per joint to a real
+The simulator fit (:mod:`jaxinertia.sim.real_fit`) fits one servo per joint to a real
 object's samples; what it cannot pin down is how the real arm departs from that servo as
 the load changes. That departure is measured on the same real samples, not guessed: the
 position-error law ``tau ~ k (q_d - q) - s f + c`` fitted per joint on the lighter and the

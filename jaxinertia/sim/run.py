@@ -20,7 +20,7 @@ from jaxinertia.objects import (
     training_object,
 )
 from jaxinertia.open_manipulator_x import ARM as OMX_ARM
-from jaxinertia.plans import planning_plan, random_plan
+from jaxinertia.plans import Goals, planning_plan, random_plan
 from jaxinertia.sim.params import params_to_dict
 from jaxinertia.sim.simulator import SimParams
 from jaxinertia.sim.stream import LanePlan, StreamPrograms, stream_plans
@@ -60,16 +60,19 @@ def run_plans(params: SimParams, plans: list, *, lanes: int | None = None,
     out = []
     for plan, res, name in zip(checked, results, descs):
         res = res._asdict()
-        _check_diverged(res, plan.q_d, name)
+        _check_diverged(res, plan.q_d, name, params)
         out.append(res)
     return out
 
 
-def _check_diverged(res: dict, q_d: np.ndarray, desc: str) -> None:
+def _check_diverged(res: dict, q_d: np.ndarray, desc: str, params: SimParams) -> None:
     # Diverged: a non-finite state, or an arm that ended far from its goal (a settled
-    # servo misses by a few ticks; 0.5 rad is a runaway integration).
+    # servo misses by a few ticks; 0.5 rad is a runaway integration). A joint without a
+    # current sensor has no current-based torque (NaN by design).
+    unsensed = (np.zeros(q_d.shape[1], bool) if params.current_torque_constant is None
+                else np.isnan(np.asarray(params.current_torque_constant)))
     with np.errstate(invalid="ignore"):
-        bad = ~np.all(np.isfinite(res["q"]) & np.isfinite(res["current_tau"])
+        bad = ~np.all(np.isfinite(res["q"]) & (np.isfinite(res["current_tau"]) | unsensed)
                       & (np.abs(res["q"] - q_d) < DIVERGED_RAD), axis=1)
     if bad.any():
         i = np.flatnonzero(bad)
@@ -83,7 +86,7 @@ def _check_diverged(res: dict, q_d: np.ndarray, desc: str) -> None:
 DIVERGED_RAD = 0.5
 
 
-def _check_plan(params: SimParams, q_d, direction, desc: str):
+def _check_plan(params: SimParams, q_d, direction, desc: str) -> Goals:
     """Validates goals (S, N) [rad] and directions (S, N) before anything runs; errors name
     the plan and the first offending sample."""
     q_d = np.asarray(q_d, dtype=np.float64)
@@ -110,7 +113,7 @@ def _check_plan(params: SimParams, q_d, direction, desc: str):
         raise SimulationError(
             f"{desc}: sample {i}: joint {j + 1} goal {np.degrees(q_d[i, j]):.2f} deg is "
             f"outside its limits [{np.degrees(lo[j]):.1f}, {np.degrees(hi[j]):.1f}] deg")
-    return q_d, direction
+    return Goals(q_d, direction)
 
 
 def simulate_scenario(params: SimParams, scenario: str, *, n: int | None = None,
@@ -138,9 +141,9 @@ class ScenarioRequest(NamedTuple):
     n: int | None = None
     objects: list[str] | None = None
     seed: int = 0
-    #: ``(q_d (P, N), direction (P, N))`` every object visits instead of the scenario's
-    #: own goals (e.g. ``jaxinertia plan-poses``), repeated cyclically to ``n`` samples.
-    plan: tuple[np.ndarray, np.ndarray] | None = None
+    #: Goals ``(q_d (P, N), direction (P, N))`` every object visits instead of the
+    #: scenario's own (e.g. ``jaxinertia plan-poses``), repeated cyclically to ``n`` samples.
+    plan: Goals | None = None
 
 
 def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
@@ -188,7 +191,7 @@ def _check_request(scenario: str, objects: list[str] | None) -> None:
 
 
 def _scenario_jobs(scenario: str, n: int | None, objects: list[str] | None, seed: int,
-                   given: tuple[np.ndarray, np.ndarray] | None = None, *,
+                   given: Goals | None = None, *,
                    arm: Arm | None = None, robot=None):
     """``[(object name, object, (q_d, direction))]`` of a scenario (``given``: one plan
     for every object, repeated cyclically to ``n`` samples; ``arm``: its workspace,

@@ -36,7 +36,8 @@ class Record(NamedTuple):
 
     q_d: jnp.ndarray  # (S, N) commanded goal (continuous, as recorded on the real arm)
     q: jnp.ndarray  # (S, N) Present Position (integer ticks, in rad)
-    current_tau: jnp.ndarray  # (S, N) torque from Present Current (datasheet k_t * I)
+    current_tau: jnp.ndarray  # (S, N) torque from Present Current (datasheet k_t * I; NaN:
+    #                            no current sensor, SimParams.current_torque_constant)
     direction: jnp.ndarray  # (S, N) +1 / -1
     tau: jnp.ndarray  # (S, N) load torque of arm + object at q (statics)
     tau_g: jnp.ndarray  # (S, N) load torque of the bare arm at q
@@ -63,12 +64,16 @@ def record(params: SimParams, bare: Robot, obj: HeldObject, q_d, direction, stat
     """What the servos and the statics report for the arm in ``state`` (one sample)."""
     q = present_ticks(state.q) * RAD_PER_TICK
     noise = jax.random.normal(key, q.shape) * params.servo.current_noise
-    current = jnp.round((state.servo.current + noise) / CURRENT_LSB_A) * CURRENT_LSB_A
+    # Each servo's reading unit and torque constant (NaN: no current sensor, no
+    # current-based torque); the XM430's unless the parameters say otherwise.
+    lsb, k_t = ((CURRENT_LSB_A, NOMINAL_TORQUE_CONSTANT) if params.current_lsb is None
+                else (params.current_lsb, params.current_torque_constant))
+    current = jnp.round((state.servo.current + noise) / lsb) * lsb
     R_bt, p_bt = tag_pose(bare, q, obj.R_ee_tag, obj.p_ee_tag)
     A = load_regressor(bare, q, R_bt, p_bt)
     tau_g = gravity_torques(bare, q)
     return Record(
-        q_d=q_d, q=q, current_tau=NOMINAL_TORQUE_CONSTANT * current,
+        q_d=q_d, q=q, current_tau=k_t * current,
         direction=direction, tau=tau_g + A @ obj.x, tau_g=tau_g, A=A, R_base_tag=R_bt,
         p_base_tag=p_bt, at_rest=at_rest, settle_time=settle_time, q_true=state.q,
         servo_tau=state.servo.torque, friction_tau=state.friction,

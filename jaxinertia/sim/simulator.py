@@ -56,6 +56,12 @@ class SimParams:
     friction_sweeps: int = struct.field(pytree_node=False, default=10)
     #: (N,) constant joint torque besides the servo (cables, springs) [N m]; None = 0.
     torque_offset: jnp.ndarray | None = None
+    #: What each joint's servo reports of its motor current (``sampling.record``): (N,) the
+    #: reading's unit [A] and the torque constant of its current-based torque [N m/A], NaN
+    #: where the servo senses no current (XL430-W250: the sample's current_tau is then NaN,
+    #: as the driver's). None: the XM430's 2.69 mA and datasheet constant on every joint.
+    current_lsb: jnp.ndarray | None = None
+    current_torque_constant: jnp.ndarray | None = None
 
 
 @struct.dataclass

@@ -1,5 +1,8 @@
-"""The bus side of the virtual robot: a chain of XM430-W350-T servos answering DYNAMIXEL
-Protocol 2.0 on a pseudo-terminal.
+"""The bus side of the virtual robot: a chain of DYNAMIXEL X servos (XM430-W350-T by
+default; any model with a table in :data:`jaxinertia.hardware.control_table.TABLES`, one
+per servo: the Koch v1.1 mixes XL430-W250 and XL330-M288) answering Protocol 2.0 on a
+pseudo-terminal. Each servo pings with its own model number and keeps its own control
+table (an XL430 has Present Load where the others have Present Current).
 
 :class:`ServoBus` keeps each servo's control table (:class:`ServoMemory`, the e-manual's
 access rules) and runs the **bus** thread: it reads instruction packets from the pty master
@@ -63,21 +66,24 @@ class Faults:
 class ServoMemory:
     """One servo's control table (bytes) with the e-manual's access rules: its own, or
     ``table``, a writable ``TABLE_SIZE``-byte view into a shared buffer (``reset``: filled
-    with the factory defaults; False: attached as it is)."""
+    with the factory defaults; False: attached as it is). ``model``: its model number
+    (the control table's layout and initial values, :func:`control_table.items_of`)."""
 
-    def __init__(self, dxl_id: int, table=None, *, reset: bool = True) -> None:
+    def __init__(self, dxl_id: int, table=None, *, reset: bool = True,
+                 model: int = ct.XM430_W350_MODEL) -> None:
+        self.items = ct.items_of(model)
         self.table = bytearray(TABLE_SIZE) if table is None else table
         if reset:
             self.reset_all(dxl_id)
 
     def reset_all(self, dxl_id: int) -> None:
-        for item in ct.ITEMS.values():
+        for item in self.items.values():
             self._put(item, item.default)
-        self._put(ct.ITEMS["id"], dxl_id)
+        self._put(self.items["id"], dxl_id)
 
     def reset_ram(self) -> None:
         """REBOOT: RAM back to defaults, EEPROM kept."""
-        for item in ct.ITEMS.values():
+        for item in self.items.values():
             if item.address >= ct.EEPROM_END:
                 self._put(item, item.default)
 
@@ -86,10 +92,10 @@ class ServoMemory:
         self.table[item.address:item.address + item.size] = raw.to_bytes(item.size, "little")
 
     def set(self, name: str, value: int) -> None:
-        self._put(ct.ITEMS[name], value)
+        self._put(self.items[name], value)
 
     def get(self, name: str) -> int:
-        item = ct.ITEMS[name]
+        item = self.items[name]
         raw = int.from_bytes(self.table[item.address:item.address + item.size], "little")
         return ct.to_signed(raw, item.size) if item.signed else raw
 
@@ -104,7 +110,7 @@ class ServoMemory:
         if not data or end > TABLE_SIZE:
             return Error.ACCESS
         torque_on = self.get("torque_enable") == 1
-        for name, item in ct.ITEMS.items():
+        for name, item in self.items.items():
             if item.address < end and address < item.address + item.size:
                 if not item.writable:
                     return Error.ACCESS
@@ -153,11 +159,14 @@ class ServoBus:
         input_voltage: float = 12.0,
         tables=None,
         lock=None,
+        models: tuple[int, ...] | None = None,
     ) -> None:
         self.joint_ids = tuple(joint_ids)
         ids = (*joint_ids, *extra_ids)
         views = [None] * len(ids) if tables is None else table_views(tables, len(ids))
-        self.servos = {i: self.memory_class(i, v) for i, v in zip(ids, views, strict=True)}
+        kinds = [{}] * len(ids) if models is None else [{"model": m} for m in models]
+        self.servos = {i: self.memory_class(i, v, **k)
+                       for i, v, k in zip(ids, views, kinds, strict=True)}
         self.faults = faults
         self._fault_rng = np.random.default_rng(faults.seed)
         self._goal_writes = {i: 0 for i in self.servos}
@@ -296,10 +305,9 @@ class ServoBus:
         inst, prm = p.instruction, p.params
         ids = sorted(self.servos) if p.id == BROADCAST_ID else (
             [p.id] if p.id in self.servos else [])
-        if inst == Instruction.PING:
-            info = ct.ITEMS["model_number"].default.to_bytes(2, "little") + bytes(
-                [ct.ITEMS["firmware_version"].default])
-            return [self._status(i, 0, info) for i in ids]
+        if inst == Instruction.PING:  # each servo its own model number and firmware
+            return [self._status(i, 0, self.servos[i].get("model_number").to_bytes(
+                2, "little") + bytes([self.servos[i].get("firmware_version")])) for i in ids]
         if inst == Instruction.SYNC_READ or inst == Instruction.SYNC_WRITE:
             if len(prm) < 4:
                 return []
@@ -375,7 +383,7 @@ class ServoBus:
         j = self.joint_ids.index(dxl_id) if dxl_id in self.joint_ids else None
         if mem.get("torque_enable") == 1 and not was_on and j is not None:
             self._hold_here(j)  # the servo starts holding where it is
-        goal = ct.ITEMS["goal_position"]
+        goal = mem.items["goal_position"]
         if address <= goal.address < address + len(data):
             self.goal_position_writes += 1
             self._goal_writes[dxl_id] += 1

@@ -8,7 +8,11 @@ programs (torque on, torque off) are compiled by :meth:`ArmPhysics.compile`.
 :class:`PhysicsLoop` couples it to the servos' control tables: it applies the bus's news
 (goal writes, holds, in order), copies the registers a chunk needs under the tables' lock,
 computes the chunk without it and publishes Present Position/Velocity/Current/PWM, Moving,
-Moving Status and Realtime Tick under it, paced at ``speed`` x real time.
+Moving Status and Realtime Tick under it, paced at ``speed`` x real time. Address 126 is
+published per servo model: Present Current in the model's unit, or, on a servo without a
+current sensor (XL430-W250), Present Load in 0.1 % of the maximum torque (the motor
+current as a share of the stall current: the simulated motor's torque is ``k_t I``, its
+maximum ``k_t`` times the stall current).
 :func:`physics_main` runs that loop in the process of its own that
 :class:`jaxinertia.virtual.robot.VirtualServoBus` starts.
 
@@ -27,8 +31,10 @@ scaled by a fresh log-normal draw (``friction.jitter``) whenever its goal change
 simulator draws one per sample), and Present Current carries ``servo.current_noise``.
 
 Registers map onto the simulator's parameters: Position P/I/D Gain and PWM Limit onto
-``ServoParams`` (the gains through the calibrated ratio ``sim p_gain / 800`` per joint,
-which carries the calibrated PWM-to-torque scale); Profile Velocity/Acceleration onto
+``ServoParams`` (the gains through the ratio ``sim p_gain / P register`` per joint, the P
+register the simulator's gain belongs to: the OpenMANIPULATOR-X's factory 800, whose
+ratio carries the calibrated PWM-to-torque scale; 1 for a servo simulated from its
+datasheet); Profile Velocity/Acceleration onto
 the goal profile (0 = no profile). Approximations, stated: while any joint's torque is
 off the arm is held still (the simulator has no end stops for a limp arm to fall
 against); temperature and input voltage are constant (``ambient_temperature``, the
@@ -54,8 +60,8 @@ from jaxinertia.sim.simulator import SimParams, SimState, step, trapezoid
 from jaxinertia.virtual.bus import ServoMemory, table_views
 from jaxinertia.xm430 import PWM_FULL_SCALE
 
-__all__ = ["REGISTERS", "ArmPhysics", "PhysicsLoop", "PhysicsSpec", "Present", "physics_main",
-           "publish", "servo_from_registers"]
+__all__ = ["REGISTERS", "ArmPhysics", "PhysicsLoop", "PhysicsSpec", "Present", "gain_scale",
+           "physics_main", "publish", "servo_from_registers"]
 
 #: Profile register 0 means "no profile": a step goal. Stand-ins that the trapezoid takes.
 _UNLIMITED_VELOCITY = 1e6  # [rad/s]
@@ -70,6 +76,15 @@ def servo_from_registers(base: ServoParams, gain_scale, registers) -> ServoParam
     limit)."""
     return base.replace(p_gain=registers[0] * gain_scale, i_gain=registers[1] * gain_scale,
                         d_gain=registers[2] * gain_scale, pwm_limit=registers[3])
+
+
+def gain_scale(servo: ServoParams, gain_registers=None) -> np.ndarray:
+    """(N,) simulated gain per unit of P register: ``servo.p_gain / gain_registers``
+    (default: the XM430's factory P = 800, which the calibrated gains belong to)."""
+    p = np.asarray(servo.p_gain, np.float64)
+    registers = (ct.ITEMS["position_p_gain"].default if gain_registers is None
+                 else np.asarray(gain_registers, np.float64))
+    return p / registers
 
 
 @jax.jit
@@ -115,15 +130,15 @@ class ArmPhysics:
     a chunk with the registers given and returns what the servos present."""
 
     def __init__(self, params: SimParams, *, q0: np.ndarray, chunk: int = 20,
-                 seed: int = 0) -> None:
+                 seed: int = 0, gain_registers=None) -> None:
         """``params``: :func:`jaxinertia.sim.simulator.physical_params` (leaves may be numpy
-        arrays)."""
+        arrays); ``gain_registers``: the P register each joint's simulated gain belongs to
+        (default the XM430's factory 800)."""
         n = len(q0)
         self.params = params
         # Register -> simulator gain: the calibrated effective gains belong to the factory
         # P = 800 (the calibration absorbs the PWM-to-torque scale of the real servos).
-        self.gain_scale = (np.asarray(params.servo.p_gain, np.float64)
-                           / ct.ITEMS["position_p_gain"].default)
+        self.gain_scale = gain_scale(params.servo, gain_registers)
         self._jitter = np.asarray(params.friction.jitter, np.float64)
         self.chunk = int(chunk)
         self.dt = float(params.dt)
@@ -205,9 +220,13 @@ class ArmPhysics:
         return Present(q, qd, reading, pwm, self._traj_pos.copy(), profile_on, self.sim_time)
 
 
-def publish(servos: list[ServoMemory], p: Present, pending: np.ndarray) -> None:
+def publish(servos: list[ServoMemory], p: Present, pending: np.ndarray,
+            reading_lsb=ct.CURRENT_LSB_A) -> None:
     """Writes a chunk into the joint servos' tables (under the lock); ``pending``: joints
-    with a goal written that the chunk did not simulate yet (reported as moving)."""
+    with a goal written that the chunk did not simulate yet (reported as moving);
+    ``reading_lsb``: per joint (or shared), the motor current [A] of one LSB of address
+    126 (Present Current, or Present Load where the servo has no current sensor)."""
+    lsb = np.broadcast_to(np.asarray(reading_lsb, np.float64), (len(servos),))
     ticks = ct.rad_to_ticks(p.q)  # Present Position: the encoder's integer ticks
     traj_ticks = ct.rad_to_ticks(p.traj_pos)
     clock = round(p.sim_time * 1000) % ct.REALTIME_TICK_WRAP
@@ -219,7 +238,8 @@ def publish(servos: list[ServoMemory], p: Present, pending: np.ndarray) -> None:
         in_position = abs(m.get("goal_position") - int(ticks[j])) <= threshold
         m.set("present_position", int(ticks[j]))
         m.set("present_velocity", vel)
-        m.set("present_current", int(ct.current_to_register(p.current[j])))
+        sensed = "present_current" if "present_current" in m.items else "present_load"
+        m.set(sensed, int(ct.current_to_register(p.current[j], lsb[j])))
         m.set("present_pwm", int(round(p.pwm[j])))
         m.set("position_trajectory", int(traj_ticks[j]))
         m.set("moving", int(moving))
@@ -234,9 +254,10 @@ class PhysicsLoop:
     under it. ``goal_writes`` (shared, per joint) counts the goals the bus accepted."""
 
     def __init__(self, arm: ArmPhysics, servos: list[ServoMemory], lock, events,
-                 goal_writes) -> None:
+                 goal_writes, reading_lsb=ct.CURRENT_LSB_A) -> None:
         self.arm, self.servos, self.lock = arm, servos, lock
         self.events, self.goal_writes = events, goal_writes
+        self.reading_lsb = reading_lsb
 
     def step(self) -> Present:
         while self.events.poll():
@@ -249,7 +270,7 @@ class PhysicsLoop:
         present = self.arm.advance(registers, torque)
         with self.lock:
             pending = np.asarray(self.goal_writes[:len(self.servos)]) != self.arm.goals_applied
-            publish(self.servos, present, pending)
+            publish(self.servos, present, pending, self.reading_lsb)
         return present
 
     def run(self, speed: float, stop, parent_pid: int | None = None) -> None:
@@ -277,6 +298,9 @@ class PhysicsSpec:
     speed: float
     cache_dir: str | None
     cache_max_size: int  # the parent's cap: every writer of a cache folder needs the same
+    models: tuple[int, ...] | None = None  # joint servos' model numbers (None: XM430s)
+    reading_lsb: tuple[float, ...] | None = None  # [A] per LSB of 126 (None: 2.69 mA)
+    gain_registers: tuple[float, ...] | None = None  # P registers (None: 800)
 
 
 def physics_main(spec: PhysicsSpec, tables, goal_writes, lock, events, ready, stop,
@@ -287,14 +311,18 @@ def physics_main(spec: PhysicsSpec, tables, goal_writes, lock, events, ready, st
         jax.config.update("jax_enable_x64", True)
         if spec.cache_dir:
             compilation_cache.enable(spec.cache_dir, spec.cache_max_size)
-        arm = ArmPhysics(spec.params, q0=spec.q0, chunk=spec.chunk, seed=spec.seed)
+        arm = ArmPhysics(spec.params, q0=spec.q0, chunk=spec.chunk, seed=spec.seed,
+                         gain_registers=spec.gain_registers)
         arm.compile()
-        servos = [ServoMemory(i, v, reset=False)
-                  for i, v in zip(spec.joint_ids, table_views(tables, len(spec.joint_ids)),
-                                  strict=True)]
-        loop = PhysicsLoop(arm, servos, lock, events, goal_writes)
+        n = len(spec.joint_ids)
+        models = spec.models or (ct.XM430_W350_MODEL,) * n
+        lsb = ct.CURRENT_LSB_A if spec.reading_lsb is None else spec.reading_lsb
+        servos = [ServoMemory(i, v, reset=False, model=m)
+                  for i, v, m in zip(spec.joint_ids, table_views(tables, n), models,
+                                     strict=True)]
+        loop = PhysicsLoop(arm, servos, lock, events, goal_writes, lsb)
         with lock:
-            publish(servos, _initial(arm), np.zeros(len(servos), bool))
+            publish(servos, _initial(arm), np.zeros(n, bool), lsb)
         gc.freeze()  # no full collection over the imported modules while holding the lock
         ready.set()
         loop.run(spec.speed, stop, parent_pid)

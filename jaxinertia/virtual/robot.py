@@ -26,20 +26,23 @@ import ctypes
 import multiprocessing as mp
 import os
 import time
+from collections.abc import Sequence
 
 import jax
 import numpy as np
 
 from jaxinertia.errors import SimulationError, UsageError
-from jaxinertia.hardware import control_table as ct
+from jaxinertia.hardware.control_table import VOLTAGE_LSB
 from jaxinertia.objects import HeldObject
 from jaxinertia.open_manipulator_x import GRIPPER_ID, JOINT_IDS
+from jaxinertia.servos import ServoModel
 from jaxinertia.sim.servo import ServoParams
 from jaxinertia.sim.simulator import SimParams, physical_params
 from jaxinertia.virtual.bus import TABLE_SIZE, Faults, ServoBus
 from jaxinertia.virtual.physics import (
     REGISTERS,
     PhysicsSpec,
+    gain_scale,
     physics_main,
     servo_from_registers,
 )
@@ -51,10 +54,24 @@ __all__ = ["STARTUP_TIMEOUT_S", "VirtualServoBus"]
 STARTUP_TIMEOUT_S = 900.0
 
 
+def _reading_lsb(model: ServoModel) -> float:
+    """The motor current [A] of one LSB of address 126: Present Current's unit, or for a
+    servo without a current sensor Present Load's (0.1 % of the maximum torque, the stall
+    current's share)."""
+    return model.sensed_lsb if model.has_current_sensor else (model.sensed_lsb
+                                                               * model.stall_current)
+
+
 class VirtualServoBus(ServoBus):
     """Servos ``ids`` (one per joint of ``params.robot``, then optional extra servos such as
     a gripper, which answer but do not move) on a pty, driven by the simulator in a
-    process of its own (started by :meth:`compile`, or on entry)."""
+    process of its own (started by :meth:`compile`, or on entry).
+
+    ``servo_models``: the :class:`jaxinertia.servos.ServoModel` of each servo, joints then
+    extras (default: XM430-W350s): each answers with its model number and control table,
+    and its joint's motor current is published in its unit (Present Current, or Present
+    Load where it has no current sensor). ``gain_registers``: the P register each joint's
+    simulated gain belongs to (default: the XM430's 800, the calibrated arm's)."""
 
     def __init__(
         self,
@@ -69,26 +86,43 @@ class VirtualServoBus(ServoBus):
         faults: Faults = Faults(),  # noqa: B008  (frozen dataclass)
         seed: int = 0,
         ambient_temperature: int = 30,
+        servo_models: Sequence[ServoModel] | None = None,
+        gain_registers: Sequence[float] | None = None,
     ) -> None:
         n = len(ids)
         if n != params.robot.n_joints:
             raise UsageError(f"{n} servo ids for {params.robot.n_joints} joints")
+        models = None if servo_models is None else tuple(servo_models)
+        if models is not None and len(models) != n + len(extra_ids):
+            raise UsageError(f"{len(models)} servo models for {n + len(extra_ids)} servos")
         ctx = mp.get_context("spawn")  # JAX does not survive a fork
         n_servos = n + len(extra_ids)
         self._shared_tables = ctx.RawArray(ctypes.c_uint8, n_servos * TABLE_SIZE)
         self._shared_goal_writes = ctx.RawArray(ctypes.c_int64, n)
         super().__init__(ids, extra_ids, faults=faults, temperature=ambient_temperature,
                          input_voltage=float(params.servo.supply_voltage[0]),
-                         tables=self._shared_tables, lock=ctx.Lock())
+                         tables=self._shared_tables, lock=ctx.Lock(),
+                         models=None if models is None else tuple(m.model_number
+                                                                  for m in models))
+        if models is not None:  # each servo at its own model's supply (XL330: 5 V)
+            for i, m in zip(self.servos, models):
+                self.servos[i].set("present_input_voltage",
+                                   round(m.supply_voltage / VOLTAGE_LSB))
         self._ctx = ctx
         self._base_servo = params.servo
-        self._gain_scale = (np.asarray(params.servo.p_gain, np.float64)
-                            / ct.ITEMS["position_p_gain"].default)
+        self._gain_scale = gain_scale(params.servo, gain_registers)
+        joints = models[:n] if models is not None else None
         q0 = np.zeros(n) if q0 is None else np.asarray(q0, np.float64)
         self._spec = PhysicsSpec(jax.tree.map(np.asarray, physical_params(params, obj)),
                                  tuple(ids), q0, int(chunk), int(seed), float(speed),
                                  jax.config.jax_compilation_cache_dir,
-                                 jax.config.jax_compilation_cache_max_size)
+                                 jax.config.jax_compilation_cache_max_size,
+                                 models=None if joints is None else tuple(
+                                     m.model_number for m in joints),
+                                 reading_lsb=None if joints is None else tuple(
+                                     _reading_lsb(m) for m in joints),
+                                 gain_registers=None if gain_registers is None else tuple(
+                                     float(g) for g in gain_registers))
         self.speed = float(speed)
         self._events_in, self._events_out = ctx.Pipe(duplex=False)
         self._ready, self._physics_stop = ctx.Event(), ctx.Event()

@@ -311,8 +311,9 @@ def read_manifest(path: str | os.PathLike) -> list[tuple[Path, list[float]]]:
                 qs = sorted((k for k in r if k and k.startswith("q")), key=lambda k: int(k[1:]))
                 rows.append((path.parent / r["image"], [float(r[k]) for k in qs]))
     except (KeyError, TypeError, ValueError, json.JSONDecodeError) as e:
-        raise FileFormatError(shown(path), None, f"bad manifest ({e!r}); see jaxinertia "
-                              "camera-calibrate --help") from e
+        raise FileFormatError(shown(path), None, f"bad manifest ({e!r}): JSON {{'samples': "
+                              "[{'image': ..., 'q': [...]}, ...]} or CSV columns "
+                              "image,q1,...,qN expected") from e
     if not rows:
         raise FileFormatError(shown(path), None, "the manifest lists no images")
     for image, q in rows:

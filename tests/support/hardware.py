@@ -12,7 +12,8 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["RETRIES", "journal_indices", "one_line", "running", "wait_for_samples"]
+__all__ = ["RETRIES", "Client", "collect_interrupted_and_resumed", "journal_indices",
+           "one_line", "running", "wait_for_samples"]
 
 #: ``collect --retries`` of the hardware tests: how long the bus may stay silent before a
 #: collection gives up (each failed attempt costs ~70 ms: the SDK's ~35 ms wait, then as
@@ -91,3 +92,81 @@ def running(cmd: list[str]) -> Iterator[subprocess.Popen]:
         if proc.poll() is None:
             proc.kill()
             proc.wait(timeout=60)
+
+
+def collect_interrupted_and_resumed(port: str, arm, out: Path, monkeypatch, capsys, *,
+                                    n: int = 4, after: int = 2, seed: int = 1) -> str:
+    """``jaxinertia collect --arm ARM`` of an ``n``-sample random plan in this process on
+    ``port``, interrupted (Ctrl-C: a KeyboardInterrupt from the tag-pose source, once
+    ``after`` samples are in the journal: deterministic whatever the host's speed), then
+    ``--resume``d to the end. Checks that the first run stops with exit code 130 and the
+    journal holds samples ``0..after-1``, and that the resumed one completes the plan:
+    every planned goal and direction once, in plan order, at rest, with no hardware
+    error (a faulty bus raises no false alarm). Returns the resumed run's stderr."""
+    import numpy as np  # (the test modules import JAX; these helpers stay light)
+
+    from jaxinertia.app.cli import main
+    from jaxinertia.hardware import collect
+    from jaxinertia.plans import random_plan
+    from jaxinertia.samples import load_native
+
+    base = collect.KinematicTagPose
+
+    class Interrupting(base):
+        calls = 0
+
+        def __call__(self, q):
+            if Interrupting.calls == after:
+                raise KeyboardInterrupt
+            Interrupting.calls += 1
+            return super().__call__(q)
+
+    argv = ["collect", "--arm", arm.name, "--port", port, "--plan", "random", "--n", str(n),
+            "--seed", str(seed), "--object", "50g", "--out", str(out), "--no-progress",
+            "--retries", str(RETRIES)]
+    capsys.readouterr()
+    monkeypatch.setattr(collect, "KinematicTagPose", Interrupting)
+    assert main(argv) == 130, capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "interrupted (hold)" in err and "hardware error" not in err, err
+    assert journal_indices(out) == list(range(after)), "the samples before the interrupt"
+    assert not out.exists(), "no sample file from an unfinished collection"
+    monkeypatch.setattr(collect, "KinematicTagPose", base)
+    assert main([*argv, "--resume"]) == 0, capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"{after} of {n} samples already" in err and "hardware error" not in err, err
+    assert " 0 unconfirmed hardware-error readings" in err, err
+    samples, meta = load_native(out, only_at_rest=False)
+    fields = samples.fields()
+    q_d, d = random_plan(n, seed, workspace=arm.workspace_deg)
+    assert meta["arm"] == arm.name
+    np.testing.assert_array_equal(fields["plan_index"], np.arange(n), err_msg="plan_index")
+    np.testing.assert_array_equal(fields["q_d"], q_d, err_msg="q_d")
+    np.testing.assert_array_equal(fields["direction"], d, err_msg="direction")
+    assert fields["at_rest"].all(), "at_rest"
+    assert journal_indices(out) == list(range(n)), "each sample exactly once"
+    return err
+
+
+class Client:
+    """A vendor SDK's ``port`` (opened here) and packet handler ``ph`` (dynamixel-sdk's or
+    scservo_sdk's: the same calls), counting transactions (``attempted``, ``failed``)."""
+
+    SUCCESS = 0  # COMM_SUCCESS in both SDKs
+
+    def __init__(self, port, ph):
+        self.port, self.ph = port, ph
+        assert self.port.openPort()
+        self.attempted = self.failed = 0
+
+    def call(self, fn, *args):
+        """One transaction: (value, result, error) of the SDK (its comm result counted)."""
+        self.attempted += 1
+        out = fn(self.port, *args)
+        result = out if isinstance(out, int) else out[1] if len(out) == 3 else out[0]
+        if result != self.SUCCESS:
+            self.failed += 1
+        return out
+
+    def close(self):
+        self.port.closePort()

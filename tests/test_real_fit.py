@@ -1,7 +1,7 @@
 """The shipped simulator parameters against the real OpenMANIPULATOR-X data.
 
 The real files' goals, directions and objects are simulated with the package's default
-(calibrated) parameters; the baseline fits on simulated and on real samples are compared
+(fitted to the real arm) parameters; the baseline fits on simulated and on real samples are compared
 with the acceptance bands of issue 3.
 """
 
@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 from jaxinertia.objects import TEST_OBJECTS
-from jaxinertia.sim.calibration import (
+from jaxinertia.sim.params import default_sim_params
+from jaxinertia.sim.real_fit import (
     baseline_statistics,
     real_files,
     real_plan,
     simulate_real_plan,
 )
-from jaxinertia.sim.params import default_sim_params
 from jaxinertia.sim.run import simulate_scenario
 
 FIELDS = ("q_d", "q", "direction", "tau", "current_tau")

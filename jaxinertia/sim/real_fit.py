@@ -1,4 +1,8 @@
-"""Calibration of the simulated arm to the real OpenMANIPULATOR-X data (lbipe): the fits.
+"""The simulator fit: the simulated arm fitted to the real OpenMANIPULATOR-X data (lbipe).
+
+(The command line calls it ``jaxinertia calibrate``; "calibration" elsewhere in the
+package is the camera's, :mod:`jaxinertia.vision.calibration`, or LeRobot's motor files,
+:mod:`jaxinertia.lerobot_calibration`.)
 
 Link gravity: the real free-motion torques ``tau_g`` are a static gravity model on the
 URDF kinematics with other link masses and first moments (lbipe README). The 8
@@ -33,7 +37,7 @@ from jaxinertia.statics import (
     robot_with_gravity_parameters,
 )
 
-__all__ = ["OFFSET_ITERATIONS", "baseline_statistics", "calibrate_servo_friction",
+__all__ = ["OFFSET_ITERATIONS", "baseline_statistics", "fit_servo_friction",
            "fit_link_gravity", "real_files", "real_plan", "select", "simulate_real_plan"]
 
 
@@ -54,7 +58,7 @@ def select(data: Sequence[Samples], objects: Sequence[str] | None = None, *,
     have = [d.name for d in data]
     unknown = [o for o in objects if o not in have]
     if unknown or not objects:
-        raise UsageError(f"--real-objects {list(objects)}: {where} has real files of {have}")
+        raise UsageError(f"`objects` {list(objects)}: {where} has real files of {have}")
     return [d for d in data if d.name in objects]
 
 
@@ -147,7 +151,7 @@ def _intercept(d: dict, ref: dict) -> np.ndarray:
                    axis=0)
 
 
-def calibrate_servo_friction(params, data: Sequence[Samples], *, iterations: int = 6,
+def fit_servo_friction(params, data: Sequence[Samples], *, iterations: int = 6,
                              seed: int = 0, kinetic_ratio: float = 0.6,
                              fit_offset: bool = False, log=print, progress: bool = False,
                              programs: StreamPrograms | None = None):
@@ -164,7 +168,7 @@ def calibrate_servo_friction(params, data: Sequence[Samples], *, iterations: int
     ``(params, history)``."""
     if programs is None:
         with StreamPrograms() as own:
-            return calibrate_servo_friction(
+            return fit_servo_friction(
                 params, data, iterations=iterations, seed=seed,
                 kinetic_ratio=kinetic_ratio, fit_offset=fit_offset, log=log, progress=progress,
                 programs=own)
