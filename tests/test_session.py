@@ -148,3 +148,16 @@ def test_the_recipe_is_the_lowest_mean_over_every_fold():
     assert r["score"] == pytest.approx(want)
     assert [c["score"] for c in r["scores"]] == sorted(c["score"] for c in r["scores"])
     assert len(r["scores"]) == 4 and r["folds"] == 2
+    assert r["current_input"] is False
+    # With the current input (FoldScale.current_input): its candidates compete by name, and
+    # the choice says which inputs the models for a new object take.
+    for f, ft in zip(folds.values(), (((4, 12), (6, 14)), ((4, 10), (6, 14)))):
+        f["physical_current"] = {"by_strength": {"0.0": _objects(9, 30),
+                                                 "1.0": _objects(9, 30)}}
+        f["fine_tuned_current"] = {"1000": {"by_strength": {"0.0": _objects(*ft[0]),
+                                                            "1.0": _objects(*ft[1])}}}
+    r = choose_recipe(folds)
+    assert r["candidate"] == ("physical with the current input, servo part fine-tuned on "
+                              "1000 real samples")
+    assert r["current_input"] is True and r["finetune_samples"] == 1000
+    assert r["session_strength"] == 0.0 and len(r["scores"]) == 8

@@ -92,6 +92,9 @@ class FoldScale:
     identify_samples: int = 0
     #: The session strengths every candidate is judged at (:data:`SESSION_STRENGTHS`).
     session_strengths: tuple[float, ...] = SESSION_STRENGTHS
+    #: Also the physical model and its fine-tunings with the servo's current torque as a
+    #: fifth input per joint (``train --current-input``): more candidates, more training.
+    current_input: bool = False
 
 
 @dataclass(frozen=True)
@@ -200,16 +203,20 @@ def _run_fold(fold: _Fold) -> dict:
 
     # The candidates trained on the fold's simulated data are independent of each other:
     # side by side on an accelerator (their times then overlap), in this order on a CPU.
-    ours, randomized, (physical, fine) = side_by_side([
+    ours, randomized, (physical, fine), (physical_c, fine_c) = side_by_side([
         paper,
         lambda: (timed("randomized", _randomized, fold, params, files)
                  if fold.scale.randomize_draws > 0 else None),
-        lambda: timed("fine-tune", _finetuned, fold, files)])
+        lambda: timed("fine-tune", _finetuned, fold, files),
+        lambda: (timed("current input", _finetuned, fold, files, True)
+                 if fold.scale.current_input else (None, {}))])
     return {"held_out": fold.held, "ours": ours["objects"], "torque": ours["torque"],
             "session_ratio": ours["session_ratio"], "by_strength": ours["by_strength"],
-            "physical": physical, "fine_tuned": fine, "randomized": randomized, **replay,
+            "physical": physical, "fine_tuned": fine, "randomized": randomized,
+            "physical_current": physical_c, "fine_tuned_current": fine_c, **replay,
             "wall_time_s": {k: wall.get(k, 0.0) for k in (
-                "calibrate", "simulate", "train", "evaluate", "randomized", "fine-tune")}}
+                "calibrate", "simulate", "train", "evaluate", "randomized", "fine-tune",
+                "current input")}}
 
 
 def _stats(d: dict) -> dict:
@@ -276,17 +283,21 @@ def _randomized(fold: _Fold, params, files: list[Path]) -> dict:
     return {**res, "spread": spread.to_dict(), "draws": fold.scale.randomize_draws}
 
 
-def _finetuned(fold: _Fold, files: list[Path]) -> tuple[dict | None, dict]:
-    """The physical model trained on the simulated files, then its servo part fine-tuned on
-    each number of ``fit_on``'s real samples; all judged on the held-out objects."""
+def _finetuned(fold: _Fold, files: list[Path],
+               current_input: bool = False) -> tuple[dict | None, dict]:
+    """The physical model trained on the simulated files (``current_input``: with the
+    servo's current as a fifth input), then its servo part fine-tuned on each number of
+    ``fit_on``'s real samples; all judged on the held-out objects."""
     if not fold.scale.finetune_samples:
         return None, {}
-    start = fold.dir / "models_physical"
-    train(files, start, fold.scale.train.replace(seed=fold.seed, torque_model="physical"),
+    tag = "_current" if current_input else ""
+    start = fold.dir / f"models_physical{tag}"
+    train(files, start, fold.scale.train.replace(seed=fold.seed, torque_model="physical",
+                                                 current_input=current_input),
           overwrite=True, progress=fold.progress, session=fold.session)
 
     def finetune(n: int) -> dict:
-        models = fold.dir / f"models_finetuned_{n}"
+        models = fold.dir / f"models_finetuned{tag}_{n}"
         info = train([fold.real.files[fold.index(fold.fit_on)]], models,
                      fold.scale.finetune.replace(seed=fold.seed), overwrite=True,
                      progress=fold.progress, init=start, samples_per_object=n)
@@ -311,7 +322,15 @@ def _candidates(fold: dict) -> dict[str, dict]:
         out["physical, simulator only"] = fold["physical"]["by_strength"]
     for n, ft in (fold.get("fine_tuned") or {}).items():
         out[f"physical, servo part fine-tuned on {n} real samples"] = ft["by_strength"]
+    if fold.get("physical_current"):
+        out[f"{CURRENT}, simulator only"] = fold["physical_current"]["by_strength"]
+    for n, ft in (fold.get("fine_tuned_current") or {}).items():
+        out[f"{CURRENT}, servo part fine-tuned on {n} real samples"] = ft["by_strength"]
     return out
+
+
+#: The name of the candidates with the current input (``FoldScale.current_input``).
+CURRENT = "physical with the current input"
 
 
 def choose_recipe(folds: dict, method: str = "T-A") -> dict:
@@ -336,6 +355,7 @@ def choose_recipe(folds: dict, method: str = "T-A") -> dict:
     if "fine-tuned on" in name:
         finetune = int(name.split("fine-tuned on ")[1].split()[0])
     return {"candidate": name, "session_strength": float(strength),
-            "finetune_samples": finetune, "score": best, "method": method, "folds": n_folds,
+            "finetune_samples": finetune, "current_input": name.startswith(CURRENT),
+            "score": best, "method": method, "folds": n_folds,
             "scores": [{"candidate": k[0], "session_strength": float(k[1]), "score": v}
                        for k, v in sorted(table.items(), key=lambda kv: kv[1])]}

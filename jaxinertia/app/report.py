@@ -150,11 +150,15 @@ def format_folds(res: dict) -> str:
         if f.get("physical"):
             lines += [table1(f["physical"]["objects"], "The physics-structured torque model "
                              "trained on the same simulated data"), ""]
-        for ft in f.get("fine_tuned", {}).values():
-            used = ft["samples"]
-            lines += [table1(ft["objects"], f"It fine-tuned (servo part) on {used['train']} + "
-                             f"{used['validation']} (validation) real samples of {fit_on}; "
-                             "baselines refitted on them"), ""]
+        for key, what in (("", ""), ("_current", " with the current input")):
+            if f.get("physical" + key) and key:
+                lines += [table1(f["physical" + key]["objects"], "The physics-structured "
+                                 f"torque model{what}, on the same simulated data"), ""]
+            for ft in (f.get("fine_tuned" + key) or {}).values():
+                used = ft["samples"]
+                lines += [table1(ft["objects"], f"It{what} fine-tuned (servo part) on "
+                                 f"{used['train']} + {used['validation']} (validation) real "
+                                 f"samples of {fit_on}; baselines refitted on them"), ""]
         lines += [table1(f["released"], "The authors' released models, same sets"), ""]
         r, s = f["replay"]["real"], f["replay"]["sim"]
         rows = [[label, str(j + 1), f"{r[key][j] * scale:.{nd}f}", f"{s[key][j] * scale:.{nd}f}",

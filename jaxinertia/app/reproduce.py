@@ -81,6 +81,9 @@ class Scale:
     #: object in the lbipe folder (0: left out). Its numbers on those objects are not
     #: held out; the folds' fine-tuned rows are the honest estimate of such models.
     real_finetune_samples: int = 1000
+    #: The folds also judge the physical model with the servo's current as an input
+    #: (``FoldScale.current_input``; the quick scale leaves it out for ``make demo``'s time).
+    fold_current_input: bool = False
 
 
 QUICK = Scale(planning=False, random_per_load=800, test_per_object=300,
@@ -91,7 +94,7 @@ QUICK = Scale(planning=False, random_per_load=800, test_per_object=300,
                                 torque_lr=1e-3))
 FULL = Scale(planning=True, random_per_load=9000, test_per_object=1000,
              continuous_samples=4096, switch_every=1024, train=TrainConfig(),
-             fold_finetune_samples=(64, 250, 1000))
+             fold_finetune_samples=(64, 250, 1000), fold_current_input=True)
 
 
 def _machine() -> str:
@@ -153,6 +156,7 @@ def _coverage(models: Path, test_file: SampleFile, real: RealData | None, *, n_s
 #: The recipe for the models of a new real object when no held-out folds chose one: the
 #: physical model fine-tuned on every real file, sessions adapted.
 DEFAULT_RECIPE = {"candidate": "physical, servo part fine-tuned", "session_strength": 1.0,
+                  "current_input": False,
                   "finetune_samples": None, "chosen_by": "default (no held-out folds)"}
 
 
@@ -181,6 +185,7 @@ def _models_real(out: Path, train_files: list[Path], real: RealData, scale: Scal
     else:
         start = out / "models_physical"
         physical_cfg = scale.train.replace(seed=seed, torque_model="physical",
+                                           current_input=bool(recipe.get("current_input")),
                                            session_strength=strength)
         if "fine-tuned" not in recipe["candidate"]:
             train(train_files, dst, physical_cfg, overwrite=True, progress=progress,
@@ -278,7 +283,8 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
             return run_folds(out / "folds", lbipe_dir, FoldScale(
                 calibration_iterations=scale.fold_calibration_iterations,
                 random_per_load=scale.random_per_load, planning=scale.planning,
-                train=scale.train, finetune_samples=scale.fold_finetune_samples),
+                train=scale.train, finetune_samples=scale.fold_finetune_samples,
+                current_input=scale.fold_current_input),
                 seed=seed, progress=progress, real=real)
 
     sim, folds = side_by_side([
