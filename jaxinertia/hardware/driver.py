@@ -155,6 +155,11 @@ class DynamixelArm:
                 self._failed()
             else:
                 self.most_attempts = max(self.most_attempts, attempt)
+                if attempt > 1:
+                    # What answered may have been the late answer to a failed attempt: the
+                    # retry's own answer can still be on its way. Let it arrive and go, so
+                    # that no later request of this servo and length takes it for its own.
+                    self._drain()
                 if error & self.refused_bits:
                     raise CommError(f"{what}: {self.packet.getRxPacketError(error)}")
                 return value, error

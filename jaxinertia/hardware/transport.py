@@ -23,7 +23,9 @@ safe for a real bus.
 
 Protocol 2.0 has no sequence numbers: a late answer of exactly the shape of the next
 request's (the same register block of the same servo, asked twice) cannot be told apart
-from it; :func:`drain` after every failure is what keeps those out.
+from it; :func:`drain` after every failure is what keeps those out, and once more after
+a retry that succeeded (the answer taken may have been the failed attempt's, late, with the
+retry's own still on its way: on a loaded host, a test's virtual bus showed it).
 """
 
 from __future__ import annotations
