@@ -185,7 +185,7 @@ def cmd_calibrate(args) -> int:
     sim = {k: v[info["sim_samples"]["at_rest"]] for k, v in info["sim_samples"].items()}
     png = plot_sim_fit(real, sim, report / "calibration.png")
     text = sim_fit_report(real, sim, source=lbipe_dir, iterations=args.iterations,
-                              parameters=out, figure=png.name)
+                           parameters=out, figure=png.name)
     write_text(report / "report.md", text)
     print(f"wrote {report / 'report.md'} and {png}")
     return 0
