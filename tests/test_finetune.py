@@ -22,7 +22,15 @@ from jaxinertia.networks import AttentionModel, PhysicalTorqueModel, TorqueModel
 from jaxinertia.samples import load_samples, save_native
 from jaxinertia.session import servo_session
 from jaxinertia.sim.params import default_sim_params
-from jaxinertia.sim.randomize import DomainSpread, perturbed, spread_from_samples
+from jaxinertia.sim.randomize import (
+    SESSION_PRIOR_REL,
+    DomainSpread,
+    SessionSpread,
+    drawn,
+    perturbed,
+    session_prior,
+    spread_from_samples,
+)
 from jaxinertia.training import (
     TrainConfig,
     _start,
@@ -251,3 +259,27 @@ def test_perturbed_arms_scatter_around_the_identified_one_by_the_spread():
     # everything else is the identified arm
     assert_tree_equal(arms[0].friction, params.friction, what="friction")
     assert_tree_equal(arms[0].robot, params.robot, what="robot")
+
+
+def test_drawn_sessions_scale_the_supply_by_the_prior_and_nothing_else():
+    """``drawn`` with a session spread draws recording sessions (``session_drawn``), with
+    a domain spread other arms (``perturbed``); the session prior is 5 % electrical (the
+    measured spread where wider), no torque-only part."""
+    params = default_sim_params()
+    measured = SessionSpread(np.array([0.01, 0.08, 0.0, 0.02]), np.full(4, 0.05))
+    prior = session_prior(4, measured)
+    np.testing.assert_allclose(prior.electrical_rel, [0.05, 0.08, 0.05, 0.05])
+    np.testing.assert_allclose(prior.torque_rel, 0.0)
+    np.testing.assert_allclose(session_prior(4).electrical_rel, SESSION_PRIOR_REL)
+    sessions = [drawn(params, jax.random.key(i), prior) for i in range(400)]
+    v0 = np.asarray(params.servo.supply_voltage)
+    logs = np.stack([np.log(np.asarray(a.servo.supply_voltage) / v0) for a in sessions])
+    # 400 normal draws: sample std within ~4 standard errors (14 %) of the spread
+    np.testing.assert_allclose(logs.std(axis=0), prior.electrical_rel, rtol=0.15)
+    for a in sessions[:3]:
+        assert_tree_equal(a.servo.torque_constant, params.servo.torque_constant,
+                          what="torque constant")
+        assert_tree_equal(a.friction, params.friction, what="friction")
+    arm = drawn(params, jax.random.key(0), DomainSpread(np.full(4, 0.1), np.zeros(4)))
+    assert_tree_equal(arm, perturbed(params, jax.random.key(0),
+                                     DomainSpread(np.full(4, 0.1), np.zeros(4))), what="arm")

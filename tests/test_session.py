@@ -161,3 +161,14 @@ def test_the_recipe_is_the_lowest_mean_over_every_fold():
                               "1000 real samples")
     assert r["current_input"] is True and r["finetune_samples"] == 1000
     assert r["session_strength"] == 0.0 and len(r["scores"]) == 8
+    assert r["sessions_drawn"] is False
+    # ... and trained on drawn recording sessions (FoldScale.session_draws): named apart,
+    # and the choice says so (reproduce then draws sessions for models_real's data).
+    for f in folds.values():
+        f["fine_tuned_current_sessions"] = {"1000": {"by_strength": {
+            "0.0": _objects(3, 9), "1.0": _objects(9, 30)}}}
+    r = choose_recipe(folds)
+    assert r["candidate"] == ("physical with the current input, sessions drawn, servo part "
+                              "fine-tuned on 1000 real samples")
+    assert r["sessions_drawn"] is True and r["current_input"] is True
+    assert r["finetune_samples"] == 1000 and len(r["scores"]) == 10

@@ -55,7 +55,7 @@ from jaxinertia.fileio import write_json
 from jaxinertia.session import ServoSession, servo_session
 from jaxinertia.sim.identify import ESConfig, identify
 from jaxinertia.sim.params import datasheet_sim_params, params_to_dict
-from jaxinertia.sim.randomize import spread_from_samples
+from jaxinertia.sim.randomize import session_prior, spread_from_samples
 from jaxinertia.sim.real_fit import (
     baseline_statistics,
     fit_link_gravity,
@@ -65,7 +65,8 @@ from jaxinertia.sim.real_fit import (
 )
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
 
-__all__ = ["FoldScale", "SESSION_STRENGTHS", "choose_recipe", "run_folds"]
+__all__ = ["CURRENT", "FoldScale", "SESSIONS", "SESSION_STRENGTHS", "choose_recipe",
+           "run_folds"]
 
 #: Session adaptation off and on: every candidate of a fold is judged both ways.
 SESSION_STRENGTHS = (0.0, 0.5, 1.0)
@@ -95,6 +96,11 @@ class FoldScale:
     #: Also the physical model and its fine-tunings with the servo's current torque as a
     #: fifth input per joint (``train --current-input``): more candidates, more training.
     current_input: bool = False
+    #: > 0 (with ``current_input``): also the current-input candidates trained on data of
+    #: that many recording sessions drawn around the fold's calibration
+    #: (:func:`jaxinertia.sim.randomize.session_prior`): each session's current and torque
+    #: per tick scaled alike, so the current, not the discrepancy, tells the torque.
+    session_draws: int = 0
 
 
 @dataclass(frozen=True)
@@ -203,20 +209,26 @@ def _run_fold(fold: _Fold) -> dict:
 
     # The candidates trained on the fold's simulated data are independent of each other:
     # side by side on an accelerator (their times then overlap), in this order on a CPU.
-    ours, randomized, (physical, fine), (physical_c, fine_c) = side_by_side([
-        paper,
-        lambda: (timed("randomized", _randomized, fold, params, files)
-                 if fold.scale.randomize_draws > 0 else None),
-        lambda: timed("fine-tune", _finetuned, fold, files),
-        lambda: (timed("current input", _finetuned, fold, files, True)
-                 if fold.scale.current_input else (None, {}))])
+    ours, randomized, (physical, fine), (physical_c, fine_c), (physical_s, fine_s) = \
+        side_by_side([
+            paper,
+            lambda: (timed("randomized", _randomized, fold, params, files)
+                     if fold.scale.randomize_draws > 0 else None),
+            lambda: timed("fine-tune", _finetuned, fold, files),
+            lambda: (timed("current input", _finetuned, fold, files, True)
+                     if fold.scale.current_input else (None, {})),
+            lambda: (timed("sessions drawn", _sessions_drawn, fold, params, files)
+                     if fold.scale.current_input and fold.scale.session_draws > 0
+                     else (None, {}))])
     return {"held_out": fold.held, "ours": ours["objects"], "torque": ours["torque"],
             "session_ratio": ours["session_ratio"], "by_strength": ours["by_strength"],
             "physical": physical, "fine_tuned": fine, "randomized": randomized,
-            "physical_current": physical_c, "fine_tuned_current": fine_c, **replay,
+            "physical_current": physical_c, "fine_tuned_current": fine_c,
+            "physical_current_sessions": physical_s, "fine_tuned_current_sessions": fine_s,
+            **replay,
             "wall_time_s": {k: wall.get(k, 0.0) for k in (
                 "calibrate", "simulate", "train", "evaluate", "randomized", "fine-tune",
-                "current input")}}
+                "current input", "sessions drawn")}}
 
 
 def _stats(d: dict) -> dict:
@@ -283,14 +295,26 @@ def _randomized(fold: _Fold, params, files: list[Path]) -> dict:
     return {**res, "spread": spread.to_dict(), "draws": fold.scale.randomize_draws}
 
 
-def _finetuned(fold: _Fold, files: list[Path],
-               current_input: bool = False) -> tuple[dict | None, dict]:
+def _sessions_drawn(fold: _Fold, params, files: list[Path]) -> tuple[dict | None, dict]:
+    """The current-input candidates trained on ``session_draws`` recording sessions drawn
+    around the fold's calibration (the random scenario; the planning grid as simulated)."""
+    drawn = simulate_files(params, [
+        (fold.dir / "data" / "train_random_sessions.npz", "random", fold.scale.random_per_load,
+         fold.seed)], spread=session_prior(params.robot.n_joints),
+        draws=fold.scale.session_draws, progress=fold.progress)
+    return _finetuned(fold, drawn + files[1:], True, "_current_sessions")
+
+
+def _finetuned(fold: _Fold, files: list[Path], current_input: bool = False,
+               tag: str | None = None) -> tuple[dict | None, dict]:
     """The physical model trained on the simulated files (``current_input``: with the
     servo's current as a fifth input), then its servo part fine-tuned on each number of
-    ``fit_on``'s real samples; all judged on the held-out objects."""
+    ``fit_on``'s real samples; all judged on the held-out objects. ``tag``: the model
+    folders' suffix (default: ``_current`` with the current input, none without)."""
     if not fold.scale.finetune_samples:
         return None, {}
-    tag = "_current" if current_input else ""
+    if tag is None:
+        tag = "_current" if current_input else ""
     start = fold.dir / f"models_physical{tag}"
     train(files, start, fold.scale.train.replace(seed=fold.seed, torque_model="physical",
                                                  current_input=current_input),
@@ -322,15 +346,18 @@ def _candidates(fold: dict) -> dict[str, dict]:
         out["physical, simulator only"] = fold["physical"]["by_strength"]
     for n, ft in (fold.get("fine_tuned") or {}).items():
         out[f"physical, servo part fine-tuned on {n} real samples"] = ft["by_strength"]
-    if fold.get("physical_current"):
-        out[f"{CURRENT}, simulator only"] = fold["physical_current"]["by_strength"]
-    for n, ft in (fold.get("fine_tuned_current") or {}).items():
-        out[f"{CURRENT}, servo part fine-tuned on {n} real samples"] = ft["by_strength"]
+    for key, what in (("current", CURRENT), ("current_sessions", f"{CURRENT}, {SESSIONS}")):
+        if fold.get(f"physical_{key}"):
+            out[f"{what}, simulator only"] = fold[f"physical_{key}"]["by_strength"]
+        for n, ft in (fold.get(f"fine_tuned_{key}") or {}).items():
+            out[f"{what}, servo part fine-tuned on {n} real samples"] = ft["by_strength"]
     return out
 
 
 #: The name of the candidates with the current input (``FoldScale.current_input``).
 CURRENT = "physical with the current input"
+#: ... and trained on recording sessions drawn (``FoldScale.session_draws``).
+SESSIONS = "sessions drawn"
 
 
 def choose_recipe(folds: dict, method: str = "T-A") -> dict:
@@ -356,6 +383,7 @@ def choose_recipe(folds: dict, method: str = "T-A") -> dict:
         finetune = int(name.split("fine-tuned on ")[1].split()[0])
     return {"candidate": name, "session_strength": float(strength),
             "finetune_samples": finetune, "current_input": name.startswith(CURRENT),
+            "sessions_drawn": SESSIONS in name,
             "score": best, "method": method, "folds": n_folds,
             "scores": [{"candidate": k[0], "session_strength": float(k[1]), "score": v}
                        for k, v in sorted(table.items(), key=lambda kv: kv[1])]}

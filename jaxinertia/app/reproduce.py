@@ -50,6 +50,7 @@ from jaxinertia.samples import SampleFile
 from jaxinertia.session import ServoSession, servo_session
 from jaxinertia.sim.continuous import simulate_continuous_run
 from jaxinertia.sim.params import arm_sim_params
+from jaxinertia.sim.randomize import session_prior
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
 from jaxinertia.uncertainty import (
     interval_coverage,
@@ -84,6 +85,9 @@ class Scale:
     #: The folds also judge the physical model with the servo's current as an input
     #: (``FoldScale.current_input``; the quick scale leaves it out for ``make demo``'s time).
     fold_current_input: bool = False
+    #: With ``fold_current_input``: also the current-input candidates trained on this many
+    #: drawn recording sessions (``FoldScale.session_draws``; 0: left out).
+    fold_session_draws: int = 0
 
 
 QUICK = Scale(planning=False, random_per_load=800, test_per_object=300,
@@ -94,7 +98,8 @@ QUICK = Scale(planning=False, random_per_load=800, test_per_object=300,
                                 torque_lr=1e-3))
 FULL = Scale(planning=True, random_per_load=9000, test_per_object=1000,
              continuous_samples=4096, switch_every=1024, train=TrainConfig(),
-             fold_finetune_samples=(64, 250, 1000), fold_current_input=True)
+             fold_finetune_samples=(64, 250, 1000), fold_current_input=True,
+             fold_session_draws=4)
 
 
 def _machine() -> str:
@@ -174,12 +179,19 @@ def _models_real(out: Path, train_files: list[Path], real: RealData, scale: Scal
                  session: ServoSession | None) -> dict:
     """``out/models_real``, the models for a new real object, made as ``recipe`` says (the
     held-out folds' choice): the run's simulator-trained paper models, the physical model
-    trained on the simulated files, or that model's servo part fine-tuned on every real
-    file of the folder; the session strength the recipe chose. Evaluated on those files
-    (not held out)."""
+    trained on the simulated files (the random scenario's drawn over recording sessions
+    when the recipe says so), or that model's servo part fine-tuned on every real file of
+    the folder; the session strength the recipe chose. Evaluated on those files (not held
+    out)."""
     strength = float(recipe["session_strength"])
     dst = out / "models_real"
     info = None
+    if recipe.get("sessions_drawn"):
+        params = arm_sim_params()
+        train_files = simulate_files(params, [
+            (out / "data" / "train_random_sessions.npz", "random", scale.random_per_load, seed)],
+            spread=session_prior(params.robot.n_joints),
+            draws=scale.fold_session_draws or 4, progress=progress) + train_files[1:]
     if recipe["candidate"].startswith("paper"):
         copy_models(out / "models", dst, session_strength=strength)
     else:
@@ -284,7 +296,8 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
                 calibration_iterations=scale.fold_calibration_iterations,
                 random_per_load=scale.random_per_load, planning=scale.planning,
                 train=scale.train, finetune_samples=scale.fold_finetune_samples,
-                current_input=scale.fold_current_input),
+                current_input=scale.fold_current_input,
+                session_draws=scale.fold_session_draws),
                 seed=seed, progress=progress, real=real)
 
     sim, folds = side_by_side([

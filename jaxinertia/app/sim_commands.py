@@ -165,18 +165,22 @@ def cmd_calibrate(args) -> int:
     params = params.replace(robot=robot)
     params, info = fit_servo_friction(
         params, data, iterations=args.iterations, seed=args.seed,
-        kinetic_ratio=args.kinetic_ratio, fit_offset=args.fit_offset, progress=True,
-        programs=stream_programs())
+        kinetic_ratio=args.kinetic_ratio, fit_offset=args.fit_offset, sessions=args.sessions,
+        progress=True, programs=stream_programs())
     out = args.out
     payload = {"robot": "open_manipulator_x", "link_gravity": gravity_info,
                "servo_friction": params_to_dict(params),
                "fit": {"iterations": args.iterations, "seed": args.seed,
-                       "fit_offset": args.fit_offset,
+                       "fit_offset": args.fit_offset, "sessions": args.sessions,
                        "real_objects": sorted(p[0] for p in info["plans"]),
                        "start": str(args.start) if args.start else (
                            "datasheet" if args.real_objects else "shipped"),
                        "real": info["real"],
-                       "final_sim": info["history"][-1]["sim"]}}
+                       "final_sim": info["history"][-1]["sim"],
+                       "real_sessions": info["real_sessions"]}}
+    if info["sessions"] is not None:
+        payload["sessions"] = {**info["sessions"],
+                               "final_sim": info["history"][-1]["sessions"]}
     write_json(out, payload)
     print(f"wrote {out}")
     report = args.report
@@ -255,5 +259,11 @@ def register(sub) -> None:
                    help="after the servo and friction, fit a constant torque per joint "
                    "(unmodelled loads such as cables) to the real torque intercept at the "
                    "real PE gain (default: on)")
+    c.add_argument("--sessions", action=argparse.BooleanOptionalAction, default=False,
+                   help="each real file its own recording session: the servo's P gain and "
+                   "torque constant fitted per file, the physics shared; the file records "
+                   "each session's terms and their spread (default: off, one servo for the "
+                   "pooled files, as shipped: models trained on a per-session fit estimate "
+                   "mass worse on the real files, docs/results.md)")
     add_arm_option(c)
     c.set_defaults(func=cmd_calibrate)

@@ -18,7 +18,7 @@ from jaxinertia.arms import DEFAULT_ARM
 from jaxinertia.errors import UsageError
 from jaxinertia.samples import SampleFile, Samples, read_sample_file, write_sample_file
 from jaxinertia.sim.params import params_to_dict
-from jaxinertia.sim.randomize import DomainSpread, perturbed
+from jaxinertia.sim.randomize import DomainSpread, SessionSpread, drawn
 from jaxinertia.sim.run import ScenarioRequest, native_fields, simulate_scenarios
 from jaxinertia.sim.simulator import SimParams
 
@@ -62,14 +62,16 @@ def cached(path: Path, request: dict, make, *, only_at_rest: bool = True) -> Sam
 
 
 def simulate_files(params, wanted: list[tuple[Path, str, int | None, int]], *,
-                   spread: DomainSpread | None = None, draws: int = 4,
+                   spread: DomainSpread | SessionSpread | None = None, draws: int = 4,
                    progress: bool = True, arm=None) -> list[SampleFile]:
     """Simulates the scenarios ``(path, scenario, n, seed)`` whose files are not there yet,
     all in one stream (one compiled program, one settling tail).
 
     ``spread``: domain randomization: the samples of every file come from ``draws``
-    simulated arms drawn around ``params`` (:func:`jaxinertia.sim.randomize.perturbed`),
-    ``n / draws`` random-scenario samples each (one stream per arm). ``progress``: the
+    simulated arms drawn around ``params`` (:func:`jaxinertia.sim.randomize.drawn`: other
+    arms for a :class:`DomainSpread`, other recording sessions for a
+    :class:`SessionSpread`), ``n / draws`` random-scenario samples each (one stream per
+    arm). ``progress``: the
     stream's progress bar. ``arm``: the :class:`jaxinertia.arm.Arm` simulated (its
     workspace, planning grid and tag mount; default the OpenMANIPULATOR-X), ``params``
     its simulator."""
@@ -100,9 +102,9 @@ def simulate_files(params, wanted: list[tuple[Path, str, int | None, int]], *,
                              "simulated arms: give n, scenario 'random'")
         per_arm = []
         for r in range(draws):
-            drawn = perturbed(params, jax.random.fold_in(jax.random.key(missing[0][3]), r),
-                              spread)
-            per_arm.append(simulate_scenarios(drawn, [
+            arm_r = drawn(params, jax.random.fold_in(jax.random.key(missing[0][3]), r),
+                          spread)
+            per_arm.append(simulate_scenarios(arm_r, [
                 ScenarioRequest(scenario, -(-n // draws), None, seed + 7919 * (r + 1))
                 for _, scenario, n, seed in missing], programs=stream_programs(),
                 progress=progress, arm=arm))

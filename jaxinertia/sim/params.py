@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxinertia.arm import Arm
-from jaxinertia.errors import ConfigError
+from jaxinertia.errors import ConfigError, UsageError
 from jaxinertia.open_manipulator_x import ARM as OMX_ARM
 from jaxinertia.open_manipulator_x import (
     DEFAULT_ARMATURE,
@@ -29,7 +29,7 @@ from jaxinertia.sim.servo import ServoParams
 from jaxinertia.sim.simulator import SimParams
 
 __all__ = ["apply_servo_friction", "arm_sim_params", "datasheet_sim_params",
-           "default_sim_params", "params_to_dict"]
+           "default_sim_params", "params_to_dict", "session_params"]
 
 
 def default_sim_params(sim_fit_file: str | os.PathLike | None = None) -> SimParams:
@@ -118,6 +118,20 @@ def apply_servo_friction(params: SimParams, fit: dict) -> SimParams:
     return params.replace(robot=robot, servo=ServoParams.xm430_w350(n, **c["servo"]),
                           friction=FrictionParams.create(n, **c["friction"]),
                           torque_offset=None if offset is None else jnp.asarray(offset))
+
+
+def session_params(params: SimParams, fit: dict, name: str) -> SimParams:
+    """``params`` (a simulator fit's common servo) in the fit's recording session ``name``
+    (``calibrate --sessions``: the file's ``sessions.per_session``): each joint's P gain
+    times the session's electrical term, its torque constant times its torque term."""
+    per = {p["name"]: p for p in (fit.get("sessions") or {}).get("per_session", [])}
+    if name not in per:
+        raise UsageError(f"`name` {name!r}: the simulator fit has the recording sessions "
+                         f"{sorted(per)} (a fit made with sessions records them)")
+    sv = params.servo
+    return params.replace(servo=sv.replace(
+        p_gain=sv.p_gain * jnp.asarray(per[name]["electrical"]),
+        torque_constant=sv.torque_constant * jnp.asarray(per[name]["torque"])))
 
 
 def params_to_dict(params: SimParams) -> dict:

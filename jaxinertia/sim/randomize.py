@@ -22,8 +22,8 @@ import numpy as np
 from jaxinertia.baselines import fit_pe_law
 from jaxinertia.sim.simulator import SimParams
 
-__all__ = ["DomainSpread", "SessionSpread", "perturbed", "session_drawn", "session_spread",
-           "spread_from_samples"]
+__all__ = ["DomainSpread", "SESSION_PRIOR_REL", "SessionSpread", "drawn", "perturbed",
+           "session_drawn", "session_prior", "session_spread", "spread_from_samples"]
 
 
 @dataclass(frozen=True)
@@ -111,3 +111,30 @@ def session_drawn(params: SimParams, key: jax.Array, spread: SessionSpread, *,
     servo = sv.replace(supply_voltage=sv.supply_voltage * factor(k_el, spread.electrical_rel),
                        torque_constant=sv.torque_constant * factor(k_kt, spread.torque_rel))
     return params.replace(servo=servo)
+
+
+#: The electrical spread of a recording session assumed before any is measured, per joint
+#: (log-normal std): the supply (11.1-12 V: +-4 %) and the winding's temperature (copper,
+#: 0.39 %/K over +-20 K: +-8 %) scale the motor current and the torque per tick alike. The
+#: two real OpenMANIPULATOR-X files differ by 2.6-6 % (their spread, std over the two:
+#: 1.9-4.2 %), within it.
+SESSION_PRIOR_REL = 0.05
+
+
+def session_prior(n_joints: int, measured: SessionSpread | None = None) -> SessionSpread:
+    """The sessions a model is trained over: the electrical part at least
+    :data:`SESSION_PRIOR_REL` (or the ``measured`` spread where wider); no torque-only part
+    (a torque constant's change is invisible to the current; drawn in training it costs
+    accuracy, docs/results.md, "Sessions")."""
+    rel = np.full(n_joints, SESSION_PRIOR_REL)
+    if measured is not None:
+        rel = np.maximum(rel, np.asarray(measured.electrical_rel))
+    return SessionSpread(rel, np.zeros(n_joints))
+
+
+def drawn(params: SimParams, key: jax.Array, spread: DomainSpread | SessionSpread) -> SimParams:
+    """One simulated arm drawn around ``params``: another arm (:func:`perturbed`) or
+    another recording session of it (:func:`session_drawn`)."""
+    if isinstance(spread, SessionSpread):
+        return session_drawn(params, key, spread)
+    return perturbed(params, key, spread)
