@@ -127,6 +127,3 @@ def test_each_recording_session_gets_its_own_servo(small_lbipe_dir, stream_progr
                                np.asarray(shared.servo.p_gain) * terms[0]["electrical"])
     with pytest.raises(UsageError, match="recording sessions"):
         session_params(shared, fit, "mug")
-    # Without sessions: one servo, no session terms.
-    assert fit_servo_friction(start, data, iterations=0, log=lambda m: None,
-                              programs=stream_programs)[1]["sessions"] is None
