@@ -172,3 +172,17 @@ def test_the_recipe_is_the_lowest_mean_over_every_fold():
                               "fine-tuned on 1000 real samples")
     assert r["sessions_drawn"] is True and r["current_input"] is True
     assert r["finetune_samples"] == 1000 and len(r["scores"]) == 10
+    # Mass and COM judged apart (information only): each part's best and their mean. A
+    # candidate with the best COM but a poor mass is not the recipe, but is the COM's best.
+    for f in folds.values():
+        f["physical_current_sessions"] = {"by_strength": {"0.0": _objects(20, 5),
+                                                          "1.0": _objects(20, 5)}}
+    r = choose_recipe(folds)
+    assert r["sessions_drawn"] is True and "fine-tuned on 1000" in r["candidate"]
+    part = r["by_part"]
+    assert part["mass"]["candidate"] == r["candidate"]
+    assert part["mass"]["score"] == pytest.approx(3 / 4)
+    assert part["com"]["candidate"] == ("physical with the current input, sessions drawn, "
+                                        "simulator only")
+    assert part["com"]["score"] == pytest.approx(5 / 10)
+    assert part["score"] == pytest.approx((3 / 4 + 5 / 10) / 2) and part["score"] < r["score"]

@@ -386,4 +386,18 @@ def choose_recipe(folds: dict, method: str = "T-A") -> dict:
             "sessions_drawn": SESSIONS in name,
             "score": best, "method": method, "folds": n_folds,
             "scores": [{"candidate": k[0], "session_strength": float(k[1]), "score": v}
-                       for k, v in sorted(table.items(), key=lambda kv: kv[1])]}
+                       for k, v in sorted(table.items(), key=lambda kv: kv[1])],
+            "by_part": _by_part({k: v for k, v in scores.items() if k in table})}
+
+
+def _by_part(scores: dict[tuple[str, str], list[float]]) -> dict:
+    """Information, not a choice that is made: the best candidate for the mass and the
+    best for the COM judged apart (the ratios of :func:`choose_recipe`, mass and COM
+    alternating), and the score of an estimator that took each from its own models (mean
+    of the two), which no command builds yet."""
+    part = {}
+    for i, what in enumerate(("mass", "com")):
+        (name, s), v = min(((k, float(np.mean(r[i::2]))) for k, r in scores.items()),
+                           key=lambda kv: kv[1])
+        part[what] = {"candidate": name, "session_strength": float(s), "score": v}
+    return {**part, "score": 0.5 * (part["mass"]["score"] + part["com"]["score"])}
