@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxinertia.app.arm_options import samples_arm
+from jaxinertia.app.by_part import com_models_of, merge_answers
 from jaxinertia.app.pipeline import (
     adapt_objects,
     is_simulated,
@@ -140,7 +141,25 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
     whose COM the poses alone determine worse than that (predicted standard error at the
     estimated mass, for the floor's torque error level, else
     :data:`~jaxinertia.uncertainty.DEFAULT_TORQUE_NOISE_NM`).
+
+    A model folder that names COM models (:mod:`jaxinertia.app.by_part`) answers the mass
+    from its own models and the COM of the network methods from those.
     """
+    kw = dict(set_size=set_size, n_sets=n_sets, seed=seed, max_mass=max_mass,
+              max_com=max_com, max_com_se=max_com_se, session_strength=session_strength,
+              arm=arm)
+    out, config = _estimate(models, sample_file, **kw)
+    com = com_models_of(models, config)
+    if com is None:
+        return out
+    merged = merge_answers(out, _estimate(com, sample_file, **kw)[0])
+    merged["com_models"] = str(com)
+    return merged
+
+
+def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com, max_com_se,
+              session_strength, arm) -> tuple[dict, dict]:
+    """:func:`estimate` by one model folder: the answer and the folder's config."""
     objects, meta = objects_at_rest(sample_file, need_truth=False)
     objects = [o.without_truth() for o in objects]
     folder = load_models(models, robot=meta.get("robot"),
@@ -194,4 +213,4 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
                 f"+-{np.max(pred_se[1:]) * 1e3:.1f} mm (predicted standard error at "
                 f"{x_best[0] * 1e3:.0f} g, torque error {noise_source}), above --max-com-se "
                 f"{max_com_se * 1e3:.1f} mm: sample more varied poses (jaxinertia plan-poses)")
-    return out
+    return out, folder.config

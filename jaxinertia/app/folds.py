@@ -378,26 +378,31 @@ def choose_recipe(folds: dict, method: str = "T-A") -> dict:
     table = {k: float(np.mean(v)) for k, v in scores.items()
              if len(v) == 2 * sum(len(f["held_out"]) for f in folds.values())}
     (name, strength), best = min(table.items(), key=lambda kv: kv[1])
-    finetune = None
-    if "fine-tuned on" in name:
-        finetune = int(name.split("fine-tuned on ")[1].split()[0])
-    return {"candidate": name, "session_strength": float(strength),
-            "finetune_samples": finetune, "current_input": name.startswith(CURRENT),
-            "sessions_drawn": SESSIONS in name,
-            "score": best, "method": method, "folds": n_folds,
+    return {**_recipe(name, strength), "score": best, "method": method, "folds": n_folds,
             "scores": [{"candidate": k[0], "session_strength": float(k[1]), "score": v}
                        for k, v in sorted(table.items(), key=lambda kv: kv[1])],
             "by_part": _by_part({k: v for k, v in scores.items() if k in table})}
 
 
+def _recipe(name: str, strength) -> dict:
+    """A candidate's name and strength as the recipe that ``reproduce`` follows."""
+    finetune = None
+    if "fine-tuned on" in name:
+        finetune = int(name.split("fine-tuned on ")[1].split()[0])
+    return {"candidate": name, "session_strength": float(strength),
+            "finetune_samples": finetune, "current_input": name.startswith(CURRENT),
+            "sessions_drawn": SESSIONS in name}
+
+
 def _by_part(scores: dict[tuple[str, str], list[float]]) -> dict:
-    """Information, not a choice that is made: the best candidate for the mass and the
-    best for the COM judged apart (the ratios of :func:`choose_recipe`, mass and COM
-    alternating), and the score of an estimator that took each from its own models (mean
-    of the two), which no command builds yet."""
+    """The best candidate for the mass and the best for the COM, judged apart (the ratios
+    of :func:`choose_recipe`, mass and COM alternating), and the score of the estimator
+    that takes each part from its own models (:mod:`jaxinertia.app.by_part`): the mean of
+    the two, exactly what the folds give that estimator (its mass metrics are the mass
+    candidate's, its COM metrics the COM candidate's, on the same sets)."""
     part = {}
     for i, what in enumerate(("mass", "com")):
         (name, s), v = min(((k, float(np.mean(r[i::2]))) for k, r in scores.items()),
                            key=lambda kv: kv[1])
-        part[what] = {"candidate": name, "session_strength": float(s), "score": v}
+        part[what] = {**_recipe(name, s), "score": v}
     return {**part, "score": 0.5 * (part["mass"]["score"] + part["com"]["score"])}

@@ -20,6 +20,7 @@ import jax
 import numpy as np
 
 from jaxinertia.app.arm_options import LBIPE_ARM, samples_arm
+from jaxinertia.app.by_part import com_models_of, merge_evaluations
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import load_models, save_models
 from jaxinertia.errors import FileFormatError, UsageError
@@ -284,16 +285,23 @@ def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
                     simulated: bool = False, arm: str | None = None) -> dict:
     """A model folder (its pairs and baselines) on known objects over the given sets, each
     object read in the folder's session (``simulated``: objects the simulator made, read in
-    its session; ``session_strength``: override, 0 = off)."""
+    its session; ``session_strength``: override, 0 = off). A folder that names COM models
+    (:mod:`jaxinertia.app.by_part`) is judged with the network methods' COM from those."""
     folder = load_models(models, robot=robot, arm=arm)
-    objects, ratios = adapt_objects(objects, session_reference(folder.config, session_strength,
+    adapted, ratios = adapt_objects(objects, session_reference(folder.config, session_strength,
                                                                simulated=simulated))
     t = time.perf_counter()
-    res = evaluate(objects, sets, pair=folder.pair, baselines=folder.baselines,
+    res = evaluate(adapted, sets, pair=folder.pair, baselines=folder.baselines,
                    fc=folder.features, l_max=l_max)
+    com = com_models_of(models, folder.config)
+    if com is not None:
+        res = merge_evaluations(res, evaluate_models(
+            com, objects, sets, l_max=l_max, robot=robot, session_strength=session_strength,
+            simulated=simulated, arm=arm))
+        res["com_models"] = str(com)
     res["wall_time_s"] = time.perf_counter() - t
     res["config"] = folder.config
-    res["session_ratio"] = {o.name: r for o, r in zip(objects, ratios)}
+    res["session_ratio"] = {o.name: r for o, r in zip(adapted, ratios)}
     return res
 
 

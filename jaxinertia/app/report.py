@@ -179,10 +179,17 @@ def recipe_table(recipe: dict) -> str:
     """The candidates for a new object's models, ranked by their held-out score."""
     rows = [[c["candidate"], "yes" if c["session_strength"] > 0 else "no", f"{c['score']:.3f}"]
             for c in recipe["scores"]]
+    part = recipe.get("by_part")
+    apart = ("" if not part else
+             f". Judged apart, the mass is best from {part['mass']['candidate']} (session "
+             f"strength {part['mass']['session_strength']:g}, mass score "
+             f"{part['mass']['score']:.3f}) and the COM from {part['com']['candidate']} "
+             f"(strength {part['com']['session_strength']:g}, COM score "
+             f"{part['com']['score']:.3f}): {part['score']:.3f} for both")
     return render(f"Recipes ranked on the held-out sessions ({recipe['method']} mass and COM "
                   "NMAE over the released models', mean of every fold; lower is better). "
-                  f"Chosen: {recipe['candidate']}, session adaptation "
-                  f"{'on' if recipe['session_strength'] > 0 else 'off'}",
+                  f"Best single candidate: {recipe['candidate']}, session adaptation "
+                  f"{'on' if recipe['session_strength'] > 0 else 'off'}{apart}",
                   ["candidate", "session adaptation", "score"], rows, n_left=2)
 
 
@@ -268,9 +275,14 @@ def _new_object_section(ft: dict | None) -> list[str]:
     recipe = ft["recipe"]
     used = ("" if ft["samples"] is None else f" on {ft['samples']['train']} + "
             f"{ft['samples']['validation']} (validation) real samples of {names}")
+    com = recipe.get("com")
+    com_text = ("" if not com else
+                f"; the COM of T and T-A from `{ft['models']}/com`: {com['candidate']}, "
+                f"session adaptation {'on' if com['session_strength'] > 0 else 'off'}")
     return ["## Models for a new real object", "",
             f"`{ft['models']}`: {recipe['candidate']}{used}, session adaptation "
-            f"{'on' if recipe['session_strength'] > 0 else 'off'}; the recipe was chosen by "
+            f"{'on' if recipe['session_strength'] > 0 else 'off'}{com_text}; the recipe was "
+            "chosen by "
             f"{recipe.get('chosen_by', 'the held-out folds')} (table in the held-out section). "
             "Use it (`jaxinertia estimate --models ...`) on objects none of the models saw; "
             "how well such models do on an object they did not see is what the held-out "

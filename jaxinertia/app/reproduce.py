@@ -24,6 +24,7 @@ from pathlib import Path
 import jax
 
 from jaxinertia.app import plots
+from jaxinertia.app.by_part import attach_com_models
 from jaxinertia.app.folds import FoldScale, run_folds
 from jaxinertia.app.pipeline import (
     RealData,
@@ -88,6 +89,9 @@ class Scale:
     #: With ``fold_current_input``: also the current-input candidates trained on this many
     #: drawn recording sessions (``FoldScale.session_draws``; 0: left out).
     fold_session_draws: int = 0
+    #: ``models_real`` takes the mass and the COM each from the candidate the folds judge
+    #: best for it, where those differ (:mod:`jaxinertia.app.by_part`).
+    recipe_by_part: bool = True
 
 
 QUICK = Scale(planning=False, random_per_load=800, test_per_object=300,
@@ -174,17 +178,50 @@ def sim_fit_session(real: RealData | None) -> ServoSession | None:
     return servo_session(used) if used else None
 
 
+def _recipe_of(folds: dict | None, scale: Scale) -> dict:
+    """The recipe of ``models_real``: the folds' best candidate, or, with
+    ``scale.recipe_by_part`` and where the folds' best for the mass and for the COM differ,
+    the mass's with the COM's under ``com`` (:mod:`jaxinertia.app.by_part`)."""
+    if not folds:
+        return DEFAULT_RECIPE
+    best, part = folds["recipe"], folds["recipe"]["by_part"]
+    if not scale.recipe_by_part or part["score"] >= best["score"] or all(
+            part["mass"][k] == part["com"][k] for k in ("candidate", "session_strength")):
+        return {**best, "chosen_by": "held-out folds"}
+    return {**part["mass"], "com": part["com"], "score": part["score"],
+            "single_model_recipe": {k: v for k, v in best.items() if k not in ("scores",
+                                                                               "by_part")},
+            "chosen_by": "held-out folds, mass and COM judged apart"}
+
+
 def _models_real(out: Path, train_files: list[Path], real: RealData, scale: Scale,
                  recipe: dict, seed: int, progress: bool,
                  session: ServoSession | None) -> dict:
     """``out/models_real``, the models for a new real object, made as ``recipe`` says (the
-    held-out folds' choice): the run's simulator-trained paper models, the physical model
-    trained on the simulated files (the random scenario's drawn over recording sessions
-    when the recipe says so), or that model's servo part fine-tuned on every real file of
-    the folder; the session strength the recipe chose. Evaluated on those files (not held
-    out)."""
-    strength = float(recipe["session_strength"])
+    held-out folds' choice; with the COM's recipe under ``com``, its models in
+    ``models_real/com``, the COM's source, :mod:`jaxinertia.app.by_part`). Evaluated on
+    the real files (not held out)."""
     dst = out / "models_real"
+    info = _make_models(out, dst, train_files, real, scale, recipe, seed, progress, session)
+    if recipe.get("com"):
+        _make_models(out, dst / "com", train_files, real, scale, recipe["com"], seed,
+                     progress, session)
+        attach_com_models(dst, "com")
+    res = evaluate_models(dst, real.objects, real.sets, l_max=real.l_max)
+    return {"objects": res["objects"], "files": [str(f.path) for f in real.files],
+            "samples": None if info is None else info["samples"], "models": str(dst),
+            "recipe": recipe, "session_ratio": res["session_ratio"]}
+
+
+def _make_models(out: Path, dst: Path, train_files: list[Path], real: RealData,
+                 scale: Scale, recipe: dict, seed: int, progress: bool,
+                 session: ServoSession | None) -> dict | None:
+    """One model folder at ``dst`` as ``recipe`` says: the run's simulator-trained paper
+    models, the physical model trained on the simulated files (the random scenario's drawn
+    over recording sessions when the recipe says so), or that model's servo part
+    fine-tuned on every real file of the folder; the session strength the recipe chose.
+    Returns the fine-tuning's record (None without one)."""
+    strength = float(recipe["session_strength"])
     info = None
     if recipe.get("sessions_drawn"):
         params = arm_sim_params()
@@ -210,10 +247,7 @@ def _models_real(out: Path, train_files: list[Path], real: RealData, scale: Scal
                          TrainConfig(**FINETUNE_DEFAULTS, seed=seed, trainable="servo",
                                      session_strength=strength),
                          overwrite=True, progress=progress, init=start, samples_per_object=n)
-    res = evaluate_models(dst, real.objects, real.sets, l_max=real.l_max)
-    return {"objects": res["objects"], "files": [str(f.path) for f in real.files],
-            "samples": None if info is None else info["samples"], "models": str(dst),
-            "recipe": recipe, "session_ratio": res["session_ratio"]}
+    return info
 
 
 def plot_interval_width(cal: dict, path: Path, title: str, method: str = "T-A") -> Path:
@@ -305,8 +339,7 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
                 progress, stage), held_out])
     real_ft = None
     if real is not None and scale.real_finetune_samples > 0:
-        recipe = ({**folds["recipe"], "chosen_by": "held-out folds"} if folds
-                  else DEFAULT_RECIPE)
+        recipe = _recipe_of(folds, scale)
         with stage("models for a new real object"):
             real_ft = _models_real(out, sim["train_files"], real, scale, recipe, seed,
                                    progress, sim["session"])
