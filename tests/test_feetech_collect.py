@@ -7,8 +7,9 @@ collect --arm so101`` through the Feetech driver (interrupted, then resumed), an
 What is asserted, each able to fail:
 
 * the vendor SDK (scservo_sdk) pings all six servos as STS3215s (model 777);
-* the collection, interrupted after three samples and resumed, holds every planned goal
-  and direction once, in plan order, at rest, with no false alarm on the faulty bus;
+* the collection, interrupted after two samples and resumed, holds every planned goal
+  and direction once, in plan order, at rest; the injected faults were met and retried,
+  with no false alarm;
 * **physics through the STS registers**: each joint's Present Current is the position
   loop's output for the tick error it rests at (the servo law of the simulated STS3215 at
   rest: ``k_tick * (q_d - q)``, within the reading's noise), so the sign-magnitude
@@ -22,6 +23,15 @@ What is asserted, each able to fail:
   mass and COM, and a model folder of another arm is refused in one line.
 
 Limits are generous (a busy host): waits are for conditions, never sleeps of a set length.
+
+Its cost is kept down (the suite's time is mostly compiling): the commands run in this
+process (``main()``), and a plan of 4 poses shares its programs with the suite's other
+5-joint tests, in the session's compilation cache (``tests/conftest.py`` runs them first):
+plan-poses with ``test_arms``, and the physics of the virtual robot's subprocess (the
+Koch's and the SO-101's are one program) and the collected file's statics with
+``test_hardware_koch``. The untrained networks are drawn in numpy, not initialised by
+Flax (whose one-by-one operations compile ~2 s).
+
 The protocol and driver on the bus model (no simulator) are ``test_feetech_bus`` and
 ``test_feetech_driver``.
 """
@@ -32,7 +42,6 @@ import json
 import sys
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 from scservo_sdk import COMM_SUCCESS
@@ -47,7 +56,7 @@ from jaxinertia.estimation import ModelPair
 from jaxinertia.features import FeatureConfig
 from jaxinertia.hardware import collect
 from jaxinertia.hardware.feetech import FeetechArm, feetech_config
-from jaxinertia.networks import AttentionModel, TorqueModel
+from jaxinertia.networks import AttentionModel, TorqueModel, parameter_shapes
 from jaxinertia.samples import load_native
 from jaxinertia.sim.params import arm_sim_params
 from jaxinertia.virtual.testing import VirtualRobotProcess
@@ -55,28 +64,38 @@ from jaxinertia.virtual.testing import VirtualRobotProcess
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
                                 reason="the virtual servo bus needs a Linux pseudo-terminal")
 
-N_POSES = 8
-AFTER = 3  # samples before the interrupt
-FAULTS = ["--drop-rate", "0.01", "--corrupt-rate", "0.01", "--delay-rate", "0.01",
+#: The plan's poses: as many as test_arms plans for the SO-101 (one set of plan-poses
+#: programs), and as many samples as test_hardware_koch collects on the Koch, another
+#: 5-joint arm (one statics program for the collected file).
+N_POSES = 4
+AFTER = 2  # samples before the interrupt
+#: Faults on the bus (each costs the collection ~70 ms of a quiet bus and a retry): about
+#: 15 are met, all retried.
+FAULTS = ["--drop-rate", "0.003", "--corrupt-rate", "0.003", "--delay-rate", "0.003",
           "--delay-ms", "50", "--fault-seed", "4"]
 TICK = 2 * np.pi / 4096
 
 
-def so101_models(folder, samples, arm: str):
-    """A model folder of ``arm`` for 5-joint samples: one untrained network pair and the
-    baselines fitted to ``samples`` (with their truth)."""
-    n = samples.n_joints
+def untrained_folder(samples):
+    """What a model folder for 5-joint ``samples`` holds: one untrained network pair
+    (weights drawn as Flax initialises them, kernels N(0, 1/fan_in) and zero biases, in
+    numpy: nothing compiled for a network that is never trained), the baselines fitted to
+    ``samples`` (with their truth) and a feature configuration around them."""
+    n, rng = samples.n_joints, np.random.default_rng(0)
+
+    def weights(model):
+        return jax.tree.map(lambda a: (rng.normal(size=a.shape) / np.sqrt(a.shape[-2])
+                                       if a.ndim > 2 else np.zeros(a.shape)).astype(a.dtype),
+                            parameter_shapes(model, n, n_models=1))
+
     tm, am = TorqueModel(n_joints=n), AttentionModel(n_joints=n)
-    feats = jnp.zeros((1, n, 4), jnp.float32)
-    key = jax.random.split(jax.random.key(0), 1)
-    pair = ModelPair(torque_vars=jax.vmap(lambda k: tm.init(k, feats))(key),
-                     attention_vars=jax.vmap(lambda k: am.init(k, feats))(key),
-                     tau_scale=jnp.ones(n, jnp.float32), torque_model=tm, attention_model=am)
+    pair = ModelPair(torque_vars=weights(tm), attention_vars=weights(am),
+                     tau_scale=np.ones(n, np.float32), torque_model=tm, attention_model=am)
     fc = FeatureConfig.create(samples.q.min(0) - 0.1, samples.q.max(0) + 0.1,
                               np.full(n, 0.05), np.ones(n))
     b = fit_baselines(samples.q_d, samples.q, samples.direction, samples.current_tau,
                       samples.tau)
-    return save_models(folder, pair, b, fc, robot=arm, arm=arm)
+    return pair, b, fc
 
 
 def test_so101_plan_virtual_robot_collect_and_estimate(tmp_path, monkeypatch, capsys):
@@ -117,6 +136,7 @@ def test_so101_plan_virtual_robot_collect_and_estimate(tmp_path, monkeypatch, ca
         assert main([*argv, "--resume"]) == 0, capsys.readouterr().err
         err = capsys.readouterr().err
     assert "hardware error" not in err and " 0 unconfirmed hardware-error readings" in err, err
+    assert int(err.split("bus: ")[1].split()[0]) > 0, "the injected faults met and retried"
     print(err)
     assert journal_indices(out) == list(range(N_POSES)), "each sample exactly once"
     s, meta = load_native(out, only_at_rest=False)
@@ -152,7 +172,8 @@ def test_so101_plan_virtual_robot_collect_and_estimate(tmp_path, monkeypatch, ca
     assert (slack <= 2e-3).all(), f"off the sticking band by {slack.max():.4f} N m"
 
     # estimate on the collected file, with a model folder of the SO-101 ...
-    models = so101_models(tmp_path / "models", s, "so101")
+    folder = untrained_folder(s)
+    models = save_models(tmp_path / "models", *folder, robot="so101", arm="so101")
     capsys.readouterr()
     result = tmp_path / "estimate.json"
     assert main(["estimate", "--models", str(models), "--samples", str(out),
@@ -166,6 +187,6 @@ def test_so101_plan_virtual_robot_collect_and_estimate(tmp_path, monkeypatch, ca
         assert 0 < r["mass_kg"] <= 5 and np.isfinite(r["com_tag_m"]).all() and len(
             r["com_tag_m"]) == 3
     # ... and not with another arm's.
-    other = so101_models(tmp_path / "koch", s, "koch_v1_1")
+    other = save_models(tmp_path / "koch", *folder, robot="koch_v1_1", arm="koch_v1_1")
     assert main(["estimate", "--models", str(other), "--samples", str(out)]) == 2
     assert "koch_v1_1" in capsys.readouterr().err
