@@ -59,6 +59,7 @@ from jaxinertia.identification import (
 )
 from jaxinertia.linalg import cholesky_solve
 from jaxinertia.samples import Samples
+from jaxinertia.sharding import shard
 
 __all__ = [
     "DEFAULT_TORQUE_NOISE_NM",
@@ -357,6 +358,10 @@ def uncertainty_of(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
     if pair is not None and fc is None:
         raise UsageError("the models' uncertainty needs their feature configuration")
     batch = stack(objects, sets, fc if pair is not None else None)
+    # The sets split over the local devices as evaluate() splits them: the same programs
+    # (estimate_sets, identity_solves) serve both, compiled once (``jaxinertia estimate``
+    # calls both on the same sets).
+    batch = batch._replace(sets=shard(batch.sets, axis=1))
     n_joints = batch.A.shape[2]
     none = jnp.zeros(n_joints, batch.A.dtype)
     out: dict[str, SetUncertainty] = {}

@@ -94,7 +94,13 @@ LONGEST_FIRST = ("test_folds.py",  # 81 s
                  "test_design.py",  # 16 s
                  "test_hardware_protocol.py",  # 12 s
                  "test_sim_batched.py",  # 12 s
-                 "test_identification.py")  # 10 s
+                 "test_identification.py",  # 10 s
+                 # The SO-101's end to end (test_feetech_collect) finds its programs in the
+                 # session's cache when these two ran before it: the Koch's (another
+                 # 5-joint arm) physics and statics, test_arms's plan-poses --arm so101.
+                 "test_hardware_koch.py",  # 11 s
+                 "test_arms.py",  # 2 s
+                 "test_feetech_collect.py")  # 20 s
 
 
 def pytest_collection_modifyitems(config, items):  # noqa: ARG001

@@ -18,7 +18,7 @@ if TYPE_CHECKING:
     from jaxinertia.arm import Arm
 
 __all__ = ["LBIPE_ARM", "add_arm_option", "arm_name", "arm_of", "bus_arm_options",
-           "dynamixel_arm_options", "lbipe_arm_only", "samples_arm"]
+           "lbipe_arm_only", "samples_arm"]
 
 #: The arm of the authors' real files (the lbipe folder).
 LBIPE_ARM = DEFAULT_ARM
@@ -60,15 +60,6 @@ def lbipe_arm_only(args, what: str) -> None:
     if args.arm is not None and arm_of(args).name != LBIPE_ARM:
         raise UsageError(f"--arm {args.arm}: {what} the real lbipe files, which are the "
                          f"{LBIPE_ARM}'s")
-
-
-def dynamixel_arm_options(args):
-    """:func:`bus_arm_options` of a DYNAMIXEL arm only (the simulated virtual robot)."""
-    arm = arm_of(args)
-    if arm.bus != "dynamixel2":
-        raise UsageError(f"--arm {args.arm}: its servos speak {arm.bus}; this command drives "
-                         "DYNAMIXEL (Protocol 2.0) servos only")
-    return bus_arm_options(args)
 
 
 def bus_arm_options(args):

@@ -46,8 +46,8 @@ COMMANDS = {
     "estimate": ("estimate_commands", "mass and COM of an unknown object from a sample file"),
     "plan-poses": ("estimate_commands", "choose the N most informative poses (D-optimal) for "
                    "an estimate"),
-    "virtual-robot": ("hardware_commands", "a simulated chain of DYNAMIXEL servos on a "
-                      "pseudo-terminal"),
+    "virtual-robot": ("hardware_commands", "the simulated arm's servos (DYNAMIXEL, or Feetech "
+                      "STS) on a pseudo-terminal"),
     "collect": ("hardware_commands", "collect samples on the arm (or a virtual robot) into a "
                 "native sample file"),
     "tag-image": ("vision_commands", "write an official AprilTag image to print"),

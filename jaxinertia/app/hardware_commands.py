@@ -11,9 +11,11 @@ disappears; a collection stopped by the bus or a servo: the journal is kept and
 collection is not an error: the command says where the journal is and returns 130.
 
 One module for both: they share the bus options, the arm record's defaults for them
-(``arm_options.bus_arm_options``) and the serving loop; the Feetech bus is served
-from ``feetech_commands``. ``collect`` drives whatever bus the arm record names
-(``hardware.drivers``).
+(``arm_options.bus_arm_options``) and the serving loop. Both serve whatever bus the arm
+record names: ``virtual-robot`` answers as its servos (DYNAMIXEL Protocol 2.0,
+:class:`jaxinertia.virtual.robot.VirtualServoBus`; Feetech STS for the SO-101,
+:class:`jaxinertia.virtual.sts_robot.VirtualStsBus`), the simulated arm holding
+``--object`` behind them; ``collect`` drives the arm's driver (``hardware.drivers``).
 """
 
 from __future__ import annotations
@@ -28,9 +30,7 @@ from typing import TYPE_CHECKING
 from jaxinertia.app import defaults
 from jaxinertia.app.arm_options import (
     add_arm_option,
-    arm_of,
     bus_arm_options,
-    dynamixel_arm_options,
 )
 from jaxinertia.app.options import (
     check_memory,
@@ -127,32 +127,31 @@ def cmd_virtual_robot(args) -> int:
     import numpy as np  # (as above)
 
     from jaxinertia import objects  # (as above)
-    from jaxinertia.app.feetech_commands import virtual_sts_robot  # (as above)
     from jaxinertia.servos import servo_model  # (as above)
     from jaxinertia.sim.params import arm_sim_params  # (as above)
     from jaxinertia.virtual.bus import Faults  # (as above)
     from jaxinertia.virtual.robot import VirtualServoBus  # (as above)
+    from jaxinertia.virtual.sts_robot import VirtualStsBus  # (as above)
 
     jax.config.update("jax_enable_x64", True)
     faults = Faults(drop_rate=args.drop_rate, corrupt_rate=args.corrupt_rate,
                     delay_rate=args.delay_rate, delay_s=args.delay_ms / 1000.0,
                     overload_id=args.overload_id, overload_after=args.overload_after,
                     seed=args.fault_seed)
-    if arm_of(args).bus == "feetech_sts":  # the arm record names the servo family
-        return virtual_sts_robot(args, arm_of(args), faults, _serve)
-    arm = dynamixel_arm_options(args)
+    arm = bus_arm_options(args)
     obj = objects.resolve(args.object, tag_in_ee=arm.tag_in_ee)
     params = arm_sim_params(arm, args.calibration)
     _check_ids(args, params.robot.n_joints)
     gripper = () if args.gripper_id is None else (arm.gripper_servo or arm.servos[0],)
+    # The arm record names its servos' protocol: DYNAMIXEL Protocol 2.0 or Feetech STS.
+    bus_class = {"dynamixel2": VirtualServoBus, "feetech_sts": VirtualStsBus}[arm.bus]
     # Each servo answers as its model (the Koch's XL430s with Present Load); each joint's
     # simulated gain belongs to its P register (the arm's, or the servo model's).
-    bus = VirtualServoBus(params, obj, ids=args.ids,
-                          extra_ids=() if args.gripper_id is None else (args.gripper_id,),
-                          q0=np.radians(args.q0), speed=args.speed, faults=faults,
-                          seed=args.seed,
-                          servo_models=[servo_model(m) for m in (*arm.servos, *gripper)],
-                          gain_registers=[g[0] for g in arm.joint_gains])
+    bus = bus_class(params, obj, ids=args.ids,
+                    extra_ids=() if args.gripper_id is None else (args.gripper_id,),
+                    q0=np.radians(args.q0), speed=args.speed, faults=faults, seed=args.seed,
+                    servo_models=[servo_model(m) for m in (*arm.servos, *gripper)],
+                    gain_registers=[g[0] for g in arm.joint_gains])
     bus.compile()  # every physics path, so that no reply waits on a compilation
     return _serve(bus, f"virtual {arm.name} servos {list(bus.servos)} on {bus.path}, object "
                        f"{args.object}, {args.speed:g}x real time")
@@ -351,13 +350,13 @@ def register(sub) -> None:
 def _register_virtual_robot(sub, names: str) -> None:
     v = sub.add_parser(
         "virtual-robot",
-        help="a simulated chain of DYNAMIXEL servos on a pseudo-terminal",
+        help="the simulated arm's servos (DYNAMIXEL, or Feetech STS) on a pseudo-terminal",
         description="Opens a pseudo-terminal, prints its path as the first line of stdout "
         "and answers there as the arm's servos (DYNAMIXEL Protocol 2.0, each servo its "
         "model's control table; Feetech STS for the SO-101) whose joints are the simulated "
         "arm (default: the OpenMANIPULATOR-X). Runs until SIGTERM or Ctrl-C.",
     )
-    add_arm_option(v)  # Feetech servos (so101) are served by the STS bus model
+    add_arm_option(v)  # Feetech STS servos for the so101, DYNAMIXEL for the others
     v.add_argument("--object", default="none",
                    help=f"held object: {names} (none: the empty gripper)")
     v.add_argument("--speed", type=positive_float, default=1.0,

@@ -49,10 +49,6 @@ from jaxinertia.robot import Robot
 
 __all__ = ["FeetechArm", "FeetechState", "StsHardwareError", "feetech_config"]
 
-#: Acceleration register unit [ticks/s^2] (Feetech STS manual: 100 steps/s^2; LeRobot
-#: writes 254, the largest); 0 would mean the servo's own default.
-ACCELERATION_LSB = 100.0 * ft.RAD_PER_TICK  # [rad/s^2]
-
 
 class StsHardwareError(ServoHardwareError):
     """A servo's Status (65) reports a protection stop (exit code 3)."""
@@ -155,7 +151,7 @@ class FeetechArm(DynamixelArm):
         self._write_all("goal_velocity",
                         max(1, round(c.profile_velocity / ft.VELOCITY_LSB)))
         self._write_all("acceleration",
-                        min(254, max(1, round(c.profile_acceleration / ACCELERATION_LSB))))
+                        min(254, max(1, round(c.profile_acceleration / ft.ACCELERATION_LSB))))
         self._write_goals(self.read_state().ticks)  # hold where it is
         self._write_all("torque_enable", 1)
 

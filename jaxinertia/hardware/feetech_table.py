@@ -17,7 +17,7 @@ Units (converted to SI here and nowhere else):
 
 * position: 4096 ticks per turn (12-bit magnetic encoder); 2048 = 0 rad, the middle of the
   range, which is LeRobot's calibration convention for the SO-101 (``arms.SO101``);
-* speed: ticks per second (Feetech: 50 steps/s = 0.732 rev/min);
+* speed: ticks per second (Feetech: 50 steps/s = 0.732 rev/min); acceleration: 100 ticks/s^2;
 * load: 0.1 % of the maximum torque (0..1000);
 * current: 6.5 mA per LSB (the STS memory table's unit for Protection Current (28) and
   Present Current (69), as ``servos.STS3215_7V4.sensed_lsb`` records it);
@@ -55,6 +55,9 @@ TICKS_PER_REV = 4096
 ZERO_TICKS = 2048
 RAD_PER_TICK = 2.0 * math.pi / TICKS_PER_REV
 VELOCITY_LSB = RAD_PER_TICK  # [rad/s] per tick/s
+#: Acceleration (41) unit [rad/s^2] (Feetech STS manual: 100 steps/s^2; LeRobot writes 254,
+#: the largest); 0 means the servo's own default.
+ACCELERATION_LSB = 100.0 * RAD_PER_TICK
 LOAD_LSB = 1e-3  # fraction of the maximum torque
 CURRENT_LSB_A = 6.5e-3  # [A]
 VOLTAGE_LSB = 0.1  # [V]

@@ -18,6 +18,9 @@ never waits for the interpreter while the physics computes.
 Fault injection (:class:`Faults`): dropped, CRC-corrupted or delayed status packets, and
 an overload (Hardware Error Status bit 5, alert bit in every status packet, torque off)
 after a number of Goal Position writes to one servo.
+
+One module: the servo's memory, its access rules and the bus that answers from it are one
+protocol's (another protocol's bus, :mod:`jaxinertia.virtual.sts_bus`, derives from it).
 """
 
 from __future__ import annotations
@@ -69,8 +72,10 @@ class ServoMemory:
     with the factory defaults; False: attached as it is). ``model``: its model number
     (the control table's layout and initial values, :func:`control_table.items_of`)."""
 
+    default_model = ct.XM430_W350_MODEL
+
     def __init__(self, dxl_id: int, table=None, *, reset: bool = True,
-                 model: int = ct.XM430_W350_MODEL) -> None:
+                 model: int = default_model) -> None:
         self.items = ct.items_of(model)
         self.table = bytearray(TABLE_SIZE) if table is None else table
         if reset:
@@ -181,7 +186,19 @@ class ServoBus:
     def _set_ambient(self, temperature: int, input_voltage: float) -> None:
         for mem in self.servos.values():
             mem.set("present_temperature", temperature)
-            mem.set("present_input_voltage", round(input_voltage / ct.VOLTAGE_LSB))
+            self._set_supply(mem, input_voltage)
+
+    @staticmethod
+    def _set_supply(mem: ServoMemory, volts: float) -> None:
+        """A servo's Present Input Voltage [V]."""
+        mem.set("present_input_voltage", round(volts / ct.VOLTAGE_LSB))
+
+    @staticmethod
+    def _mark_moving(mem: ServoMemory) -> None:
+        """A servo whose goal was just written reports moving (Moving, and the profile bit
+        of Moving Status) until its motion says otherwise."""
+        mem.set("moving", 1)
+        mem.set("moving_status", mem.get("moving_status") | 0x02)
 
     # ---- what the joints do (a subclass moves them) -----------------------------------
 

@@ -30,7 +30,10 @@ the object is fused into the end-effector body, the friction bound of each joint
 scaled by a fresh log-normal draw (``friction.jitter``) whenever its goal changes (the
 simulator draws one per sample), and Present Current carries ``servo.current_noise``.
 
-Registers map onto the simulator's parameters: Position P/I/D Gain and PWM Limit onto
+Registers map onto the simulator's parameters (:class:`DxlRegisterMap` for a DYNAMIXEL X
+servo, as below; :class:`jaxinertia.virtual.sts_robot.StsRegisterMap` for the STS3215,
+whose I and D registers weigh :func:`loop_ratios` against its P): Position P/I/D Gain and
+PWM Limit onto
 ``ServoParams`` (the gains through the ratio ``sim p_gain / P register`` per joint, the P
 register the simulator's gain belongs to: the OpenMANIPULATOR-X's factory 800, whose
 ratio carries the calibrated PWM-to-torque scale; 1 for a servo simulated from its
@@ -51,6 +54,7 @@ import traceback
 from dataclasses import dataclass
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxinertia import _xla_workarounds, compilation_cache
@@ -60,31 +64,73 @@ from jaxinertia.sim.simulator import SimParams, SimState, step, trapezoid
 from jaxinertia.virtual.bus import ServoMemory, table_views
 from jaxinertia.xm430 import PWM_FULL_SCALE
 
-__all__ = ["REGISTERS", "ArmPhysics", "PhysicsLoop", "PhysicsSpec", "Present", "gain_scale",
-           "physics_main", "publish", "servo_from_registers"]
+__all__ = ["REGISTERS", "ArmPhysics", "DxlRegisterMap", "PhysicsLoop", "PhysicsSpec", "Present",
+           "gain_scale", "loop_ratios", "physics_main", "publish", "servo_from_registers"]
 
 #: Profile register 0 means "no profile": a step goal. Stand-ins that the trapezoid takes.
 _UNLIMITED_VELOCITY = 1e6  # [rad/s]
 _UNLIMITED_ACCELERATION = 1e9  # [rad/s^2]
-#: The registers each chunk reads, in this order (rows of the register array).
+#: The registers each chunk reads from a DYNAMIXEL X servo, in this order (the rows of the
+#: register array: :meth:`DxlRegisterMap.registers`).
 REGISTERS = ("position_p_gain", "position_i_gain", "position_d_gain", "pwm_limit",
               "profile_velocity", "profile_acceleration")
 
 
 def servo_from_registers(base: ServoParams, gain_scale, registers) -> ServoParams:
-    """ServoParams of the register rows (P, I, D gains through the calibrated ratio, PWM
-    limit)."""
-    return base.replace(p_gain=registers[0] * gain_scale, i_gain=registers[1] * gain_scale,
-                        d_gain=registers[2] * gain_scale, pwm_limit=registers[3])
+    """ServoParams of the register rows (P, I, D gains through the calibrated ratios
+    ``gain_scale``, (3, N) or (N,) shared by the three; PWM limit on the simulator's scale)."""
+    scale = jnp.broadcast_to(gain_scale, (3, jnp.shape(registers)[1]))
+    return base.replace(p_gain=registers[0] * scale[0], i_gain=registers[1] * scale[1],
+                        d_gain=registers[2] * scale[2], pwm_limit=registers[3])
 
 
-def gain_scale(servo: ServoParams, gain_registers=None) -> np.ndarray:
-    """(N,) simulated gain per unit of P register: ``servo.p_gain / gain_registers``
-    (default: the XM430's factory P = 800, which the calibrated gains belong to)."""
+def gain_scale(servo: ServoParams, gain_registers=None, loop_ratios=None) -> np.ndarray:
+    """(3, N) simulated P, I and D gain per unit of their registers: ``servo.p_gain /
+    gain_registers`` (default: the XM430's factory P = 800, which the calibrated gains
+    belong to), times ``loop_ratios`` ((2, N): the I and D register's weight in the
+    simulator's loop against the P register's, :func:`loop_ratios`; default 1, as on the X
+    series, whose loop the simulator's is)."""
     p = np.asarray(servo.p_gain, np.float64)
     registers = (ct.ITEMS["position_p_gain"].default if gain_registers is None
                  else np.asarray(gain_registers, np.float64))
-    return p / registers
+    ratios = np.ones((2, len(p))) if loop_ratios is None else np.asarray(loop_ratios,
+                                                                          np.float64)
+    return (p / registers) * np.vstack([np.ones((1, len(p))), ratios])
+
+
+def loop_ratios(models) -> np.ndarray:
+    """(2, N) the I and D register's weight in the simulator's loop (the XM430's, KP = P/128,
+    KI = I/65536, KD = D/16) against the P register's, for servos of ``models`` (one
+    :class:`jaxinertia.servos.ServoModel` per joint): 1 on the X series; on the STS3215
+    (PWM = P e + D de + I sum(e)/65536) 1/128 for I, 1/8 for D."""
+    kp, ki, kd = (np.array([m.gain_scale[k] for m in models], np.float64) for k in range(3))
+    return np.vstack([ki * 65536.0 / (kp * 128.0), kd * 16.0 / (kp * 128.0)])
+
+
+class DxlRegisterMap:
+    """How the physics reads and writes a DYNAMIXEL X servo's control table: the servo's
+    memory (``memory``), the registers a chunk needs on the simulator's scales
+    (:meth:`registers`) and the published Present values (:meth:`publish`). One per physics
+    loop (a register map may keep state between chunks)."""
+
+    memory = ServoMemory
+    reading_lsb = ct.CURRENT_LSB_A  # [A] per LSB of the current reading (XM430)
+
+    def __init__(self, n_joints: int) -> None:
+        self.n_joints = n_joints
+
+    @staticmethod
+    def registers(servos: list) -> np.ndarray:
+        """(len(REGISTERS), N) float64: P, I, D registers, PWM limit (885 = 100 %), profile
+        velocity [rad/s] and acceleration [rad/s^2] (0: none)."""
+        r = np.array([[m.get(name) for m in servos] for name in REGISTERS], np.float64)
+        r[4] *= ct.VELOCITY_LSB
+        r[5] *= ct.ACCELERATION_LSB
+        return r
+
+    def publish(self, servos: list, p: Present, pending: np.ndarray,
+                reading_lsb=ct.CURRENT_LSB_A) -> None:
+        publish(servos, p, pending, reading_lsb)
 
 
 @jax.jit
@@ -130,15 +176,15 @@ class ArmPhysics:
     a chunk with the registers given and returns what the servos present."""
 
     def __init__(self, params: SimParams, *, q0: np.ndarray, chunk: int = 20,
-                 seed: int = 0, gain_registers=None) -> None:
+                 seed: int = 0, gain_registers=None, loop_ratios=None) -> None:
         """``params``: :func:`jaxinertia.sim.simulator.physical_params` (leaves may be numpy
         arrays); ``gain_registers``: the P register each joint's simulated gain belongs to
-        (default the XM430's factory 800)."""
+        (default the XM430's factory 800); ``loop_ratios``: :func:`gain_scale`'s."""
         n = len(q0)
         self.params = params
         # Register -> simulator gain: the calibrated effective gains belong to the factory
         # P = 800 (the calibration absorbs the PWM-to-torque scale of the real servos).
-        self.gain_scale = gain_scale(params.servo, gain_registers)
+        self.gain_scale = gain_scale(params.servo, gain_registers, loop_ratios)
         self._jitter = np.asarray(params.friction.jitter, np.float64)
         self.chunk = int(chunk)
         self.dt = float(params.dt)
@@ -188,17 +234,16 @@ class ArmPhysics:
                 self._resting = _at_rest(self.state.q)
             return self._resting, self._end.copy(), np.zeros_like(self._end)
         self._resting = None
-        v = registers[4] * ct.VELOCITY_LSB
-        a = registers[5] * ct.ACCELERATION_LSB
-        v = np.where(v > 0, v, _UNLIMITED_VELOCITY)
-        a = np.where(a > 0, a, _UNLIMITED_ACCELERATION)
+        v = np.where(registers[4] > 0, registers[4], _UNLIMITED_VELOCITY)
+        a = np.where(registers[5] > 0, registers[5], _UNLIMITED_ACCELERATION)
         times = self.sim_time + self.dt * np.arange(self.chunk)
         t_rel = times[:, None] - self._t0[None, :]
         return _advance(self.params, self.gain_scale, registers, self._friction_scale.copy(),
                         self.state, self._start.copy(), self._end.copy(), t_rel, v, a)
 
     def advance(self, registers: np.ndarray, torque: bool) -> Present:
-        """Runs ``chunk`` servo periods with ``registers`` ((len(REGISTERS), N) float64)."""
+        """Runs ``chunk`` servo periods with ``registers`` ((len(REGISTERS), N) float64, on
+        the simulator's scales: :meth:`DxlRegisterMap.registers`)."""
         state, q_goal, t_total = self._compute(registers, torque=torque)
         self.state = state = jax.block_until_ready(state)
         q = np.asarray(state.q)
@@ -251,13 +296,16 @@ class PhysicsLoop:
     """An :class:`ArmPhysics` behind the joint servos' tables: :meth:`step` applies the
     bus's news (``events``: a pipe of ``("goal" | "hold", joint, rad)``, in order), copies
     the registers under ``lock``, computes a chunk without it and publishes the chunk
-    under it. ``goal_writes`` (shared, per joint) counts the goals the bus accepted."""
+    under it. ``goal_writes`` (shared, per joint) counts the goals the bus accepted;
+    ``register_map``: how the servos' tables are read and written (a
+    :class:`DxlRegisterMap`, or the STS3215's)."""
 
-    def __init__(self, arm: ArmPhysics, servos: list[ServoMemory], lock, events,
-                 goal_writes, reading_lsb=ct.CURRENT_LSB_A) -> None:
+    def __init__(self, arm: ArmPhysics, servos: list, lock, events, goal_writes,
+                 reading_lsb=ct.CURRENT_LSB_A, register_map=None) -> None:
         self.arm, self.servos, self.lock = arm, servos, lock
         self.events, self.goal_writes = events, goal_writes
         self.reading_lsb = reading_lsb
+        self.map = DxlRegisterMap(len(servos)) if register_map is None else register_map
 
     def step(self) -> Present:
         while self.events.poll():
@@ -265,12 +313,11 @@ class PhysicsLoop:
             (self.arm.goal if kind == "goal" else self.arm.hold)(j, value)
         with self.lock:
             torque = all(m.get("torque_enable") == 1 for m in self.servos)
-            registers = np.array([[m.get(name) for m in self.servos] for name in REGISTERS],
-                                 np.float64)
+            registers = self.map.registers(self.servos)
         present = self.arm.advance(registers, torque)
         with self.lock:
             pending = np.asarray(self.goal_writes[:len(self.servos)]) != self.arm.goals_applied
-            publish(self.servos, present, pending, self.reading_lsb)
+            self.map.publish(self.servos, present, pending, self.reading_lsb)
         return present
 
     def run(self, speed: float, stop, parent_pid: int | None = None) -> None:
@@ -299,8 +346,10 @@ class PhysicsSpec:
     cache_dir: str | None
     cache_max_size: int  # the parent's cap: every writer of a cache folder needs the same
     models: tuple[int, ...] | None = None  # joint servos' model numbers (None: XM430s)
-    reading_lsb: tuple[float, ...] | None = None  # [A] per LSB of 126 (None: 2.69 mA)
+    reading_lsb: tuple[float, ...] | None = None  # [A] per LSB of the reading (None: 2.69 mA)
     gain_registers: tuple[float, ...] | None = None  # P registers (None: 800)
+    loop_ratios: tuple[tuple[float, ...], ...] | None = None  # gain_scale's (None: 1)
+    register_map: type = DxlRegisterMap  # the servos' tables, read and written
 
 
 def physics_main(spec: PhysicsSpec, tables, goal_writes, lock, events, ready, stop,
@@ -312,17 +361,18 @@ def physics_main(spec: PhysicsSpec, tables, goal_writes, lock, events, ready, st
         if spec.cache_dir:
             compilation_cache.enable(spec.cache_dir, spec.cache_max_size)
         arm = ArmPhysics(spec.params, q0=spec.q0, chunk=spec.chunk, seed=spec.seed,
-                         gain_registers=spec.gain_registers)
+                         gain_registers=spec.gain_registers, loop_ratios=spec.loop_ratios)
         arm.compile()
         n = len(spec.joint_ids)
-        models = spec.models or (ct.XM430_W350_MODEL,) * n
-        lsb = ct.CURRENT_LSB_A if spec.reading_lsb is None else spec.reading_lsb
-        servos = [ServoMemory(i, v, reset=False, model=m)
+        register_map = spec.register_map(n)
+        models = spec.models or (register_map.memory.default_model,) * n
+        lsb = register_map.reading_lsb if spec.reading_lsb is None else spec.reading_lsb
+        servos = [register_map.memory(i, v, reset=False, model=m)
                   for i, v, m in zip(spec.joint_ids, table_views(tables, n), models,
                                      strict=True)]
-        loop = PhysicsLoop(arm, servos, lock, events, goal_writes, lsb)
+        loop = PhysicsLoop(arm, servos, lock, events, goal_writes, lsb, register_map)
         with lock:
-            publish(servos, _initial(arm), np.zeros(n, bool), lsb)
+            register_map.publish(servos, _initial(arm), np.zeros(n, bool), lsb)
         gc.freeze()  # no full collection over the imported modules while holding the lock
         ready.set()
         loop.run(spec.speed, stop, parent_pid)

@@ -32,7 +32,6 @@ import jax
 import numpy as np
 
 from jaxinertia.errors import SimulationError, UsageError
-from jaxinertia.hardware.control_table import VOLTAGE_LSB
 from jaxinertia.objects import HeldObject
 from jaxinertia.open_manipulator_x import GRIPPER_ID, JOINT_IDS
 from jaxinertia.servos import ServoModel
@@ -40,9 +39,10 @@ from jaxinertia.sim.servo import ServoParams
 from jaxinertia.sim.simulator import SimParams, physical_params
 from jaxinertia.virtual.bus import TABLE_SIZE, Faults, ServoBus
 from jaxinertia.virtual.physics import (
-    REGISTERS,
+    DxlRegisterMap,
     PhysicsSpec,
     gain_scale,
+    loop_ratios,
     physics_main,
     servo_from_registers,
 )
@@ -71,7 +71,14 @@ class VirtualServoBus(ServoBus):
     extras (default: XM430-W350s): each answers with its model number and control table,
     and its joint's motor current is published in its unit (Present Current, or Present
     Load where it has no current sensor). ``gain_registers``: the P register each joint's
-    simulated gain belongs to (default: the XM430's 800, the calibrated arm's)."""
+    simulated gain belongs to (default: the XM430's 800, the calibrated arm's).
+
+    The servos' protocol is the bus class's (this one: DYNAMIXEL Protocol 2.0; a subclass
+    that also derives from another protocol's bus, such as
+    :class:`jaxinertia.virtual.sts_robot.VirtualStsBus`, speaks that one), their tables
+    as the physics reads and writes them ``register_map``'s."""
+
+    register_map = DxlRegisterMap
 
     def __init__(
         self,
@@ -106,12 +113,12 @@ class VirtualServoBus(ServoBus):
                                                                   for m in models))
         if models is not None:  # each servo at its own model's supply (XL330: 5 V)
             for i, m in zip(self.servos, models):
-                self.servos[i].set("present_input_voltage",
-                                   round(m.supply_voltage / VOLTAGE_LSB))
+                self._set_supply(self.servos[i], m.supply_voltage)
         self._ctx = ctx
         self._base_servo = params.servo
-        self._gain_scale = gain_scale(params.servo, gain_registers)
         joints = models[:n] if models is not None else None
+        ratios = None if joints is None else tuple(map(tuple, loop_ratios(joints)))
+        self._gain_scale = gain_scale(params.servo, gain_registers, ratios)
         q0 = np.zeros(n) if q0 is None else np.asarray(q0, np.float64)
         self._spec = PhysicsSpec(jax.tree.map(np.asarray, physical_params(params, obj)),
                                  tuple(ids), q0, int(chunk), int(seed), float(speed),
@@ -122,7 +129,8 @@ class VirtualServoBus(ServoBus):
                                  reading_lsb=None if joints is None else tuple(
                                      _reading_lsb(m) for m in joints),
                                  gain_registers=None if gain_registers is None else tuple(
-                                     float(g) for g in gain_registers))
+                                     float(g) for g in gain_registers),
+                                 loop_ratios=ratios, register_map=self.register_map)
         self.speed = float(speed)
         self._events_in, self._events_out = ctx.Pipe(duplex=False)
         self._ready, self._physics_stop = ctx.Event(), ctx.Event()
@@ -187,15 +195,12 @@ class VirtualServoBus(ServoBus):
         self._events_out.send(("goal", j, q_goal))
         self._shared_goal_writes[j] += 1
         # Moving from now on, until a chunk that simulates this goal is published.
-        m = self.servos[self.joint_ids[j]]
-        m.set("moving", 1)
-        m.set("moving_status", m.get("moving_status") | 0x02)
+        self._mark_moving(self.servos[self.joint_ids[j]])
 
     def _held(self, j: int, q: float) -> None:
         self._events_out.send(("hold", j, q))
 
     def _servo_params(self) -> ServoParams:
         """ServoParams from the registers of the joint servos (under the lock)."""
-        mem = [self.servos[i] for i in self.joint_ids]
-        registers = np.array([[m.get(name) for m in mem] for name in REGISTERS], np.float64)
+        registers = self.register_map.registers([self.servos[i] for i in self.joint_ids])
         return servo_from_registers(self._base_servo, self._gain_scale, registers)
