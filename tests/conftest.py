@@ -83,6 +83,10 @@ LONGEST_FIRST = ("test_folds.py",  # 81 s
                  "test_hardware_faults.py",  # 51 s
                  "test_finetune.py",  # 44 s
                  "test_dynamics.py",  # 33 s
+                 # Well before test_feetech_collect (the end): the SO-101's end to end finds
+                 # the Koch's physics and statics programs (another 5-joint arm) in the
+                 # session's cache only once this file has compiled them.
+                 "test_hardware_koch.py",  # 11 s
                  "test_sharding.py",  # 29 s
                  "test_identify.py",  # 27 s
                  "test_kinematics.py",  # 25 s
@@ -95,10 +99,8 @@ LONGEST_FIRST = ("test_folds.py",  # 81 s
                  "test_hardware_protocol.py",  # 12 s
                  "test_sim_batched.py",  # 12 s
                  "test_identification.py",  # 10 s
-                 # The SO-101's end to end (test_feetech_collect) finds its programs in the
-                 # session's cache when these two ran before it: the Koch's (another
-                 # 5-joint arm) physics and statics, test_arms's plan-poses --arm so101.
-                 "test_hardware_koch.py",  # 11 s
+                 # test_feetech_collect finds test_arms's plan-poses --arm so101 programs
+                 # in the session's cache.
                  "test_arms.py",  # 2 s
                  "test_feetech_collect.py")  # 20 s
 
