@@ -22,8 +22,9 @@ from pathlib import Path
 import jax
 
 from jaxinertia import apply_xla_workarounds
-from jaxinertia.app.folds import FoldScale, _candidates, run_folds
+from jaxinertia.app.folds import FoldScale, run_folds
 from jaxinertia.app.pipeline import load_real
+from jaxinertia.app.recipe import candidates
 from jaxinertia.app.reproduce import FULL, QUICK
 from jaxinertia.lbipe import default_lbipe_dir
 
@@ -63,10 +64,10 @@ def main():
     base = results["paper inputs"]["folds"]
     for fit, fold in base.items():
         held = fold["held_out"][0]
-        for cand, by_s in _candidates(fold).items():
+        for cand, by_s in candidates(fold).items():
             for s in by_s:
                 for name, res in results.items():
-                    o = _candidates(res["folds"][fit])[cand][s][held]
+                    o = candidates(res["folds"][fit])[cand][s][held]
                     print(f"| {fit} -> {held} | {cand} | {s} | {name} | "
                           f"{o['T']['mass_NMAE_pct']:.2f} | {o['T']['com_NMAE_pct']:.2f} | "
                           f"{o['T-A']['mass_NMAE_pct']:.2f} | {o['T-A']['com_NMAE_pct']:.2f} |")

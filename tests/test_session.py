@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from support.synthetic import synthetic_samples
 
-from jaxinertia.app.folds import choose_recipe
+from jaxinertia.app.recipe import choose_recipe
 from jaxinertia.errors import UsageError
 from jaxinertia.lbipe import find_layout
 from jaxinertia.lbipe import load_test_files as real_files

@@ -3,7 +3,7 @@ folder inside it (``com_models``, written by :func:`attach_com_models`) answers 
 from its own models and the COM from that folder's.
 
 Why: the held-out folds judge the mass and the COM of every candidate apart
-(:func:`jaxinertia.app.folds.choose_recipe`'s ``by_part``), and the best of each need not
+(:func:`jaxinertia.app.recipe.choose_recipe`'s ``by_part``), and the best of each need not
 be one model: at full scale the mass is best from a torque model fine-tuned on real
 samples, the COM from one trained on drawn recording sessions alone (docs/results.md,
 "Sessions"). Each folder estimates ``x = [m, m p]`` by its own WLS; the answer takes ``m``

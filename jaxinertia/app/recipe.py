@@ -1,0 +1,81 @@
+"""The recipe for the models of a new real object, chosen from the held-out folds alone
+(:func:`jaxinertia.app.folds.run_folds`): every candidate a fold trained (paper network or
+physical model; with the paper's inputs, the current input, drawn sessions; simulator only
+or fine-tuned on so many real samples) at every session strength, scored by its error on
+the held-out files over the released models' on the same sets; and the two parts, mass and
+COM, judged apart (:mod:`jaxinertia.app.by_part`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["CURRENT", "SESSIONS", "candidates", "choose_recipe"]
+
+
+def candidates(fold: dict) -> dict[str, dict]:
+    """A fold's candidate recipes: name -> {strength: held-out objects}."""
+    out = {"paper network, simulator only": fold["by_strength"]}
+    if fold.get("physical"):
+        out["physical, simulator only"] = fold["physical"]["by_strength"]
+    for n, ft in (fold.get("fine_tuned") or {}).items():
+        out[f"physical, servo part fine-tuned on {n} real samples"] = ft["by_strength"]
+    for key, what in (("current", CURRENT), ("current_sessions", f"{CURRENT}, {SESSIONS}")):
+        if fold.get(f"physical_{key}"):
+            out[f"{what}, simulator only"] = fold[f"physical_{key}"]["by_strength"]
+        for n, ft in (fold.get(f"fine_tuned_{key}") or {}).items():
+            out[f"{what}, servo part fine-tuned on {n} real samples"] = ft["by_strength"]
+    return out
+
+
+#: The name of the candidates with the current input (``FoldScale.current_input``).
+CURRENT = "physical with the current input"
+#: ... and trained on recording sessions drawn (``FoldScale.session_draws``).
+SESSIONS = "sessions drawn"
+
+
+def choose_recipe(folds: dict, method: str = "T-A") -> dict:
+    """The candidate and session strength with the lowest held-out error, from the folds
+    alone: per fold and held-out object, ``method``'s mass and COM NMAE each divided by the
+    released models' on the same sets, averaged over both and over every fold (a recipe
+    must hold on every session left out, not on one). Returns the choice and every score."""
+    scores: dict[tuple[str, str], list[float]] = {}
+    for f in folds.values():
+        for name, by_strength in candidates(f).items():
+            for s, objects in by_strength.items():
+                for obj, e in objects.items():
+                    ref = f["released"][obj][method]
+                    scores.setdefault((name, s), []).extend(
+                        [e[method][k] / ref[k] for k in ("mass_NMAE_pct", "com_NMAE_pct")])
+    n_folds = len(folds)
+    # Only recipes that every fold judged compete.
+    table = {k: float(np.mean(v)) for k, v in scores.items()
+             if len(v) == 2 * sum(len(f["held_out"]) for f in folds.values())}
+    (name, strength), best = min(table.items(), key=lambda kv: kv[1])
+    return {**_recipe(name, strength), "score": best, "method": method, "folds": n_folds,
+            "scores": [{"candidate": k[0], "session_strength": float(k[1]), "score": v}
+                       for k, v in sorted(table.items(), key=lambda kv: kv[1])],
+            "by_part": _by_part({k: v for k, v in scores.items() if k in table})}
+
+
+def _recipe(name: str, strength) -> dict:
+    """A candidate's name and strength as the recipe that ``reproduce`` follows."""
+    finetune = None
+    if "fine-tuned on" in name:
+        finetune = int(name.split("fine-tuned on ")[1].split()[0])
+    return {"candidate": name, "session_strength": float(strength),
+            "finetune_samples": finetune, "current_input": name.startswith(CURRENT),
+            "sessions_drawn": SESSIONS in name}
+
+
+def _by_part(scores: dict[tuple[str, str], list[float]]) -> dict:
+    """The best candidate for the mass and the best for the COM, judged apart (the ratios
+    of :func:`choose_recipe`, mass and COM alternating), and the score of the estimator
+    that takes each part from its own models (:mod:`jaxinertia.app.by_part`): the mean of
+    the two, exactly what the folds give that estimator (its mass metrics are the mass
+    candidate's, its COM metrics the COM candidate's, on the same sets)."""
+    part = {}
+    for i, what in enumerate(("mass", "com")):
+        (name, s), v = min(((k, float(np.mean(r[i::2]))) for k, r in scores.items()),
+                           key=lambda kv: kv[1])
+        part[what] = {**_recipe(name, s), "score": v}
+    return {**part, "score": 0.5 * (part["mass"]["score"] + part["com"]["score"])}
