@@ -120,18 +120,6 @@ def continuous_lanes() -> int:
     return 1 if jax.default_backend() == "cpu" else ACCELERATOR_CONTINUOUS_LANES
 
 
-def folds_beside_workers() -> int:
-    """Threads for the simulated stages and the held-out folds, which share nothing: two,
-    on a CPU too where it has two cores or more. In order, the quick ``reproduce`` kept a
-    2-core CPU 1.4 cores busy on average (a 256-lane simulation, a single-sequence walk, K
-    small networks' epochs and most compilations use about one); side by side, the same
-    numbers bit for bit, 57 s and 140 s shorter in two interleaved pairs of cold runs on
-    the shared 2-core machine (docs/benchmarks.md). Inside the folds and the simulated
-    stages everything stays in order on a CPU
-    (:func:`jaxinertia.app.programs.side_by_side_workers`)."""
-    return 2 if jax.default_backend() != "cpu" or (os.cpu_count() or 1) > 1 else 1
-
-
 def _continuous(params, path: Path, scale: Scale, seed: int,
                 arm: Arm | None = None) -> SampleFile:
     kw = dict(n=scale.continuous_samples, objects=CONTINUOUS_OBJECTS,
@@ -273,9 +261,9 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
     models for a new real object) are the OpenMANIPULATOR-X's only and are skipped, with a
     note, for another arm.
 
-    The held-out folds need nothing of the simulated stages: they run beside them
-    (:func:`jaxinertia.app.programs.side_by_side`; the stage times then overlap), on a CPU
-    too when it has two cores or more (:func:`folds_beside_workers`)."""
+    The held-out folds need nothing of the simulated stages: on an accelerator they run
+    beside them (:func:`jaxinertia.app.programs.side_by_side`; the stage times then
+    overlap), on a CPU after them."""
     scale = scale or (FULL if full else QUICK)
     out = Path(out)
     stage = _Stages()
@@ -301,7 +289,7 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
 
     sim, folds = side_by_side([
         partial(_simulated_stages, out, scale, arm, real, lbipe_dir, real_skipped, seed,
-                progress, stage), held_out], workers=folds_beside_workers())
+                progress, stage), held_out])
     real_ft = None
     if real is not None and scale.real_finetune_samples > 0:
         recipe = ({**folds["recipe"], "chosen_by": "held-out folds"} if folds
