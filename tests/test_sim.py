@@ -275,6 +275,24 @@ def test_the_stream_runs_the_stepping_program_precompiled_before_its_plans():
         assert out["at_rest"].all()
 
 
+def test_a_simulator_without_joint_offsets_streams_with_the_fitted_ones_programs():
+    """The datasheet simulator (no constant joint torques: ``torque_offset`` None), where a
+    held-out fold's calibration starts, has the signature of the fitted simulators (the
+    shipped fit, a fold's after its offset iterations) in the stream: one set of compiled
+    programs serves both (a second stepping program cost ~5 s on the 2-core CPU). Only the
+    absent offset becomes zeros (added to the servo torque: the same sums)."""
+    from jaxinertia.sim.params import arm_sim_params, datasheet_sim_params
+
+    bare, fitted = datasheet_sim_params(), arm_sim_params()
+    assert bare.torque_offset is None and fitted.torque_offset is not None
+    same = stream._one_signature(bare)
+    assert stream._signature(same) == stream._signature(fitted)
+    assert np.array_equal(np.asarray(same.torque_offset), np.zeros(bare.robot.n_joints))
+    rest = lambda p: jax.tree.leaves(p.replace(torque_offset=None))  # noqa: E731
+    assert all(a is b for a, b in zip(rest(same), rest(bare)))
+    assert stream._one_signature(fitted) is fitted
+
+
 def test_a_failed_compilation_leaves_the_other_stream_programs_usable():
     """A stream program whose compilation fails is forgotten alone: its error reaches the
     caller, the programs compiled beside it stay held (a later stream does not compile
