@@ -68,7 +68,7 @@ if os.environ["JAXINERTIA_CACHE_DIR"].lower() != "off":
 
 from support.layouts import small_layout  # noqa: E402
 
-#: Test files, longest first (seconds on the 2-core CI machine, two workers, session 16),
+#: Test files, longest first (seconds on the 2-core CI machine, two workers, session 19),
 #: so that the workers of `make test` (pytest-xdist, one file per worker at a time, in this
 #: order: the Makefile passes --no-loadscope-reorder, without which xdist orders files by
 #: their number of tests) finish together instead of one waiting on a long file started
@@ -76,33 +76,33 @@ from support.layouts import small_layout  # noqa: E402
 #: to end and test_identify's search find its programs in the session's cache (started
 #: together on two workers, both would compile them). The two hardware files that run a
 #: virtual robot the longest are spread over both workers.
-LONGEST_FIRST = ("test_folds.py",  # 81 s
-                 "test_sim.py",  # 97 s in many short tests (82 s of it compiling)
-                 "test_hardware_bus.py",  # 57 s
-                 "test_learning.py",  # 89 s, its tiny end to end 65 s
-                 "test_hardware_faults.py",  # 51 s
-                 "test_finetune.py",  # 44 s
-                 "test_dynamics.py",  # 33 s
-                 # Well before test_feetech_collect (the end): the SO-101's end to end finds
-                 # the Koch's physics and statics programs (another 5-joint arm) in the
-                 # session's cache only once this file has compiled them.
+LONGEST_FIRST = ("test_folds.py",  # 74 s
+                 "test_sim.py",  # 79 s in many short tests (67 s of it compiling)
+                 "test_hardware_bus.py",  # 56 s
+                 "test_learning.py",  # 60 s, its tiny end to end 38 s
+                 "test_hardware_faults.py",  # 43 s
+                 "test_finetune.py",  # 43 s
+                 "test_real_fit.py",  # 33 s
+                 "test_dynamics.py",  # 32 s
+                 # Well before test_feetech_collect: the SO-101's end to end finds the
+                 # Koch's physics and statics programs (another 5-joint arm) and
+                 # test_arms's plan-poses --arm so101 in the session's cache only once these
+                 # have compiled them.
                  "test_hardware_koch.py",  # 11 s
+                 "test_arms.py",  # 2 s
                  "test_sharding.py",  # 29 s
                  "test_identify.py",  # 27 s
+                 "test_feetech_collect.py",  # 20 s
                  "test_kinematics.py",  # 25 s
                  "test_uncertainty.py",  # 22 s
-                 "test_real_fit.py",  # 21 s
+                 "test_statics.py",  # 22 s
                  "test_hardware_collect.py",  # 20 s
                  "test_reliability.py",  # 20 s
-                 "test_statics.py",  # 17 s
                  "test_design.py",  # 16 s
                  "test_hardware_protocol.py",  # 12 s
                  "test_sim_batched.py",  # 12 s
-                 "test_identification.py",  # 10 s
-                 # test_feetech_collect finds test_arms's plan-poses --arm so101 programs
-                 # in the session's cache.
-                 "test_arms.py",  # 2 s
-                 "test_feetech_collect.py")  # 20 s
+                 "test_by_part.py",  # 10 s
+                 "test_identification.py")  # 10 s
 
 
 def pytest_collection_modifyitems(config, items):  # noqa: ARG001
