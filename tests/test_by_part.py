@@ -11,6 +11,7 @@ import pytest
 from support.synthetic import feature_config, synthetic_samples, tiny_pair
 
 from jaxinertia.app.by_part import COM_MODELS, attach_com_models, merge_answers
+from jaxinertia.app.cli import main
 from jaxinertia.app.estimate import estimate
 from jaxinertia.app.pipeline import evaluate_models
 from jaxinertia.baselines import fit_baselines
@@ -35,7 +36,7 @@ def folders(tmp_path_factory):
     return d, path, tmp / "m"
 
 
-def test_the_mass_is_the_mass_folders_and_the_com_the_com_folders(folders):
+def test_the_mass_is_the_mass_folders_and_the_com_the_com_folders(folders, capsys):
     d, path, models = folders
     kw = dict(set_size=32, n_sets=8, max_mass=1e3, max_com=1e3)
     mass, com = estimate(models, path, **kw), estimate(models / "com", path, **kw)
@@ -43,6 +44,7 @@ def test_the_mass_is_the_mass_folders_and_the_com_the_com_folders(folders):
     assert json.loads((models / "config.json").read_text())[COM_MODELS] == "com"
     both = estimate(models, path, **kw)
     assert both["com_models"] == str(models / "com")
+    assert both["com_session_strength"] == com["session_strength"]
     (name,) = both["objects"]
     a, c, m = (r["objects"][name]["methods"] for r in (mass, com, both))
     for method in ("Sensor", "PE"):  # the baselines: the mass folder's, whole
@@ -62,6 +64,11 @@ def test_the_mass_is_the_mass_folders_and_the_com_the_com_folders(folders):
         assert "covariance_x" not in m[method] and "covariance_note" in m[method]
         assert m[method]["mass_kg"] != c[method]["mass_kg"]  # two different folders
     assert answered > 0, "no network method answered on both folders: nothing was checked"
+    # The command line says where each part comes from.
+    assert main(["estimate", "--models", str(models), "--samples", str(path), "--set-size",
+                 "32", "--max-mass", "1000", "--max-com", "1000"]) == 0
+    said = capsys.readouterr().out
+    assert f"the COM of T and T-A from {models / 'com'}" in said, said
     # Table I of such a folder: mass metrics the mass folder's, COM metrics the COM's.
     sets, _ = choose_sets(d.by_object(), n_sets=8, set_size=32, seed=0)
     res = evaluate_models(models, d.by_object(), sets, l_max=[0.1])

@@ -152,8 +152,9 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
     com = com_models_of(models, config)
     if com is None:
         return out
-    merged = merge_answers(out, _estimate(com, sample_file, **kw)[0])
-    merged["com_models"] = str(com)
+    com_out = _estimate(com, sample_file, **kw)[0]
+    merged = merge_answers(out, com_out)
+    merged.update(com_models=str(com), com_session_strength=com_out["session_strength"])
     return merged
 
 

@@ -56,6 +56,11 @@ def cmd_estimate(args) -> int:
         else:
             print(f"{name}: session adaptation off (the models' strength 0, or "
                   "--session-strength 0)")
+        if res.get("com_models"):
+            ratio = ", ".join(f"{r:.3f}" for r in o["com_session_ratio"])
+            print(f"{name}: the COM of T and T-A from {res['com_models']} (session strength "
+                  f"{res['com_session_strength']:g}, x ({ratio}) per joint); the mass and the "
+                  "baselines from the models above")
         pc = np.asarray(ident["predicted_com_se_m"]) * 1e3
         print(f"{name}: {o['n_samples']} samples; poses: condition {ident['condition']:.1f}, "
               f"predicted standard error mass {ident['predicted_mass_se_kg'] * 1e3:.1f} g, "
