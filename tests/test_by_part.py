@@ -13,7 +13,7 @@ from support.synthetic import feature_config, synthetic_samples, tiny_pair
 from jaxinertia.app.by_part import COM_MODELS, attach_com_models, merge_answers
 from jaxinertia.app.cli import main
 from jaxinertia.app.estimate import estimate
-from jaxinertia.app.pipeline import evaluate_models
+from jaxinertia.app.pipeline import copy_models, evaluate_models
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.evaluation import choose_sets
 from jaxinertia.samples import save_native
@@ -80,6 +80,9 @@ def test_the_mass_is_the_mass_folders_and_the_com_the_com_folders(folders, capsy
             src = plain[1] if k.startswith("com_") else plain[0]
             assert v == src["objects"][name][method][k], (method, k)
     assert res["objects"][name]["PE"] == plain[0]["objects"][name]["PE"]
+    # A copy of the folder is the mass folder alone: it names no COM models it lacks.
+    copy = copy_models(models, models.parent / "copy")
+    assert COM_MODELS not in json.loads((copy / "config.json").read_text())
 
 
 def test_a_method_that_fails_in_either_folder_is_no_answer():

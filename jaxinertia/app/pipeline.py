@@ -20,7 +20,7 @@ import jax
 import numpy as np
 
 from jaxinertia.app.arm_options import LBIPE_ARM, samples_arm
-from jaxinertia.app.by_part import com_models_of, merge_evaluations
+from jaxinertia.app.by_part import COM_MODELS, com_models_of, merge_evaluations
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import load_models, save_models
 from jaxinertia.errors import FileFormatError, UsageError
@@ -248,8 +248,10 @@ def copy_models(src: str | os.PathLike, dst: str | os.PathLike, *,
     changed when given; the weights, baselines and the rest of its record unchanged."""
     folder = load_models(src)
     config = folder.config
+    # A folder's COM models (app.by_part) live inside it and are not copied: neither is
+    # the key that names them.
     standard = ("format", "format_version", "robot", "arm", "n_models", "torque_model",
-                "attention_model", "features", "baselines")
+                "attention_model", "features", "baselines", COM_MODELS)
     extra = {k: v for k, v in config.items() if k not in standard}
     for key, simulated in (("session", False), ("simulator_session", True)):
         ref = session_reference(config, session_strength, simulated=simulated)
