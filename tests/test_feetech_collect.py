@@ -45,7 +45,7 @@ import jax
 import numpy as np
 import pytest
 from scservo_sdk import COMM_SUCCESS
-from support.hardware import RETRIES, journal_indices
+from support.hardware import RETRIES, interrupting_tag_pose, journal_indices
 
 from jaxinertia.app.cli import main
 from jaxinertia.arms import SO101
@@ -116,15 +116,7 @@ def test_so101_plan_virtual_robot_collect_and_estimate(tmp_path, monkeypatch, ca
 
         base = collect.KinematicTagPose
 
-        class Interrupting(base):  # Ctrl-C after AFTER samples, whatever the host's speed
-            calls = 0
-
-            def __call__(self, q):
-                if Interrupting.calls == AFTER:
-                    raise KeyboardInterrupt
-                Interrupting.calls += 1
-                return super().__call__(q)
-
+        Interrupting = interrupting_tag_pose(base, AFTER)  # Ctrl-C after AFTER samples
         argv = ["collect", "--arm", "so101", "--port", robot.path, "--plan", str(plan),
                 "--object", "cube", "--out", str(out), "--no-progress",
                 "--retries", str(RETRIES), "--timeout", "120"]

@@ -12,8 +12,8 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["RETRIES", "Client", "collect_interrupted_and_resumed", "journal_indices",
-           "one_line", "running", "wait_for_samples"]
+__all__ = ["RETRIES", "Client", "collect_interrupted_and_resumed", "interrupting_tag_pose",
+           "journal_indices", "one_line", "running", "wait_for_samples"]
 
 #: ``collect --retries`` of the hardware tests: how long the bus may stay silent before a
 #: collection gives up (each failed attempt costs ~70 ms: the SDK's ~35 ms wait, then as
@@ -111,15 +111,7 @@ def collect_interrupted_and_resumed(port: str, arm, out: Path, monkeypatch, caps
     from jaxinertia.samples import load_native
 
     base = collect.KinematicTagPose
-
-    class Interrupting(base):
-        calls = 0
-
-        def __call__(self, q):
-            if Interrupting.calls == after:
-                raise KeyboardInterrupt
-            Interrupting.calls += 1
-            return super().__call__(q)
+    Interrupting = interrupting_tag_pose(base, after)
 
     argv = ["collect", "--arm", arm.name, "--port", port, "--plan", "random", "--n", str(n),
             "--seed", str(seed), "--object", "50g", "--out", str(out), "--no-progress",
@@ -170,3 +162,18 @@ class Client:
 
     def close(self):
         self.port.closePort()
+
+
+def interrupting_tag_pose(base, after: int):
+    """``base`` (the collect's tag-pose source) raising Ctrl-C once ``after`` samples were
+    taken, whatever the host's speed."""
+    class Interrupting(base):
+        calls = 0
+
+        def __call__(self, q):
+            if Interrupting.calls == after:
+                raise KeyboardInterrupt
+            Interrupting.calls += 1
+            return super().__call__(q)
+
+    return Interrupting
