@@ -9,7 +9,7 @@ Where it is used:
 
 * the batched evaluation (:func:`jaxinertia.evaluation.evaluate`): the sample sets
   (O, B, M) split along B, so each device solves its share of the 1000 sets per object;
-* K-pair training (:func:`jaxinertia.training._run_epochs`): the stacked models' state
+* K-pair training (:func:`jaxinertia.training_group.run_epochs`): the stacked models' state
   and their own data split along K, so each device trains its share of the pairs.
 
 An axis whose length the device count does not divide is left whole on every device

@@ -39,9 +39,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from flax import struct
-from tqdm.auto import tqdm
 
-from jaxinertia.errors import TrainingError, UsageError
+from jaxinertia.errors import UsageError
 from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.identification import solve_normal
 from jaxinertia.linalg import gram_statistics
@@ -53,7 +52,7 @@ from jaxinertia.networks import (
     parameter_shapes,
 )
 from jaxinertia.samples import Samples
-from jaxinertia.sharding import shard
+from jaxinertia.training_group import run_epochs
 from jaxinertia.training_setup import (
     FINETUNE_DEFAULTS,
     TrainConfig,
@@ -220,33 +219,6 @@ def _keep_best(best, new, improved):
         lambda b, n: jnp.where(improved.reshape((-1,) + (1,) * (n.ndim - 1)), n, b), best, new)
 
 
-def _run_epochs(epoch: Epoch, state: TrainState, data, val_data, n_epochs, key, desc,
-                progress, on_epoch=None) -> tuple[TrainState, np.ndarray]:
-    """Runs ``epoch.update`` n_epochs times with a progress bar, then calls
-    ``on_epoch(e, (train_loss, val_loss))`` if given; returns the state and the
-    (n_epochs, 2, K) history of training and validation losses."""
-    # The K models (state, own data) split over every local device (jaxinertia.sharding).
-    state = shard(state)
-    data, val_data = ((shared, shard(own)) for shared, own in (data, val_data))
-    history = []
-    with tqdm(total=n_epochs, desc=desc, unit="epoch", disable=not progress) as bar:
-        for e in range(n_epochs):
-            state, train_loss, val_loss = epoch.update(state, jax.random.fold_in(key, e), data,
-                                                       val_data)
-            history.append((np.asarray(train_loss), np.asarray(val_loss)))
-            bad = ~(np.isfinite(history[-1][0]) & np.isfinite(history[-1][1]))
-            if bad.any():
-                raise TrainingError(
-                    f"{desc}: the loss went non-finite at epoch {e} (model(s) "
-                    f"{np.flatnonzero(bad).tolist()}); lower the learning rate or check the "
-                    "training data")
-            bar.set_postfix(val=f"{float(np.min(history[-1][1])):.3g}")
-            bar.update()
-            if on_epoch is not None:
-                on_epoch(e, history[-1])
-    return state, np.asarray(history)
-
-
 class TrainedTorque(NamedTuple):
     model: TorqueModel
     variables: dict  # stacked (K, ...) best-validation parameters
@@ -281,7 +253,7 @@ def train_torque_models(
     epoch = _torque_epoch(model, cfg.torque_lr, cfg.trainable, min(cfg.torque_batch, len(X)))
     state = epoch.init(_start(model, k_init, cfg.n_models, X[:1], init), jnp.float32,
                        None if init is None else ((Xv, Yv), None))
-    state, hist = _run_epochs(epoch, state, ((X, Y), None), ((Xv, Yv), None), cfg.torque_epochs,
+    state, hist = run_epochs(epoch, state, ((X, Y), None), ((Xv, Yv), None), cfg.torque_epochs,
                               k_epochs, "torque model", progress, on_epoch)
     return TrainedTorque(model, state.best_params, hist, np.asarray(state.best_epoch))
 
@@ -416,6 +388,8 @@ def train_attention_models(
     data, val_data = ((feats, A, x_obj, sets), y), ((vf, vA, vx, vsets), vy)
     state = epoch.init(_start(model, k_init, K, feats[:1], init), dtype,
                        None if init is None else val_data)
-    state, hist = _run_epochs(epoch, state, data, val_data, cfg.attention_epochs, k_epochs,
-                              "attention model", progress, on_epoch)
+    # Alone even in a training group (jaxinertia.training_group): 30 epochs, a small
+    # part of a training's device time.
+    state, hist = run_epochs(epoch, state, data, val_data, cfg.attention_epochs, k_epochs,
+                             "attention model", progress, on_epoch, groupable=False)
     return TrainedAttention(model, state.best_params, hist, np.asarray(state.best_epoch))

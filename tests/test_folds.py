@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import jax
 import numpy as np
@@ -191,3 +192,68 @@ def test_side_by_side_keeps_the_order_and_raises_what_a_stage_raised():
     with pytest.raises(UsageError, match="stage failed"):
         side_by_side([fails, slow, lambda: both.wait()], workers=3)
     assert len(ended) == 1
+
+
+def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, tmp_path,
+                                                               monkeypatch):
+    """Where folds and branches run side by side (forced here on the CPU), each training
+    of every fold runs as the member of its training group that the groups name (both
+    folds' trainings from scratch in one group, the fine-tunings in another), and every
+    member leaves when its branch ends. The heavy stages are stand-ins that record it."""
+    from jaxinertia import training_group
+    from jaxinertia.app import fold_groups
+
+    monkeypatch.setattr(fold_groups, "side_by_side_workers", lambda: 4)
+    made: list = []
+    real_groups = fold_groups.FoldGroups.of
+
+    def of(names, scale):
+        made.append(real_groups(names, scale))
+        return made[-1]
+
+    monkeypatch.setattr(folds.FoldGroups, "of", of)
+    calls = []
+
+    def fake_train(files, out, cfg, **kw):
+        group, name = training_group._local.member
+        calls.append(("scratch" if group is made[0].scratch else "finetune", name,
+                      Path(out).name))
+        return {"samples": {}, "best_epoch": {}, "data": [{"session_ratio": None}]}
+
+    monkeypatch.setattr(folds, "simulate_files", lambda p, wanted, **kw: [w[0] for w in wanted])
+    monkeypatch.setattr(folds, "train", fake_train)
+    monkeypatch.setattr(folds._Fold, "judge", lambda self, models: {
+        "objects": {}, "torque": {}, "session_ratio": {}, "by_strength": {}})
+    monkeypatch.setattr(folds, "choose_recipe", lambda f: None)
+    scale = FoldScale(calibration_iterations=1, random_per_load=8, planning=False,
+                      train=TRAIN, finetune_samples=(30, 60), current_input=True,
+                      session_draws=2)
+    # A branch that fails before its training (here: the drawn sessions' simulator lacks
+    # its arm) leaves its members: the other trainings finish, the error is raised, and
+    # nothing waits for ever.
+    monkeypatch.setattr(folds, "_fit_simulator", lambda fold: (None, {}))
+    with pytest.raises(AttributeError, match="robot"):
+        run_folds(tmp_path / "failed", small_lbipe_dir, scale, progress=False,
+                  log=lambda m: None)
+    assert {n for _, n, _ in calls} == set(made[0].scratch.members + made[0].finetune.members
+                                           ) - {f"{n}/physical_current_sessions{k}" for n in (
+                                               "cube", "white") for k in ("", "/30", "/60")}
+    made.clear()
+    calls.clear()
+    arm = SimpleNamespace(robot=SimpleNamespace(n_joints=4))
+    monkeypatch.setattr(folds, "_fit_simulator", lambda fold: (arm, {}))
+    run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False, log=lambda m: None)
+    want = {("scratch", f"{n}/{b}", f) for n in ("cube", "white") for b, f in (
+        ("paper", "models"), ("physical", "models_physical"),
+        ("physical_current", "models_physical_current"),
+        ("physical_current_sessions", "models_physical_current_sessions"))}
+    want |= {("finetune", f"{n}/physical{t}/{k}", f"models_finetuned{t}_{k}")
+             for n in ("cube", "white") for t in ("", "_current", "_current_sessions")
+             for k in (30, 60)}
+    assert sorted(calls) == sorted(want)
+    groups = made[0]
+    assert {n for g, n, _ in want if g == "scratch"} == set(groups.scratch.members)
+    assert {n for g, n, _ in want if g == "finetune"} == set(groups.finetune.members)
+    for group in (groups.scratch, groups.finetune):
+        assert group._left == set(group.members)
+    assert getattr(training_group._local, "member", None) is None

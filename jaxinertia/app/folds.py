@@ -29,6 +29,7 @@ and whether to adapt sessions.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from dataclasses import dataclass
@@ -38,6 +39,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from jaxinertia.app.fold_groups import FoldGroups
 from jaxinertia.app.pipeline import (
     RealData,
     adapt_objects,
@@ -114,6 +116,30 @@ class _Fold:
     scale: FoldScale
     seed: int
     progress: bool
+    groups: FoldGroups | None = None
+
+    def member(self, group: str, name: str):
+        """This thread's trainings as the member ``fit_on/name`` of the fold's ``group``
+        ("scratch" or "finetune"), when trainings are grouped."""
+        if self.groups is None:
+            return contextlib.nullcontext()
+        return getattr(self.groups, group).member(f"{self.fit_on}/{name}")
+
+    def branch(self, fn, name: str | None = None):
+        """``fn`` as a call whose end (normal or not) releases the fold's members under
+        ``name`` (all of them when None)."""
+        def call():
+            try:
+                return fn()
+            finally:
+                if self.groups is not None:
+                    self.groups.leave(self.fit_on if name is None else f"{self.fit_on}/{name}")
+        return call
+
+    def workers(self, n_calls: int) -> int | None:
+        """Side by side for ``n_calls`` calls that hold group members: a thread each
+        (a member waiting for one not yet started would wait forever)."""
+        return None if self.groups is None else n_calls
 
     def index(self, name: str) -> int:
         return [o.name for o in self.real.objects].index(name)
@@ -169,16 +195,19 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
     if len(names) < 2:
         return None
     released = released_benchmark(lbipe_dir, real=real)["objects"]
+    groups = FoldGroups.of(names, scale)
     todo = [_Fold(Path(out) / f"fit_{fit_on}", fit_on, [n for n in names if n != fit_on],
-                  real, scale, seed, progress) for fit_on in names]
+                  real, scale, seed, progress, groups) for fit_on in names]
 
     def run(fold: _Fold) -> dict:
         log(f"-- fold: calibrate on {fold.fit_on}, judge on {', '.join(fold.held)}")
         return {**_run_fold(fold), "released": {n: {m: released[n][m] for m in ("T", "T-A")}
                                                 for n in fold.held}}
 
-    # The folds share nothing but the real data they read: side by side on an accelerator.
-    folds = dict(zip(names, side_by_side([partial(run, fold) for fold in todo])))
+    # The folds share nothing but the real data they read: side by side on an accelerator
+    # (their trainings grouped into few programs).
+    calls = [fold.branch(partial(run, fold)) for fold in todo]
+    folds = dict(zip(names, side_by_side(calls, todo[0].workers(len(calls)))))
     return {"folds": folds, "sets": dict(zip(names, real.sources)),
             "recipe": choose_recipe(folds), "side_by_side": min(side_by_side_workers(),
                                                                  len(todo))}
@@ -202,24 +231,27 @@ def _run_fold(fold: _Fold) -> dict:
     files = timed("simulate", partial(simulate_files, progress=fold.progress), params, wanted)
 
     def paper() -> dict:
-        timed("train", partial(train, overwrite=True, progress=fold.progress,
-                               session=fold.session),
-              files, fold.dir / "models", fold.scale.train.replace(seed=fold.seed))
+        with fold.member("scratch", "paper"):
+            timed("train", partial(train, overwrite=True, progress=fold.progress,
+                                   session=fold.session),
+                  files, fold.dir / "models", fold.scale.train.replace(seed=fold.seed))
         return timed("evaluate", fold.judge, fold.dir / "models")
 
     # The candidates trained on the fold's simulated data are independent of each other:
-    # side by side on an accelerator (their times then overlap), in this order on a CPU.
+    # side by side on an accelerator (their times then overlap, their trainings share
+    # programs), in this order on a CPU.
+    calls = [fold.branch(paper, "paper"),
+             lambda: (timed("randomized", _randomized, fold, params, files)
+                      if fold.scale.randomize_draws > 0 else None),
+             fold.branch(lambda: timed("fine-tune", _finetuned, fold, files), "physical"),
+             fold.branch(lambda: (timed("current input", _finetuned, fold, files, True)
+                                  if fold.scale.current_input else (None, {})),
+                         "physical_current"),
+             fold.branch(lambda: (timed("sessions drawn", _sessions_drawn, fold, params, files)
+                                  if fold.scale.current_input and fold.scale.session_draws > 0
+                                  else (None, {})), "physical_current_sessions")]
     ours, randomized, (physical, fine), (physical_c, fine_c), (physical_s, fine_s) = \
-        side_by_side([
-            paper,
-            lambda: (timed("randomized", _randomized, fold, params, files)
-                     if fold.scale.randomize_draws > 0 else None),
-            lambda: timed("fine-tune", _finetuned, fold, files),
-            lambda: (timed("current input", _finetuned, fold, files, True)
-                     if fold.scale.current_input else (None, {})),
-            lambda: (timed("sessions drawn", _sessions_drawn, fold, params, files)
-                     if fold.scale.current_input and fold.scale.session_draws > 0
-                     else (None, {}))])
+        side_by_side(calls, fold.workers(len(calls)))
     return {"held_out": fold.held, "ours": ours["objects"], "torque": ours["torque"],
             "session_ratio": ours["session_ratio"], "by_strength": ours["by_strength"],
             "physical": physical, "fine_tuned": fine, "randomized": randomized,
@@ -316,21 +348,24 @@ def _finetuned(fold: _Fold, files: list[Path], current_input: bool = False,
     if tag is None:
         tag = "_current" if current_input else ""
     start = fold.dir / f"models_physical{tag}"
-    train(files, start, fold.scale.train.replace(seed=fold.seed, torque_model="physical",
-                                                 current_input=current_input),
-          overwrite=True, progress=fold.progress, session=fold.session)
+    with fold.member("scratch", f"physical{tag}"):
+        train(files, start, fold.scale.train.replace(seed=fold.seed, torque_model="physical",
+                                                     current_input=current_input),
+              overwrite=True, progress=fold.progress, session=fold.session)
 
     def finetune(n: int) -> dict:
         models = fold.dir / f"models_finetuned{tag}_{n}"
-        info = train([fold.real.files[fold.index(fold.fit_on)]], models,
-                     fold.scale.finetune.replace(seed=fold.seed), overwrite=True,
-                     progress=fold.progress, init=start, samples_per_object=n)
+        with fold.member("finetune", f"physical{tag}/{n}"):
+            info = train([fold.real.files[fold.index(fold.fit_on)]], models,
+                         fold.scale.finetune.replace(seed=fold.seed), overwrite=True,
+                         progress=fold.progress, init=start, samples_per_object=n)
         return {**fold.judge(models), "samples": info["samples"],
                 "best_epoch": info["best_epoch"],
                 "fit_session_ratio": info["data"][0]["session_ratio"]}
 
-    # Each fine-tuning has its own shapes (its own programs): they compile side by side.
+    # Each fine-tuning has its own shapes (its own programs): they compile side by side,
+    # and each runs in one program with the other branches' and folds' of its shapes.
     sizes = fold.scale.finetune_samples
-    physical, *fine = side_by_side([partial(fold.judge, start)]
-                                   + [partial(finetune, n) for n in sizes])
+    calls = [partial(fold.judge, start)] + [partial(finetune, n) for n in sizes]
+    physical, *fine = side_by_side(calls, fold.workers(len(calls)))
     return physical, {str(n): f for n, f in zip(sizes, fine)}

@@ -1,0 +1,242 @@
+"""The epochs of a training, alone or with other trainings as one program.
+
+:func:`run_epochs` runs a training's epochs (:func:`jaxinertia.training.make_epoch`): alone
+in the calling thread, or, when the thread is a member of a :class:`TrainingGroup`, together
+with the other members' trainings.
+
+Why groups: on an accelerator the held-out folds train many model sets at once in threads
+(both folds; in each the paper network, the physical model and its variants, then their
+fine-tunings). One epoch of K small MLPs leaves a GPU mostly idle: a step costs about as
+much for 60 models as for 10 (docs/benchmarks.md, "Trainings as one program"). The members
+of a group hand their epochs to it; trainings of the same epoch program and the same shapes
+run as one program, the epoch ``vmap``-ped over the group, each with its own state, data
+and keys, at about the device time of one. The numbers are each training's own up to float
+rounding: ``vmap`` may vectorise a reduction (a bias gradient over the minibatch) in another
+order, a last-bit difference that training then carries (tests/test_training_group.py;
+at the folds' shapes on an H200 the torque epochs came out bit for bit, at a 128-sample
+minibatch on the CPU not). Which trainings share a program is fixed by the members and
+their shapes, never by timing: a run's numbers do not depend on which thread came first.
+Only the torque models' epochs are grouped (300 epochs of minibatches, the bulk); the
+attention's (30) run alone.
+
+A group waits, at each training of its members, until every member has either reached that
+training or left the group (its ``with group.member(...)`` ended, normally or by an
+exception): members must run side by side, in threads of their own. A training whose
+shapes no other member shares runs alone.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import threading
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from jaxinertia.errors import TrainingError
+from jaxinertia.sharding import shard
+
+__all__ = ["TrainingGroup", "run_epochs"]
+
+_local = threading.local()
+
+
+@dataclass(frozen=True)
+class _Training:
+    """One call of :func:`run_epochs`: what it runs, from where, how long."""
+
+    epoch: Any  # jaxinertia.training.Epoch (init, update)
+    state: Any  # TrainState, stacked (K, ...)
+    data: Any  # (shared, own)
+    val_data: Any
+    n_epochs: int
+    key: jax.Array
+    desc: str
+    progress: bool
+    on_epoch: Callable | None
+
+    def signature(self) -> tuple:
+        """Trainings with equal signatures run as one program."""
+        trees = (self.state, self.data, self.val_data)
+        return (self.epoch, self.n_epochs, jax.tree_util.tree_structure(trees),
+                tuple((tuple(np.shape(a)), str(a.dtype))
+                      for a in jax.tree_util.tree_leaves(trees)))
+
+
+def run_epochs(epoch, state, data, val_data, n_epochs: int, key, desc: str, progress: bool,
+               on_epoch: Callable | None = None, *, groupable: bool = True
+               ) -> tuple[Any, np.ndarray]:
+    """Runs ``epoch.update`` ``n_epochs`` times with a progress bar, calling
+    ``on_epoch(e, (train_loss, val_loss))`` after each if given; returns the state and the
+    (n_epochs, 2, K) history of training and validation losses. In a thread that is a
+    member of a :class:`TrainingGroup`, the group runs it (with the others of its shapes),
+    unless ``groupable`` is false (the attention's epochs: few, and through the WLS solve)."""
+    training = _Training(epoch, state, data, val_data, int(n_epochs), key, desc, progress,
+                         on_epoch)
+    member = getattr(_local, "member", None)
+    if member is None or not groupable:
+        return _raise_or_return(_run_together([training])[0])
+    group, name = member
+    return group._submit(name, training)
+
+
+def _raise_or_return(result):
+    if isinstance(result, BaseException):
+        raise result
+    return result
+
+
+class TrainingGroup:
+    """Trainings of named members, run side by side in threads, whose epochs run as one
+    program where their shapes agree (module docstring). Each member's thread runs its
+    trainings inside ``with group.member(name):``; the i-th training of every member
+    meets the i-th of the others. The stacking order (and so nothing but the program's
+    layout) is ``members``' order."""
+
+    def __init__(self, members: Iterable[str]):
+        self._members = tuple(members)
+        if len(set(self._members)) != len(self._members):
+            raise ValueError(f"training group members repeat: {self._members}")
+        self._cond = threading.Condition()
+        self._made = dict.fromkeys(self._members, 0)  # trainings handed in, per member
+        self._left: set[str] = set()
+        self._waiting: dict[int, dict[str, _Training]] = {}
+        self._results: dict[int, dict[str, Any]] = {}
+
+    @property
+    def members(self) -> tuple[str, ...]:
+        return self._members
+
+    @contextlib.contextmanager
+    def member(self, name: str) -> Iterator[None]:
+        """This thread's trainings, until the block ends, are ``name``'s in the group."""
+        if name not in self._made:
+            raise ValueError(f"{name!r} is not a member of this training group "
+                             f"({', '.join(self._members)})")
+        outer = getattr(_local, "member", None)
+        _local.member = (self, name)
+        try:
+            yield
+        finally:
+            _local.member = outer
+            self.leave([name])
+
+    def leave(self, names: Iterable[str]) -> None:
+        """These members train no more (whether or not they ever joined): the others stop
+        waiting for them. Leaving twice is leaving once."""
+        with self._cond:
+            self._left.update(names)
+            self._cond.notify_all()
+
+    def _submit(self, name: str, training: _Training):
+        with self._cond:
+            i = self._made[name]
+            self._made[name] += 1
+            self._waiting.setdefault(i, {})[name] = training
+            self._cond.notify_all()
+            while True:
+                if name in self._results.get(i, {}):
+                    return _raise_or_return(self._results[i].pop(name))
+                if i in self._waiting and all(m in self._left or self._made[m] > i
+                                              for m in self._members):
+                    todo = self._waiting.pop(i)  # this thread runs the i-th trainings
+                    break
+                self._cond.wait()
+        names = [m for m in self._members if m in todo]
+        outs = _run_together([todo[m] for m in names])
+        with self._cond:
+            self._results[i] = dict(zip(names, outs))
+            mine = self._results[i].pop(name)
+            self._cond.notify_all()
+        return _raise_or_return(mine)
+
+
+def _run_together(trainings: list[_Training]) -> list:
+    """Each training's (state, history), or its exception; trainings of equal signatures
+    as one program, the programs side by side in threads (each one's host loop waits on
+    its epochs while another's run)."""
+    parts: dict[tuple, list[int]] = {}
+    for i, t in enumerate(trainings):
+        parts.setdefault(t.signature(), []).append(i)
+
+    def run(idx: list[int]) -> list:
+        try:
+            return _run_stacked([trainings[i] for i in idx])
+        except BaseException as exc:  # noqa: BLE001 - every training of the program gets it
+            return [exc] * len(idx)
+
+    if len(parts) == 1:
+        done = [run(idx) for idx in parts.values()]
+    else:
+        with ThreadPoolExecutor(len(parts), thread_name_prefix="jaxinertia-group") as pool:
+            done = list(pool.map(run, parts.values()))
+    out: list = [None] * len(trainings)
+    for idx, results in zip(parts.values(), done):
+        for i, result in zip(idx, results):
+            out[i] = result
+    return out
+
+
+@functools.lru_cache(maxsize=32)
+def _update_of_group(epoch):
+    return jax.jit(jax.vmap(epoch.update))
+
+
+def _stack(trees):
+    return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *trees)
+
+
+def _run_stacked(trainings: list[_Training]) -> list:
+    """G trainings of one signature: alone when G is 1, else the epoch vmapped over them.
+    The K models of each (state, own data) are split over every local device
+    (:mod:`jaxinertia.sharding`)."""
+    G, first = len(trainings), trainings[0]
+    if G == 1:
+        update, axis = first.epoch.update, 0
+        state, data, val_data = first.state, first.data, first.val_data
+    else:
+        update, axis = _update_of_group(first.epoch), 1
+        state, data, val_data = (_stack([getattr(t, f) for t in trainings])
+                                 for f in ("state", "data", "val_data"))
+    state = shard(state, axis)
+    data, val_data = ((shared, shard(own, axis)) for shared, own in (data, val_data))
+    history: list[list] = [[] for _ in trainings]
+    failed: list[BaseException | None] = [None] * G
+    desc = first.desc if G == 1 else f"{first.desc} (x{G}, one program)"
+    with tqdm(total=first.n_epochs, desc=desc, unit="epoch",
+              disable=not any(t.progress for t in trainings)) as bar:
+        for e in range(first.n_epochs):
+            keys = [jax.random.fold_in(t.key, e) for t in trainings]
+            state, train_loss, val_loss = update(state, keys[0] if G == 1 else jnp.stack(keys),
+                                                 data, val_data)
+            losses = np.asarray(train_loss), np.asarray(val_loss)
+            if G == 1:
+                losses = losses[0][None], losses[1][None]
+            for g, t in enumerate(trainings):
+                if failed[g] is not None:
+                    continue
+                history[g].append((losses[0][g], losses[1][g]))
+                bad = ~(np.isfinite(losses[0][g]) & np.isfinite(losses[1][g]))
+                if bad.any():
+                    failed[g] = TrainingError(
+                        f"{t.desc}: the loss went non-finite at epoch {e} (model(s) "
+                        f"{np.flatnonzero(bad).tolist()}); lower the learning rate or check "
+                        "the training data")
+                    continue
+                if t.on_epoch is not None:
+                    t.on_epoch(e, history[g][-1])
+            if G == 1 and failed[0] is not None:
+                break
+            bar.set_postfix(val=f"{float(np.min(losses[1])):.3g}")
+            bar.update()
+    if G == 1:
+        return [failed[0] or (state, np.asarray(history[0]))]
+    return [failed[g] or (jax.tree_util.tree_map(lambda a, g=g: a[g], state),
+                          np.asarray(history[g])) for g in range(G)]

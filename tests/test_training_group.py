@@ -1,0 +1,130 @@
+"""Trainings side by side as one program (jaxinertia.training_group): the trainings alone,
+up to float rounding, and no member waits for one that has left."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+from support.asserts import assert_tree_close, assert_tree_equal
+from support.synthetic import synthetic_samples
+
+from jaxinertia import training_group
+from jaxinertia.app.programs import side_by_side
+from jaxinertia.errors import TrainingError
+from jaxinertia.training import TrainConfig, train_attention_models, train_torque_models
+from jaxinertia.training_group import TrainingGroup
+from jaxinertia.training_setup import feature_config_from, split_validation
+
+#: test_folds' and test_learning's training configuration and sample count: their
+#: programs, already compiled in the session's cache.
+CFG = TrainConfig(n_models=2, torque_epochs=3, attention_epochs=2, attention_sets=8,
+                  attention_val_sets=4, val_fraction=0.2)
+N = 160
+
+
+def _job(seed: int, n: int = N, *, physical: bool = False, nan: bool = False):
+    """A training pair's inputs: its own data, seed and key."""
+    d = synthetic_samples(np.random.default_rng(seed), n=n, n_obj=4)
+    if nan:
+        d = dataclasses.replace(d, tau=np.where(np.arange(n)[:, None] == 3, np.nan, d.tau))
+    tr, va = split_validation(d, CFG.val_fraction, seed)
+    cfg = CFG.replace(seed=seed, torque_model="physical" if physical else "paper")
+    return cfg, feature_config_from(tr), tr, va, jax.random.key(seed)
+
+
+def _pair(job):
+    """Torque, then attention: a training's two calls of run_epochs."""
+    cfg, fc, tr, va, key = job
+    k_t, k_a = jax.random.split(key)
+    torque = train_torque_models(cfg, fc, tr, va, k_t, progress=False)
+    return torque, train_attention_models(cfg, fc, torque, tr, va, k_a, progress=False)
+
+
+def _assert_same(got, want, what):
+    for g, w, part in zip(got, want, ("torque", "attention")):
+        assert_tree_equal(g.variables, w.variables, what=f"{what} {part} parameters")
+        np.testing.assert_array_equal(g.history, w.history, err_msg=f"{what} {part} history")
+        np.testing.assert_array_equal(g.best_epoch, w.best_epoch)
+
+
+def _assert_torque_close(got, want, what):
+    """The training alone up to float32 rounding: vmapped over the group, a minibatch's
+    bias gradient may be summed in another order (last-bit differences, 1e-7 relative
+    here, that three epochs carry); another member's data or key, or a wrong slice of the
+    group, would move them by orders of magnitude more."""
+    assert_tree_close(got.variables, want.variables, rtol=1e-5, atol=1e-9,
+                      what=f"{what} torque parameters")
+    np.testing.assert_allclose(got.history, want.history, rtol=1e-5)
+    np.testing.assert_array_equal(got.best_epoch, want.best_epoch)
+
+
+def test_a_group_trains_its_members_as_alone_in_one_program_per_shape(
+        monkeypatch):
+    jobs = {"a": _job(1), "b": _job(2), "c": _job(3, physical=True),
+            "d": _job(4, n=200)}  # d: other shapes, so another program
+    alone = {name: _pair(job) for name, job in jobs.items()}
+    sizes = []
+    stacked = training_group._run_stacked
+
+    def spy(trainings):
+        sizes.append(len(trainings))
+        return stacked(trainings)
+
+    monkeypatch.setattr(training_group, "_run_stacked", spy)
+    group = TrainingGroup(jobs)
+
+    def member(name):
+        with group.member(name):
+            return _pair(jobs[name])
+
+    got = dict(zip(jobs, side_by_side([lambda n=n: member(n) for n in jobs], workers=4)))
+    for name in "ab":  # one program
+        _assert_torque_close(got[name][0], alone[name][0], name)
+        assert np.isfinite(got[name][1].history).all()
+    for name in "cd":  # alone in the group: the same programs, bit for bit
+        _assert_same(got[name], alone[name], name)
+    # Torque: paper a+b as one program, the physical c and the larger d alone. Attention
+    # alone for each (its WLS solve, vmapped, would round differently in the last bit).
+    assert sorted(sizes) == [1, 1, 1, 1, 1, 1, 2], sizes
+
+
+def test_a_member_that_leaves_or_fails_holds_no_one_up():
+    want = _pair(_job(5))
+    group = TrainingGroup(["fails", "trains", "never", "nan"])
+    group.leave(["never"])  # a member whose thread never ran
+
+    def fails():
+        with group.member("fails"):
+            raise ValueError("before any training")
+
+    def nan():
+        with group.member("nan"):
+            return _pair(_job(6, nan=True))
+
+    def trains():
+        with group.member("trains"):
+            return _pair(_job(5))
+
+    calls = {"fails": fails, "trains": trains, "nan": nan}
+    out = {}
+
+    def run(name):
+        try:
+            out[name] = calls[name]()
+        except Exception as exc:  # noqa: BLE001 - what each member raised, checked below
+            out[name] = exc
+
+    side_by_side([lambda n=n: run(n) for n in calls], workers=3)
+    assert isinstance(out["fails"], ValueError)
+    # The member whose loss went non-finite gets the error alone trainings raise ...
+    assert isinstance(out["nan"], TrainingError)
+    assert "non-finite at epoch 0" in str(out["nan"])
+    # ... and the member trained beside it (one program) is untouched by it.
+    _assert_torque_close(out["trains"][0], want[0], "trains")
+    assert np.isfinite(out["trains"][1].history).all()
+    with pytest.raises(ValueError, match="not a member"):
+        with group.member("stranger"):
+            pass
