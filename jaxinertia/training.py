@@ -388,8 +388,6 @@ def train_attention_models(
     data, val_data = ((feats, A, x_obj, sets), y), ((vf, vA, vx, vsets), vy)
     state = epoch.init(_start(model, k_init, K, feats[:1], init), dtype,
                        None if init is None else val_data)
-    # Alone even in a training group (jaxinertia.training_group): 30 epochs, a small
-    # part of a training's device time.
     state, hist = run_epochs(epoch, state, data, val_data, cfg.attention_epochs, k_epochs,
-                             "attention model", progress, on_epoch, groupable=False)
+                             "attention model", progress, on_epoch)
     return TrainedAttention(model, state.best_params, hist, np.asarray(state.best_epoch))

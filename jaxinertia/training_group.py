@@ -10,14 +10,14 @@ fine-tunings). One epoch of K small MLPs leaves a GPU mostly idle: a step costs 
 much for 60 models as for 10 (docs/benchmarks.md, "Trainings as one program"). The members
 of a group hand their epochs to it; trainings of the same epoch program and the same shapes
 run as one program, the epoch ``vmap``-ped over the group, each with its own state, data
-and keys, at about the device time of one. The numbers are each training's own up to float
-rounding: ``vmap`` may vectorise a reduction (a bias gradient over the minibatch) in another
-order, a last-bit difference that training then carries (tests/test_training_group.py;
-at the folds' shapes on an H200 the torque epochs came out bit for bit, at a 128-sample
-minibatch on the CPU not). Which trainings share a program is fixed by the members and
-their shapes, never by timing: a run's numbers do not depend on which thread came first.
-Only the torque models' epochs are grouped (300 epochs of minibatches, the bulk); the
-attention's (30) run alone.
+and keys, at about the device time of one: the torque models' epochs (300 of minibatches,
+the bulk) and the attention's (30, through the WLS solve). The numbers are each training's
+own up to float rounding: ``vmap`` may vectorise a reduction (a bias gradient over the
+minibatch, the WLS's sums) in another order, a last-bit difference that training then
+carries (tests/test_training_group.py; at the folds' shapes on an H200 the torque epochs
+of four or six trainings came out bit for bit, of two not). Which trainings share a
+program is fixed by the members and their shapes, never by timing: a run's numbers do not
+depend on which thread came first.
 
 A group waits, at each training of its members, until every member has either reached that
 training or left the group (its ``with group.member(...)`` ended, normally or by an
@@ -71,17 +71,15 @@ class _Training:
 
 
 def run_epochs(epoch, state, data, val_data, n_epochs: int, key, desc: str, progress: bool,
-               on_epoch: Callable | None = None, *, groupable: bool = True
-               ) -> tuple[Any, np.ndarray]:
+               on_epoch: Callable | None = None) -> tuple[Any, np.ndarray]:
     """Runs ``epoch.update`` ``n_epochs`` times with a progress bar, calling
     ``on_epoch(e, (train_loss, val_loss))`` after each if given; returns the state and the
     (n_epochs, 2, K) history of training and validation losses. In a thread that is a
-    member of a :class:`TrainingGroup`, the group runs it (with the others of its shapes),
-    unless ``groupable`` is false (the attention's epochs: few, and through the WLS solve)."""
+    member of a :class:`TrainingGroup`, the group runs it (with the others of its shapes)."""
     training = _Training(epoch, state, data, val_data, int(n_epochs), key, desc, progress,
                          on_epoch)
     member = getattr(_local, "member", None)
-    if member is None or not groupable:
+    if member is None:
         return _raise_or_return(_run_together([training])[0])
     group, name = member
     return group._submit(name, training)
