@@ -20,6 +20,8 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -73,6 +75,28 @@ def test_a_faulty_bus_completes_the_plan_without_a_false_alarm(tmp_path, faults)
     assert sorted(journal_indices(out)) == list(range(N)), "each sample exactly once"
 
 
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (Linux /proc)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # gone meanwhile
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    """Running (not gone, not a zombie that nobody reaped)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
 def test_one_collect_per_port_and_a_vanishing_port_stops_cleanly(tmp_path):
     first, second = tmp_path / "first.npz", tmp_path / "second.npz"
     # Slow enough that the first collection is still running when the second starts.
@@ -87,9 +111,17 @@ def test_one_collect_per_port_and_a_vanishing_port_stops_cleanly(tmp_path):
         assert "in use" in one_line(refused.stderr)
         assert not (tmp_path / "second.npz.journal.jsonl").exists(), "second journal"
         assert proc.poll() is None, "the first collection goes on"
-        # The device disappears under the first collection.
+        # The device disappears under the first collection, its physics process with it
+        # (even when the robot died holding the tables' lock: the physics waits for it in
+        # slices and ends when its parent is gone).
+        physics = _children(robot.proc.pid)
+        assert physics, "the virtual robot runs its physics in a process of its own"
         robot.proc.send_signal(signal.SIGKILL)
         _, err = proc.communicate(timeout=WALL_LIMIT_S)
+    deadline = time.monotonic() + WALL_LIMIT_S
+    while (alive := [p for p in physics if _alive(p)]) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not alive, f"processes of the killed robot left running: {alive}"
     assert proc.returncode == 3, err
     line = one_line(err)
     assert "samples are in" in line and "--resume" in line, line

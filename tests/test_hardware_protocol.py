@@ -418,6 +418,34 @@ def test_a_moving_arm_reports_moving_until_simulated_time_has_caught_up(stepped)
     assert m.get("moving") == 1, "moving of ID 11 with its goal pending"
 
 
+def test_a_physics_whose_bus_died_holding_the_lock_ends(stepped, monkeypatch):
+    """A bus process killed while it held the tables' lock never releases it: the physics
+    waits for the lock in slices and ends once its parent is gone, instead of waiting
+    for ever (as a physics process left behind by a killed virtual robot once did)."""
+    import threading
+
+    from jaxinertia.virtual import physics
+
+    b, loop = stepped
+    parent = os.getppid()
+    calls = []
+
+    def getppid():  # the parent lives for the loop's first check, then is gone
+        calls.append(1)
+        return parent if len(calls) == 1 else 1
+
+    monkeypatch.setattr(physics.os, "getppid", getppid)
+    assert b._lock.acquire(timeout=PATIENCE_S)  # the dead bus's hold, never released
+    try:
+        runner = threading.Thread(target=loop.run, args=(1.0, threading.Event(), parent))
+        runner.start()
+        runner.join(PATIENCE_S)
+        assert not runner.is_alive(), "the physics still waits for the lock"
+        assert len(calls) >= 2, "the loop checked its parent while it waited"
+    finally:
+        b._lock.release()
+
+
 def test_the_physics_process_serves_the_bus_and_stops_with_it():
     b = VirtualServoBus(default_sim_params(), None, q0=Q0, speed=5.0)
     with b:

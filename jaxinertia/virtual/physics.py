@@ -14,7 +14,10 @@ current sensor (XL430-W250), Present Load in 0.1 % of the maximum torque (the mo
 current as a share of the stall current: the simulated motor's torque is ``k_t I``, its
 maximum ``k_t`` times the stall current).
 :func:`physics_main` runs that loop in the process of its own that
-:class:`jaxinertia.virtual.robot.VirtualServoBus` starts.
+:class:`jaxinertia.virtual.robot.VirtualServoBus` starts; when that bus's process is gone
+(killed, even while it held the tables' lock, which it then never releases) the loop
+ends: it waits for the lock in slices and checks its parent between them. One module: the
+arm, the loop and the process entry share the tables' conventions and are read together.
 
 Answers follow simulated time whatever the host's speed: Realtime Tick is the simulated
 clock, and a joint whose Goal Position was written reports Moving (and the profile bit of
@@ -46,11 +49,13 @@ servo supply voltage); Return Delay Time is not modelled.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import os
 import sys
 import time
 import traceback
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import jax
@@ -306,31 +311,59 @@ class PhysicsLoop:
         self.events, self.goal_writes = events, goal_writes
         self.reading_lsb = reading_lsb
         self.map = DxlRegisterMap(len(servos)) if register_map is None else register_map
+        self.parent_pid: int | None = None  # set by run(): the bus's process
+
+    @contextlib.contextmanager
+    def _locked(self) -> Iterator[None]:
+        """The tables' lock, waited for in slices: a bus process killed while holding it
+        never releases it, and its physics must then end, not wait for ever."""
+        while not self.lock.acquire(timeout=_LOCK_POLL_S):
+            if self._orphaned():
+                raise _Orphaned
+        try:
+            yield
+        finally:
+            self.lock.release()
+
+    def _orphaned(self) -> bool:
+        return self.parent_pid is not None and os.getppid() != self.parent_pid
 
     def step(self) -> Present:
         while self.events.poll():
             kind, j, value = self.events.recv()
             (self.arm.goal if kind == "goal" else self.arm.hold)(j, value)
-        with self.lock:
+        with self._locked():
             torque = all(m.get("torque_enable") == 1 for m in self.servos)
             registers = self.map.registers(self.servos)
         present = self.arm.advance(registers, torque)
-        with self.lock:
+        with self._locked():
             pending = np.asarray(self.goal_writes[:len(self.servos)]) != self.arm.goals_applied
             self.map.publish(self.servos, present, pending, self.reading_lsb)
         return present
 
     def run(self, speed: float, stop, parent_pid: int | None = None) -> None:
         """Steps paced at ``speed`` x real time until ``stop`` is set (or the parent
-        process is gone)."""
+        process is gone, even while it held the tables' lock)."""
+        self.parent_pid = parent_pid
         wall0, sim0 = time.monotonic(), self.arm.sim_time
-        while not stop.is_set():
-            if parent_pid is not None and os.getppid() != parent_pid:
-                return  # the bus's process died: nobody is listening
-            ahead = (self.arm.sim_time - sim0) / speed - (time.monotonic() - wall0)
-            if ahead > 0:
-                time.sleep(ahead)
-            self.step()
+        try:
+            while not stop.is_set():
+                if self._orphaned():
+                    return  # the bus's process died: nobody is listening
+                ahead = (self.arm.sim_time - sim0) / speed - (time.monotonic() - wall0)
+                if ahead > 0:
+                    time.sleep(ahead)
+                self.step()
+        except _Orphaned:
+            return
+
+
+#: How long the physics waits for the tables' lock before it checks that its bus lives.
+_LOCK_POLL_S = 0.5
+
+
+class _Orphaned(Exception):
+    """The bus's process is gone (while the physics waited for the lock)."""
 
 
 @dataclass(frozen=True)
