@@ -525,6 +525,35 @@ def test_simulate_visits_the_poses_of_a_plan_file(tmp_path, capsys):
     assert not (tmp_path / "x.npz").exists()
 
 
+def test_simulate_draws_recording_sessions_on_request(tmp_path, capsys):
+    """``simulate --sessions N``: the random scenario drawn over N recording sessions
+    (each its own supply per joint), --n / N per load from each, the spread recorded in the
+    file; options that cannot go with it are refused before any work."""
+    from jaxinertia.sim.randomize import SESSION_PRIOR_REL
+
+    out = tmp_path / "sessions.npz"
+    assert cli_main(["simulate", "--scenario", "random", "--n", "8", "--sessions", "2",
+                     "--out", str(out)]) == 0
+    assert "2 recording sessions drawn" in capsys.readouterr().out
+    fields, meta = _read_npz(out)
+    assert len(fields["q"]) == 8 * 4 and fields["at_rest"].all()
+    drawn = meta["domain_randomization"]
+    assert drawn["draws"] == 2
+    spread = drawn["spread"]
+    np.testing.assert_allclose(spread["electrical_rel"], [SESSION_PRIOR_REL] * 4)
+    np.testing.assert_array_equal(spread["torque_rel"], [0.0] * 4)
+    for argv, words in (
+            (["--scenario", "test", "--n", "8"], ["--sessions", "random"]),
+            (["--scenario", "random"], ["--sessions", "--n"]),
+            (["--scenario", "random", "--n", "8", "--objects", "cube"], ["--objects"]),
+            (["--scenario", "random", "--n", "8", "--format", "lbipe"], ["lbipe"])):
+        assert cli_main(["simulate", *argv, "--sessions", "2",
+                         "--out", str(tmp_path / "x.npz")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and all(w in err[0] for w in words), err
+    assert not (tmp_path / "x.npz").exists()
+
+
 def test_the_stream_traces_and_compiles_its_programs_once_for_new_data(monkeypatch):
     """A second stream with new data of the same shapes (other goals, directions, objects
     and keys) reuses every program: the lane step is traced once and nothing compiles

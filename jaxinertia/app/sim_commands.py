@@ -38,6 +38,7 @@ def cmd_simulate(args) -> int:
     # The work's modules (JAX): imported when the command runs, not for --help.
     from jaxinertia import objects as objs
 
+    _check_simulate(args, objs)  # the options first: a refused request leaves nothing
     if args.format == "lbipe":
         split = "test" if args.scenario == "test" else "train"
         names = (args.objects or list(objs.TEST_OBJECTS) if args.scenario == "test" else
@@ -46,7 +47,6 @@ def cmd_simulate(args) -> int:
             check_output(args.out / f"data_{split}_{name}.npz", overwrite=args.overwrite)
     else:
         check_outputs(args, "--out")
-    _check_simulate(args, objs)
     if args.precision == "float32":
         import jax  # the work's module, not for --help
 
@@ -81,6 +81,16 @@ def cmd_simulate(args) -> int:
         if plan[0].shape[1] != params.robot.n_joints:
             raise UsageError(f"--plan {args.plan}: {plan[0].shape[1]} joints per pose; the "
                              f"simulated arm has {params.robot.n_joints}")
+    if args.sessions is not None:
+        from jaxinertia.app.simdata import simulate_files  # (as above)
+        from jaxinertia.sim.randomize import session_prior  # (as above)
+
+        (f,) = simulate_files(params, [(args.out, "random", args.n, args.seed)],
+                              spread=session_prior(params.robot.n_joints),
+                              draws=args.sessions, arm=arm)
+        print(f"wrote {f.path} ({f.samples.n_samples} samples, {args.sessions} recording "
+              "sessions drawn)")
+        return 0
     results = run.simulate_scenario(params, args.scenario, n=args.n, objects=args.objects,
                                     seed=args.seed, plan=plan, arm=arm,
                                     programs=stream_programs())
@@ -104,7 +114,14 @@ def cmd_simulate(args) -> int:
 
 
 def _check_simulate(args, objs) -> None:
-    """The request's memory and the continuous run's options, before any work."""
+    """The request's memory and the options that go together, before any work."""
+    if args.sessions is not None:
+        if args.scenario != "random" or args.n is None:
+            raise UsageError("--sessions draws recording sessions for the random scenario: "
+                             "use --scenario random with --n")
+        if args.plan is not None or args.objects or args.format != "native":
+            raise UsageError("--sessions simulates the training loads' random goals into one "
+                             "native file: no --plan, --objects or --format lbipe")
     if args.n is not None:
         per = 1 if args.scenario == "continuous" else len(
             args.objects or (objs.TEST_OBJECTS if args.scenario == "test"
@@ -226,6 +243,11 @@ def register(sub) -> None:
                    help="simulator parameter file (default: the arm's shipped calibration; "
                    "an arm without one is simulated from its datasheet values)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    s.add_argument("--sessions", type=positive_int, metavar="N",
+                   help="random scenario: the samples drawn over N recording sessions around "
+                   "the calibration (each joint's supply log-normal, 5 %% spread: current and "
+                   "torque per tick scaled alike), --n / N per load from each; the file "
+                   "records the spread (default: the calibration's session only)")
     s.add_argument("--precision", choices=["float64", "float32"], default="float64",
                    help="arithmetic of the simulation (default: %(default)s). float32 runs "
                    "~1.8x faster on a CPU; its random friction jitter differs, so its samples "
