@@ -92,6 +92,9 @@ LONGEST_FIRST = ("test_folds.py",  # 74 s
                  "test_arms.py",  # 2 s
                  "test_sharding.py",  # 29 s
                  "test_identify.py",  # 27 s
+                 # After test_folds and test_learning, whose training programs (same shapes)
+                 # it finds in the session's cache.
+                 "test_training_group.py",  # 17 s
                  "test_feetech_collect.py",  # 20 s
                  "test_kinematics.py",  # 25 s
                  "test_uncertainty.py",  # 22 s
