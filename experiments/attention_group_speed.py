@@ -6,7 +6,6 @@ the same run.
     python experiments/attention_group_speed.py
 """
 
-import time
 
 import jax
 
@@ -14,6 +13,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from group_speed import time_epochs  # noqa: E402 - the sibling script's epoch timer
 
 from jaxinertia import training  # noqa: E402
 from jaxinertia.networks import AttentionModel  # noqa: E402
@@ -47,15 +47,7 @@ def main() -> None:
                 st, data, val = (jax.tree_util.tree_map(lambda *a: jnp.stack(a), *xs)
                                  for xs in zip(*parts))
                 keys = jax.random.split(jax.random.key(0), G)
-            t = time.perf_counter()
-            st, tl, _ = upd(st, keys, data, val)
-            np.asarray(tl)
-            first = time.perf_counter() - t
-            t = time.perf_counter()
-            for _ in range(E):
-                st, tl, _ = upd(st, keys, data, val)
-                np.asarray(tl)
-            w = (time.perf_counter() - t) / E
+            first, w, _ = time_epochs(upd, st, keys, data, val, E)
             base = base or w
             print(f"{jnp.dtype(dtype).name} G={G}: first epoch {first:.1f} s, epoch "
                   f"{w * 1e3:.1f} ms ({w / base:.2f} x float64 alone), per training "

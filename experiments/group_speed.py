@@ -24,6 +24,20 @@ def _stack(trees):
     return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *trees)
 
 
+def time_epochs(update, state, keys, data, val, n: int):
+    """The first call's seconds (compiling), then the seconds per epoch over ``n`` more
+    (each waited for), and the state after them."""
+    t = time.perf_counter()
+    state, loss, _ = update(state, keys, data, val)
+    np.asarray(loss)
+    first = time.perf_counter() - t
+    t = time.perf_counter()
+    for _ in range(n):
+        state, loss, _ = update(state, keys, data, val)
+        np.asarray(loss)
+    return first, (time.perf_counter() - t) / n, state
+
+
 def main() -> None:
     rng = np.random.default_rng(0)
     print(f"device: {jax.devices()[0].device_kind}")
@@ -38,13 +52,7 @@ def main() -> None:
                               jnp.float32) for g in range(G)]
             data, val = ((X, Y), None), ((X[:, :4000], Y[:, :4000]), None)
             keys = jax.random.split(jax.random.key(0), G)
-            st, tl, _ = grouped(_stack(starts), keys, data, val)
-            np.asarray(tl)  # compiled and warm
-            t = time.perf_counter()
-            for _ in range(E):
-                st, tl, _ = grouped(st, keys, data, val)
-                np.asarray(tl)
-            w = (time.perf_counter() - t) / E
+            _, w, _ = time_epochs(grouped, _stack(starts), keys, data, val, E)
             base = base or w
             # The group after three epochs against each training alone.
             same = True
