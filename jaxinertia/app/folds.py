@@ -49,7 +49,7 @@ from jaxinertia.app.pipeline import (
     session_reference,
     train,
 )
-from jaxinertia.app.programs import side_by_side, side_by_side_workers, stream_programs
+from jaxinertia.app.programs import folds_side_by_side, side_by_side, stream_programs
 from jaxinertia.app.recipe import choose_recipe
 from jaxinertia.app.simdata import simulate_files
 from jaxinertia.checkpoints import load_models
@@ -204,13 +204,13 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
         return {**_run_fold(fold), "released": {n: {m: released[n][m] for m in ("T", "T-A")}
                                                 for n in fold.held}}
 
-    # The folds share nothing but the real data they read: side by side on an accelerator
-    # (their trainings grouped into few programs).
+    # The folds share nothing but the real data they read: side by side (on an
+    # accelerator their trainings grouped into few programs; on a CPU one fold per core).
     calls = [fold.branch(partial(run, fold)) for fold in todo]
-    folds = dict(zip(names, side_by_side(calls, todo[0].workers(len(calls)))))
+    workers = todo[0].workers(len(calls)) or folds_side_by_side(len(calls))
+    folds = dict(zip(names, side_by_side(calls, workers)))
     return {"folds": folds, "sets": dict(zip(names, real.sources)),
-            "recipe": choose_recipe(folds), "side_by_side": min(side_by_side_workers(),
-                                                                 len(todo))}
+            "recipe": choose_recipe(folds), "side_by_side": workers}
 
 
 def _run_fold(fold: _Fold) -> dict:
