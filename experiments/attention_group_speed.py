@@ -21,6 +21,18 @@ from jaxinertia.networks import AttentionModel  # noqa: E402
 K, N, E = 10, 40000, 10
 
 
+def training_inputs(rng, ep, model, g: int, dtype):
+    """One attention training's start, data and validation data (random, N samples,
+    1000 sets of 64 and 200 validation sets)."""
+    feats = jnp.asarray(rng.normal(size=(N, 4, 4)), jnp.float32)
+    A = jnp.asarray(rng.normal(size=(N, 4, 4)), dtype)
+    x_obj = jnp.asarray(rng.normal(size=(N, 4)) * 0.05 + [0.1, 0, 0, 0], dtype)
+    sets = jnp.asarray(rng.integers(0, N, size=(1000, 64)), jnp.int32)
+    y = jnp.asarray(rng.normal(size=(K, N, 4)), dtype)
+    st = ep.init(training._start(model, jax.random.key(g), K, feats[:1], None), dtype)
+    return st, ((feats, A, x_obj, sets), y), ((feats, A, x_obj, sets[:200]), y)
+
+
 def main() -> None:
     rng = np.random.default_rng(0)
     am = AttentionModel(n_joints=4)
@@ -30,15 +42,7 @@ def main() -> None:
     base = None
     for dtype in (jnp.float64, jnp.float32):
         for G in (1, 4):
-            def one(g, dtype=dtype):
-                feats = jnp.asarray(rng.normal(size=(N, 4, 4)), jnp.float32)
-                A = jnp.asarray(rng.normal(size=(N, 4, 4)), dtype)
-                x_obj = jnp.asarray(rng.normal(size=(N, 4)) * 0.05 + [0.1, 0, 0, 0], dtype)
-                sets = jnp.asarray(rng.integers(0, N, size=(1000, 64)), jnp.int32)
-                y = jnp.asarray(rng.normal(size=(K, N, 4)), dtype)
-                st = ep.init(training._start(am, jax.random.key(g), K, feats[:1], None), dtype)
-                return st, ((feats, A, x_obj, sets), y), ((feats, A, x_obj, sets[:200]), y)
-            parts = [one(g) for g in range(G)]
+            parts = [training_inputs(rng, ep, am, g, dtype) for g in range(G)]
             if G == 1:
                 upd, (st, data, val) = ep.update, parts[0]
                 keys = jax.random.key(0)

@@ -7,9 +7,9 @@ same run. On a CPU there is no autotuner: both rows are the same compiler.
     python experiments/epoch_compile.py [--epochs 20]
 
 Kinds: the physical torque model from scratch (40k samples, batch 256), its servo part
-fine-tuned (900 samples), the attention model (1000 sets of 64, batch 32, float64 as the
-command line trains it). Random inputs of the folds' shapes: what is timed does not depend
-on the values.
+fine-tuned (900 samples), the attention model (``attention_group_speed``'s inputs: 1000
+sets of 64 of 40k samples, batch 32, float64 as the command line trains it). Random inputs
+of the folds' shapes: what is timed does not depend on the values.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from attention_group_speed import training_inputs  # noqa: E402 - the sibling's inputs
 
 from jaxinertia import training  # noqa: E402
 from jaxinertia.networks import AttentionModel, PhysicalTorqueModel  # noqa: E402
@@ -46,20 +47,10 @@ def _torque(rng, S: int, trainable: str):
     return ep, [one(g) for g in range(G)]
 
 
-def _attention(rng, S: int = 40000):
+def _attention(rng):
     model = AttentionModel(n_joints=4)
     ep = training._attention_epoch(model, 1e-4, "all", 32, 1.0, 0.3)
-    f64 = jnp.float64
-
-    def one(g):
-        feats = jnp.asarray(rng.normal(size=(S, 4, 4)), jnp.float32)
-        A = jnp.asarray(rng.normal(size=(S, 4, 4)), f64)
-        x_obj = jnp.asarray(rng.normal(size=(S, 4)) * 0.05 + [0.1, 0, 0, 0], f64)
-        sets = jnp.asarray(rng.integers(0, S, size=(1000, 64)), jnp.int32)
-        y = jnp.asarray(rng.normal(size=(K, S, 4)), f64)
-        st = ep.init(training._start(model, jax.random.key(g), K, feats[:1], None), f64)
-        return st, ((feats, A, x_obj, sets), y), ((feats, A, x_obj, sets[:200]), y)
-    return ep, [one(g) for g in range(G)]
+    return ep, [training_inputs(rng, ep, model, g, jnp.float64) for g in range(G)]
 
 
 def main() -> None:
