@@ -219,8 +219,12 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     monkeypatch.setattr(folds.FoldGroups, "of", of)
     calls = []
 
+    fails = set()
+
     def fake_train(files, out, cfg, **kw):
         group, name = training_group._local.member
+        if Path(out).name in fails:
+            raise RuntimeError(f"{name} failed")
         calls.append(("scratch" if group is made[0].scratch else "finetune", name,
                       Path(out).name))
         return {"samples": {}, "best_epoch": {}, "data": [{"session_ratio": None}]}
@@ -233,11 +237,20 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     scale = FoldScale(calibration_iterations=1, random_per_load=8, planning=False,
                       train=TRAIN, finetune_samples=(30, 60), current_input=True,
                       session_draws=2)
-    # A branch that fails before its training (here: the drawn sessions' simulator lacks
-    # its arm) leaves its members: the other trainings finish, the error is raised, and
-    # nothing waits for ever.
+    # A fold whose simulation fails (here: the drawn sessions' simulator lacks its arm)
+    # trains nothing, and its error is raised: no member waits for ever.
     monkeypatch.setattr(folds, "_fit_simulator", lambda fold: (None, {}))
     with pytest.raises(AttributeError, match="robot"):
+        run_folds(tmp_path / "failed", small_lbipe_dir, scale, progress=False,
+                  log=lambda m: None)
+    assert calls == []
+    # A branch that fails before its training (the drawn sessions' candidate) leaves its
+    # members: the other trainings finish, the error is raised, and nothing waits for ever.
+    arm = SimpleNamespace(robot=SimpleNamespace(n_joints=4))
+    monkeypatch.setattr(folds, "_fit_simulator", lambda fold: (arm, {}))
+    made.clear()
+    fails.add("models_physical_current_sessions")
+    with pytest.raises(RuntimeError, match="physical_current_sessions failed"):
         run_folds(tmp_path / "failed", small_lbipe_dir, scale, progress=False,
                   log=lambda m: None)
     assert {n for _, n, _ in calls} == set(made[0].scratch.members + made[0].finetune.members
@@ -245,8 +258,7 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
                                                "cube", "white") for k in ("", "/30", "/60")}
     made.clear()
     calls.clear()
-    arm = SimpleNamespace(robot=SimpleNamespace(n_joints=4))
-    monkeypatch.setattr(folds, "_fit_simulator", lambda fold: (arm, {}))
+    fails.clear()
     run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False, log=lambda m: None)
     want = {("scratch", f"{n}/{b}", f) for n in ("cube", "white") for b, f in (
         ("paper", "models"), ("physical", "models_physical"),

@@ -228,7 +228,12 @@ def _run_fold(fold: _Fold) -> dict:
                fold.seed)]
     if fold.scale.planning:
         wanted.append((fold.dir / "data" / "train_planning.npz", "planning", None, fold.seed))
-    files = timed("simulate", partial(simulate_files, progress=fold.progress), params, wanted)
+    # The sessions-drawn data (when the scale has them) simulate beside the fold's own: their
+    # candidates' trainings meet the others' in one group, which would wait for them.
+    sims = [partial(simulate_files, params, wanted, progress=fold.progress)]
+    if fold.scale.current_input and fold.scale.session_draws > 0:
+        sims.append(partial(_draw_sessions, fold, params))
+    files, *drawn = timed("simulate", side_by_side, sims, fold.workers(len(sims)))
 
     def paper() -> dict:
         with fold.member("scratch", "paper"):
@@ -247,9 +252,9 @@ def _run_fold(fold: _Fold) -> dict:
              fold.branch(lambda: (timed("current input", _finetuned, fold, files, True)
                                   if fold.scale.current_input else (None, {})),
                          "physical_current"),
-             fold.branch(lambda: (timed("sessions drawn", _sessions_drawn, fold, params, files)
-                                  if fold.scale.current_input and fold.scale.session_draws > 0
-                                  else (None, {})), "physical_current_sessions")]
+             fold.branch(lambda: (timed("sessions drawn", _finetuned, fold,
+                                        drawn[0] + files[1:], True, "_current_sessions")
+                                  if drawn else (None, {})), "physical_current_sessions")]
     ours, randomized, (physical, fine), (physical_c, fine_c), (physical_s, fine_s) = \
         side_by_side(calls, fold.workers(len(calls)))
     return {"held_out": fold.held, "ours": ours["objects"], "torque": ours["torque"],
@@ -327,14 +332,14 @@ def _randomized(fold: _Fold, params, files: list[Path]) -> dict:
     return {**res, "spread": spread.to_dict(), "draws": fold.scale.randomize_draws}
 
 
-def _sessions_drawn(fold: _Fold, params, files: list[Path]) -> tuple[dict | None, dict]:
-    """The current-input candidates trained on ``session_draws`` recording sessions drawn
-    around the fold's calibration (the random scenario; the planning grid as simulated)."""
-    drawn = simulate_files(params, [
+def _draw_sessions(fold: _Fold, params) -> list[Path]:
+    """The random scenario simulated over ``session_draws`` recording sessions drawn around
+    the fold's calibration, for the current-input candidates trained on them (with the
+    planning grid as simulated)."""
+    return simulate_files(params, [
         (fold.dir / "data" / "train_random_sessions.npz", "random", fold.scale.random_per_load,
          fold.seed)], spread=session_prior(params.robot.n_joints),
         draws=fold.scale.session_draws, progress=fold.progress)
-    return _finetuned(fold, drawn + files[1:], True, "_current_sessions")
 
 
 def _finetuned(fold: _Fold, files: list[Path], current_input: bool = False,
