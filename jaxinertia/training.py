@@ -164,24 +164,19 @@ class Epoch(NamedTuple):
     compiler_options: tuple = ()
 
 
-#: A training of fewer minibatch steps than this (epochs x minibatches per epoch) compiles
-#: its epoch without XLA's GPU autotuner (:func:`epoch_compiler_options`).
-AUTOTUNE_MIN_STEPS = 20_000
-
-
-def epoch_compiler_options(steps: int, backend: str | None = None) -> tuple:
-    """The compiler options of the epoch of a training of ``steps`` minibatch steps on
-    ``backend`` (default: JAX's): on a GPU, no autotuning below :data:`AUTOTUNE_MIN_STEPS`;
-    ``((name, value), ...)``.
+def epoch_compiler_options(backend: str | None = None) -> tuple:
+    """The compiler options of a training's epoch programs on ``backend`` (default: JAX's),
+    ``((name, value), ...)``: on a GPU, without XLA's autotuner.
 
     The autotuner compiles and times candidate kernels for the matrix products on the
-    device: seconds of compile per program (more while other programs run on the GPU),
-    paid back only by a long training. A fold's attention trainings (30 epochs) and
-    fine-tunings (200 epochs of a few minibatches) run for about a second of device time
-    each; their grouped programs compiled for 12-18 s each in ``reproduce --full`` on an
-    H100 (docs/benchmarks.md, "Epochs without the autotuner"). The torque models from
-    scratch run ~87,000 steps. A CPU has no autotuner: nothing to set."""
-    if steps >= AUTOTUNE_MIN_STEPS or (backend or jax.default_backend()) != "gpu":
+    device. For these epochs (small MLPs, launch-bound) it found nothing faster: on one
+    H100 (``experiments/epoch_compile.py``, K = 10 models, alone and four trainings as one
+    program) the epochs ran at 0.99-1.02 x the autotuned ones' time (the physical torque
+    model from scratch, the attention model) and 1.09-1.13 x for the fine-tuning's 1 ms
+    epochs, while compiling in 0.40-0.59 x the time (1.5-3.3 s against 3.6-5.6 s; more
+    while other programs run on the GPU, as in the held-out folds). A CPU has no autotuner:
+    nothing to set."""
+    if (backend or jax.default_backend()) != "gpu":
         return ()
     return (("xla_gpu_autotune_level", 0),)
 
@@ -282,8 +277,7 @@ def train_torque_models(
     Yv = jnp.asarray(val.tau, jnp.float32) / scale
     k_init, k_epochs = jax.random.split(key)
     batch = min(cfg.torque_batch, len(X))
-    epoch = _torque_epoch(model, cfg.torque_lr, cfg.trainable, batch,
-                          epoch_compiler_options(cfg.torque_epochs * (len(X) // batch)))
+    epoch = _torque_epoch(model, cfg.torque_lr, cfg.trainable, batch, epoch_compiler_options())
     state = epoch.init(_start(model, k_init, cfg.n_models, X[:1], init), jnp.float32,
                        None if init is None else ((Xv, Yv), None))
     state, hist = run_epochs(epoch, state, ((X, Y), None), ((Xv, Yv), None), cfg.torque_epochs,
@@ -421,8 +415,7 @@ def train_attention_models(
     (feats, A, y, x_obj), (vf, vA, vy, vx) = arrays(train), arrays(val)
     batch = min(cfg.attention_batch, sets.shape[0])
     epoch = _attention_epoch(model, cfg.attention_lr, cfg.trainable, batch, cfg.w_mass,
-                             cfg.w_com, epoch_compiler_options(
-                                 cfg.attention_epochs * (sets.shape[0] // batch)))
+                             cfg.w_com, epoch_compiler_options())
     data, val_data = ((feats, A, x_obj, sets), y), ((vf, vA, vx, vsets), vy)
     state = epoch.init(_start(model, k_init, K, feats[:1], init), dtype,
                        None if init is None else val_data)

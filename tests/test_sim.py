@@ -249,6 +249,19 @@ def test_streamed_lanes_give_the_samples_of_the_plain_vmap(batch_last, stream_ca
         assert got_a["at_rest"].all()
 
 
+def test_a_short_stream_steps_as_many_lanes_as_it_has_samples(monkeypatch):
+    """On an accelerator (16,384 lanes) a real file's 1,000-sample plan steps 1,024 lanes,
+    not 16,384; a stream of more than a sixteenth of the lanes steps them all. On a CPU
+    (256 lanes) every stream steps 256."""
+    from jaxinertia.sim import stream
+
+    assert [stream.stream_lanes(n) for n in (1, 24, 1000, 40_000)] == [
+        stream.default_lanes()] * 4 == [256] * 4
+    monkeypatch.setattr(stream, "default_lanes", lambda: 16384)
+    assert [stream.stream_lanes(n) for n in (1, 24, 256, 257, 1000, 1024, 1025, 40_000)] == [
+        256, 256, 256, 512, 1024, 1024, 16384, 16384]
+
+
 def test_the_stream_runs_the_stepping_program_precompiled_before_its_plans():
     """``precompile`` (what ``simulate_scenarios`` calls before building its plans) submits
     the stepping program for the same abstract lanes as the stream builds from real plans:

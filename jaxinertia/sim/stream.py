@@ -38,7 +38,7 @@ from jaxinertia.sim.sampling import Record
 from jaxinertia.sim.simulator import SimParams
 
 __all__ = ["Compiler", "LanePlan", "StreamPrograms", "batch_last_default", "default_lanes",
-           "default_tail_lanes", "stream_plans"]
+           "default_tail_lanes", "stream_lanes", "stream_plans"]
 
 _log = logging.getLogger(__name__)
 
@@ -110,6 +110,18 @@ def _split_all(keys: jax.Array, n: int) -> jax.Array:
 
 def _pad(a: np.ndarray, size: int) -> np.ndarray:
     return np.concatenate([a, np.repeat(a[-1:], size - len(a), 0)]) if len(a) < size else a
+
+
+def stream_lanes(samples: int) -> int:
+    """Lanes for a stream of ``samples``: :func:`default_lanes`, but for a stream that
+    would fill at most a sixteenth of them, as many as it has samples (the next power of
+    two, at least 256): a real file's 1,000-sample plan (each held-out fold's calibration
+    simulates it a dozen times) then steps 1,024 lanes on an accelerator instead of 16,384.
+    The recorded samples do not depend on the lane count (:func:`stream_plans`)."""
+    lanes = default_lanes()
+    if samples > lanes // 16:
+        return lanes
+    return min(lanes, max(256, 1 << max(samples - 1, 0).bit_length()))
 
 
 def default_tail_lanes(lanes: int) -> int:
@@ -339,6 +351,8 @@ def stream_plans(params: SimParams, plans: list[LanePlan], *, lanes: int | None 
     lane count nor on the other plans (stepped batch-last, the simulator's true state may
     differ in its last bits between lane counts; the recorded ticks do not).
 
+    ``lanes``: default :func:`stream_lanes` for the plans' samples.
+
     ``tail_lanes`` (default :func:`default_tail_lanes`; 0: off): once every sample is
     handed out and at most this many are still running, they move to a program of that
     many lanes (compiled in the background while the stream runs), so that the last slow
@@ -358,7 +372,7 @@ def stream_plans(params: SimParams, plans: list[LanePlan], *, lanes: int | None 
                                 blocks_per_call=blocks_per_call, programs=own, desc=desc,
                                 progress=progress)
     t_start = time.perf_counter()
-    lanes = int(lanes or default_lanes())
+    lanes = int(lanes or stream_lanes(sum(len(p.q_d) for p in plans)))
     params = _one_signature(params)
     args, sizes = _assemble(params, plans, lanes)
     S = sum(sizes)
