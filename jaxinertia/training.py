@@ -164,19 +164,27 @@ class Epoch(NamedTuple):
     compiler_options: tuple = ()
 
 
-def epoch_compiler_options(backend: str | None = None) -> tuple:
-    """The compiler options of a training's epoch programs on ``backend`` (default: JAX's),
-    ``((name, value), ...)``: on a GPU, without XLA's autotuner.
+#: A training of fewer minibatch steps than this (epochs x minibatches per epoch: a
+#: fine-tuning's 200 epochs of a few minibatches) compiles its epoch without XLA's GPU
+#: autotuner (:func:`epoch_compiler_options`).
+AUTOTUNE_MIN_STEPS = 2_000
+
+
+def epoch_compiler_options(steps: int, backend: str | None = None) -> tuple:
+    """The compiler options of the epoch programs of a training of ``steps`` minibatch
+    steps on ``backend`` (default: JAX's), ``((name, value), ...)``: on a GPU, without XLA's
+    autotuner below :data:`AUTOTUNE_MIN_STEPS`.
 
     The autotuner compiles and times candidate kernels for the matrix products on the
-    device. For these epochs (small MLPs, launch-bound) it found nothing faster: on one
-    H100 (``experiments/epoch_compile.py``, K = 10 models, alone and four trainings as one
-    program) the epochs ran at 0.99-1.02 x the autotuned ones' time (the physical torque
-    model from scratch, the attention model) and 1.09-1.13 x for the fine-tuning's 1 ms
-    epochs, while compiling in 0.40-0.59 x the time (1.5-3.3 s against 3.6-5.6 s; more
-    while other programs run on the GPU, as in the held-out folds). A CPU has no autotuner:
-    nothing to set."""
-    if (backend or jax.default_backend()) != "gpu":
+    device: seconds of compile per program, more while other programs run on the GPU. A
+    fine-tuning runs for about a second of device time: in ``reproduce --full`` on one H100
+    the folds' grouped fine-tunings compiled for 12 s each autotuned, 1.3 s without. A long
+    training pays it back: without the autotuner the torque models from scratch ran 1.8 x
+    slower there (300 epochs in 20 s against 11 s) and the attention's 30 epochs took 12 s
+    against 7 s, although random inputs of the same shapes ran at the same speed either way
+    (``experiments/epoch_compile.py``; docs/benchmarks.md "Epochs without the autotuner").
+    A CPU has no autotuner: nothing to set."""
+    if steps >= AUTOTUNE_MIN_STEPS or (backend or jax.default_backend()) != "gpu":
         return ()
     return (("xla_gpu_autotune_level", 0),)
 
@@ -277,7 +285,8 @@ def train_torque_models(
     Yv = jnp.asarray(val.tau, jnp.float32) / scale
     k_init, k_epochs = jax.random.split(key)
     batch = min(cfg.torque_batch, len(X))
-    epoch = _torque_epoch(model, cfg.torque_lr, cfg.trainable, batch, epoch_compiler_options())
+    epoch = _torque_epoch(model, cfg.torque_lr, cfg.trainable, batch,
+                          epoch_compiler_options(cfg.torque_epochs * (len(X) // batch)))
     state = epoch.init(_start(model, k_init, cfg.n_models, X[:1], init), jnp.float32,
                        None if init is None else ((Xv, Yv), None))
     state, hist = run_epochs(epoch, state, ((X, Y), None), ((Xv, Yv), None), cfg.torque_epochs,
@@ -415,7 +424,8 @@ def train_attention_models(
     (feats, A, y, x_obj), (vf, vA, vy, vx) = arrays(train), arrays(val)
     batch = min(cfg.attention_batch, sets.shape[0])
     epoch = _attention_epoch(model, cfg.attention_lr, cfg.trainable, batch, cfg.w_mass,
-                             cfg.w_com, epoch_compiler_options())
+                             cfg.w_com, epoch_compiler_options(
+                                 cfg.attention_epochs * (sets.shape[0] // batch)))
     data, val_data = ((feats, A, x_obj, sets), y), ((vf, vA, vx, vsets), vy)
     state = epoch.init(_start(model, k_init, K, feats[:1], init), dtype,
                        None if init is None else val_data)
