@@ -17,6 +17,9 @@ process; without one a stream compiles for itself alone);
 an accelerator
 the last samples move to a program of fewer lanes (:func:`default_tail_lanes`). By default
 the lanes step batch-last (:func:`batch_last_default`).
+
+One module: the host loop, the compiler that prepares its programs ahead of time and the
+registry that keeps them share the programs' signatures and lane counts.
 """
 
 from __future__ import annotations
@@ -113,11 +116,9 @@ def _pad(a: np.ndarray, size: int) -> np.ndarray:
 
 
 def stream_lanes(samples: int) -> int:
-    """Lanes for a stream of ``samples``: :func:`default_lanes`, but for a stream that
-    would fill at most a sixteenth of them, as many as it has samples (the next power of
-    two, at least 256): a real file's 1,000-sample plan (each held-out fold's calibration
-    simulates it a dozen times) then steps 1,024 lanes on an accelerator instead of 16,384.
-    The recorded samples do not depend on the lane count (:func:`stream_plans`)."""
+    """:func:`default_lanes`, or for a stream of at most a sixteenth of them as many as it
+    has samples (a power of two, >= 256): a real file's plan, which a fold's calibration
+    simulates a dozen times, steps 1,024 lanes on an accelerator, not 16,384."""
     lanes = default_lanes()
     if samples > lanes // 16:
         return lanes
@@ -351,12 +352,11 @@ def stream_plans(params: SimParams, plans: list[LanePlan], *, lanes: int | None 
     lane count nor on the other plans (stepped batch-last, the simulator's true state may
     differ in its last bits between lane counts; the recorded ticks do not).
 
-    ``lanes``: default :func:`stream_lanes` for the plans' samples.
-
-    ``tail_lanes`` (default :func:`default_tail_lanes`; 0: off): once every sample is
-    handed out and at most this many are still running, they move to a program of that
-    many lanes (compiled in the background while the stream runs), so that the last slow
-    samples do not step every lane. Streams shorter than four lane-fulls do not use it.
+    ``lanes``: default :func:`stream_lanes`. ``tail_lanes`` (default
+    :func:`default_tail_lanes`; 0: off): once every sample is handed out and at most this
+    many are still running, they move to a program of that many lanes (compiled in the
+    background while the stream runs), so that the last slow samples do not step every
+    lane. Streams shorter than four lane-fulls do not use it.
 
     ``batch_last`` (default :func:`batch_last_default`): step the lanes with
     :func:`jaxinertia.sim.batched.step_batched` rather than ``vmap`` of
