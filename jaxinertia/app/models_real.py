@@ -6,16 +6,21 @@ their own models where the folds judge them apart, :mod:`jaxinertia.app.by_part`
 
 from __future__ import annotations
 
+import contextlib
+import shutil
+from functools import partial
 from pathlib import Path
 
 from jaxinertia.app.by_part import attach_com_models
 from jaxinertia.app.pipeline import RealData, copy_models, evaluate_models, train
+from jaxinertia.app.programs import side_by_side, side_by_side_workers
 from jaxinertia.app.simdata import simulate_files
 from jaxinertia.open_manipulator_x import load_sim_fit
 from jaxinertia.session import ServoSession, servo_session
 from jaxinertia.sim.params import arm_sim_params
 from jaxinertia.sim.randomize import session_prior
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
+from jaxinertia.training_group import TrainingGroup
 
 __all__ = ["DEFAULT_RECIPE", "models_real", "recipe_of", "sim_fit_session"]
 
@@ -59,10 +64,35 @@ def models_real(out: Path, train_files: list[Path], real: RealData, scale,
     ``models_real/com``, the COM's source, :mod:`jaxinertia.app.by_part`). Evaluated on
     the real files (not held out)."""
     dst = out / "models_real"
-    info = _make_models(out, dst, train_files, real, scale, recipe, seed, progress, session)
-    if recipe.get("com"):
-        _make_models(out, dst / "com", train_files, real, scale, recipe["com"], seed,
-                     progress, session)
+    recipes = {"mass": recipe, "com": recipe["com"]} if recipe.get("com") else {"mass": recipe}
+    files = {part: train_files for part in recipes}
+    drawn = [part for part, r in recipes.items() if r.get("sessions_drawn")]
+    if drawn:  # the random scenario over drawn recording sessions, simulated once
+        params = arm_sim_params()
+        sessions = simulate_files(params, [
+            (out / "data" / "train_random_sessions.npz", "random", scale.random_per_load,
+             seed)], spread=session_prior(params.robot.n_joints),
+            draws=scale.fold_session_draws or 4, progress=progress) + train_files[1:]
+        files.update(dict.fromkeys(drawn, sessions))
+    # The COM's folder is written beside and moved into the mass's once both exist (the
+    # mass's is written whole, replacing any folder there), each fine-tuning from its own
+    # start. On an accelerator the two train side by side, their trainings of one shape as
+    # one program.
+    where = {"mass": (dst, out / "models_physical"),
+             "com": (out / "models_real_com", out / "models_physical_com")}
+    group = (TrainingGroup(recipes) if len(recipes) > 1 and side_by_side_workers() > 1
+             else None)
+
+    def make(part: str):
+        with group.member(part) if group else contextlib.nullcontext():
+            return _make_models(*where[part], files[part], real, scale, recipes[part],
+                                seed, progress, session, out)
+
+    info, *_ = side_by_side([partial(make, part) for part in recipes],
+                            len(recipes) if group else 1)
+    if "com" in recipes:
+        shutil.rmtree(dst / "com", ignore_errors=True)
+        shutil.move(where["com"][0], dst / "com")
         attach_com_models(dst, "com")
     res = evaluate_models(dst, real.objects, real.sets, l_max=real.l_max)
     return {"objects": res["objects"], "files": [str(f.path) for f in real.files],
@@ -70,26 +100,20 @@ def models_real(out: Path, train_files: list[Path], real: RealData, scale,
             "recipe": recipe, "session_ratio": res["session_ratio"]}
 
 
-def _make_models(out: Path, dst: Path, train_files: list[Path], real: RealData,
+def _make_models(dst: Path, start: Path, train_files: list[Path], real: RealData,
                  scale, recipe: dict, seed: int, progress: bool,
-                 session: ServoSession | None) -> dict | None:
+                 session: ServoSession | None, out: Path) -> dict | None:
     """One model folder at ``dst`` as ``recipe`` says: the run's simulator-trained paper
-    models, the physical model trained on the simulated files (the random scenario's drawn
-    over recording sessions when the recipe says so), or that model's servo part
-    fine-tuned on every real file of the folder; the session strength the recipe chose.
+    models, the physical model trained on the simulated files (``train_files``: with the
+    random scenario drawn over recording sessions when a recipe says so), or that model's
+    servo part fine-tuned on every real file of the folder; the session strength the
+    recipe chose; a fine-tuning starts from the physical model trained at ``start``.
     Returns the fine-tuning's record (None without one)."""
     strength = float(recipe["session_strength"])
     info = None
-    if recipe.get("sessions_drawn"):
-        params = arm_sim_params()
-        train_files = simulate_files(params, [
-            (out / "data" / "train_random_sessions.npz", "random", scale.random_per_load, seed)],
-            spread=session_prior(params.robot.n_joints),
-            draws=scale.fold_session_draws or 4, progress=progress) + train_files[1:]
     if recipe["candidate"].startswith("paper"):
         copy_models(out / "models", dst, session_strength=strength)
     else:
-        start = out / "models_physical"
         physical_cfg = scale.train.replace(seed=seed, torque_model="physical",
                                            current_input=bool(recipe.get("current_input")),
                                            session_strength=strength)
