@@ -182,7 +182,7 @@ def epoch_compiler_options(steps: int, backend: str | None = None) -> tuple:
     training pays it back: without the autotuner the torque models from scratch ran 1.8 x
     slower there (300 epochs in 20 s against 11 s) and the attention's 30 epochs took 12 s
     against 7 s, although random inputs of the same shapes ran at the same speed either way
-    (``experiments/epoch_compile.py``; docs/benchmarks.md "Epochs without the autotuner").
+    (``experiments/epoch_compile.py``; docs/benchmarks.md, "Where a GPU fold's time goes").
     A CPU has no autotuner: nothing to set."""
     if steps >= AUTOTUNE_MIN_STEPS or (backend or jax.default_backend()) != "gpu":
         return ()
