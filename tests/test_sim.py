@@ -262,6 +262,38 @@ def test_a_short_stream_steps_as_many_lanes_as_it_has_samples(monkeypatch):
         256, 256, 256, 512, 1024, 1024, 16384, 16384]
 
 
+def test_scenarios_precompile_the_stepping_program_for_the_lanes_they_stream(monkeypatch):
+    """``simulate_scenarios`` starts the stepping program before its plans exist: for the
+    lanes its stream will step (:func:`stream.stream_lanes` of the samples the requests make;
+    the default when a planning grid's size is unknown), so that a small simulation on an
+    accelerator compiles one program, not the default lanes' too. The counts are those of
+    the plans built."""
+    from jaxinertia.sim import run as sim_run
+
+    monkeypatch.setattr(stream, "default_lanes", lambda: 16384)  # an accelerator's
+    precompiled, streamed = [], []
+    monkeypatch.setattr(stream.StreamPrograms, "precompile",
+                        lambda self, params, obj, *, lanes=None, **kw: precompiled.append(lanes))
+
+    def fake_run_plans(params, plans, **kw):
+        streamed.append(sum(len(q_d) for _, q_d, _, _ in plans))
+        return [{} for _ in plans]
+
+    monkeypatch.setattr(sim_run, "run_plans", fake_run_plans)
+    p, goals = default_sim_params(), random_plan(7, 0, **WS)
+    for requests, lanes in (([ScenarioRequest("test", 10, ["cube"])], 256),
+                            ([ScenarioRequest("random", 100), ScenarioRequest("test", 50)], 1024),
+                            ([ScenarioRequest("random", 300)], 16384),
+                            ([ScenarioRequest("random", None, plan=goals)], 256),
+                            ([ScenarioRequest("planning", 5)], None)):
+        precompiled.clear(), streamed.clear()
+        simulate_scenarios(p, requests, programs=stream.StreamPrograms(), progress=False)
+        assert precompiled == [lanes], (requests, precompiled)
+        counts = [sim_run._request_samples(r) for r in requests]
+        if None not in counts:
+            assert streamed == [sum(counts)], (requests, streamed)
+
+
 def test_the_stream_runs_the_stepping_program_precompiled_before_its_plans():
     """``precompile`` (what ``simulate_scenarios`` calls before building its plans) submits
     the stepping program for the same abstract lanes as the stream builds from real plans:

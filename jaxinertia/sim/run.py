@@ -23,7 +23,7 @@ from jaxinertia.open_manipulator_x import ARM as OMX_ARM
 from jaxinertia.plans import Goals, planning_plan, random_plan
 from jaxinertia.sim.params import params_to_dict
 from jaxinertia.sim.simulator import SimParams
-from jaxinertia.sim.stream import LanePlan, StreamPrograms, stream_plans
+from jaxinertia.sim.stream import LanePlan, StreamPrograms, stream_lanes, stream_plans
 
 __all__ = ["as_float64", "native_fields", "run_plan", "run_plans", "ScenarioRequest",
            "simulate_scenario", "simulate_scenarios"]
@@ -161,9 +161,12 @@ def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
             return simulate_scenarios(params, requests, lanes=lanes, tail_lanes=tail_lanes,
                                       batch_last=batch_last, programs=own, progress=progress,
                                       arm=arm)
-    # The stepping program needs no plans: it compiles while they are built.
+    # The stepping program needs no plans: it compiles while they are built (for the lanes
+    # the stream will step, where the requests tell how many samples they make).
     arm = OMX_ARM if arm is None else arm
-    programs.precompile(params, training_object(0.0, tag_in_ee=arm.tag_in_ee), lanes=lanes,
+    counts = [_request_samples(r) for r in requests]
+    programs.precompile(params, training_object(0.0, tag_in_ee=arm.tag_in_ee),
+                        lanes=lanes or (None if None in counts else stream_lanes(sum(counts))),
                         batch_last=batch_last)
     jobs, descs, plans = [], [], []
     for r in requests:
@@ -188,6 +191,17 @@ def _check_request(scenario: str, objects: list[str] | None) -> None:
     unknown = [o for o in objects or [] if o not in TEST_OBJECTS]
     if scenario == "test" and unknown:
         raise UsageError(f"unknown test object(s) {unknown}; known: {list(TEST_OBJECTS)}")
+
+
+def _request_samples(r: ScenarioRequest) -> int | None:
+    """How many samples :func:`_scenario_jobs` makes of ``r`` (None for a planning grid
+    whose size only the grid tells)."""
+    objects = len(r.objects or TEST_OBJECTS) if r.scenario == "test" else len(TRAINING_LOADS_KG)
+    if r.plan is not None:
+        return objects * (r.n or len(r.plan[0]))
+    if r.scenario == "planning":
+        return None
+    return objects * (r.n or 1000)
 
 
 def _scenario_jobs(scenario: str, n: int | None, objects: list[str] | None, seed: int,
