@@ -281,14 +281,14 @@ def test_scenarios_precompile_the_stepping_program_for_the_lanes_they_stream(mon
 
     monkeypatch.setattr(sim_run, "run_plans", fake_run_plans)
     p, goals = default_sim_params(), random_plan(7, 0, **WS)
-    for requests, lanes in (([ScenarioRequest("test", 10, ["cube"])], 256),
+    for requests, want in (([ScenarioRequest("test", 10, ["cube"])], 256),
                             ([ScenarioRequest("random", 100), ScenarioRequest("test", 50)], 1024),
                             ([ScenarioRequest("random", 300)], 16384),
                             ([ScenarioRequest("random", None, plan=goals)], 256),
                             ([ScenarioRequest("planning", 5)], None)):
         precompiled.clear(), streamed.clear()
         simulate_scenarios(p, requests, programs=stream.StreamPrograms(), progress=False)
-        assert precompiled == [lanes], (requests, precompiled)
+        assert precompiled == [want], (requests, precompiled)
         counts = [sim_run._request_samples(r) for r in requests]
         if None not in counts:
             assert streamed == [sum(counts)], (requests, streamed)
