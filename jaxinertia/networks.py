@@ -59,6 +59,25 @@ class JointEmbedding(nn.Module):
         return nn.Dense(self.embed, name="embed")(x)
 
 
+def _joint_embeddings(module: nn.Module, features, hidden: int, embed: int, stacked: bool):
+    """(..., N, F) features -> (..., N, embed): joint j's :class:`JointEmbedding`
+    ``joint{j}`` on its own features. ``stacked``: the N joints' layers as one batched
+    product each (their parameters stacked on the fly; the same parameters, fewer and
+    larger kernels; equal to the per-joint products up to float rounding)."""
+    N = features.shape[-2]
+    if not stacked or module.is_initializing():
+        return jnp.stack([JointEmbedding(hidden, embed, name=f"joint{j}")(features[..., j, :])
+                          for j in range(N)], axis=-2)
+    p = module.variables["params"]
+
+    def layer(x, name):
+        W = jnp.stack([p[f"joint{j}"][name]["kernel"] for j in range(N)])
+        b = jnp.stack([p[f"joint{j}"][name]["bias"] for j in range(N)])
+        return jnp.einsum("...nf,nfh->...nh", x, W) + b
+
+    return layer(nn.relu(layer(features, "hidden")), "embed")
+
+
 class TorqueModel(nn.Module):
     """(..., N, 4) features -> (..., N) normalised joint torques (times tau_scale = N m)."""
 
@@ -66,14 +85,13 @@ class TorqueModel(nn.Module):
     hidden: int = 12
     embed: int = 12
     head: Sequence[int] = (64, 64)
+    #: The joints' embeddings as batched products (:func:`_joint_embeddings`).
+    stacked_joints: bool = False
 
     @nn.compact
     def __call__(self, features):
-        h = [
-            JointEmbedding(self.hidden, self.embed, name=f"joint{j}")(features[..., j, :])
-            for j in range(self.n_joints)
-        ]
-        x = jnp.concatenate(h, axis=-1)
+        h = _joint_embeddings(self, features, self.hidden, self.embed, self.stacked_joints)
+        x = h.reshape(h.shape[:-2] + (h.shape[-2] * h.shape[-1],))
         for i, width in enumerate(self.head):
             x = nn.relu(nn.Dense(width, name=f"head{i}")(x))
         return nn.Dense(self.n_joints, name="out")(x)
@@ -99,6 +117,7 @@ class PhysicalTorqueModel(nn.Module):
     hidden: int = 12
     embed: int = 12
     head: Sequence[int] = (64, 64)
+    stacked_joints: bool = False
 
     @nn.compact
     def __call__(self, features):
@@ -110,7 +129,8 @@ class PhysicalTorqueModel(nn.Module):
         f = self.param("friction", nn.initializers.zeros, (N,), features.dtype)
         g = self.param("load_friction", nn.initializers.zeros, (N,), features.dtype)
         servo = k * e
-        residual = TorqueModel(N, self.hidden, self.embed, self.head, name="residual")(features)
+        residual = TorqueModel(N, self.hidden, self.embed, self.head, self.stacked_joints,
+                               name="residual")(features)
         return servo + c + s * (f + g * jnp.abs(servo)) + residual
 
 
@@ -129,15 +149,10 @@ class AttentionModel(nn.Module):
     hidden: int = 12
     embed: int = 12
     scorer: Sequence[int] = (32,)
+    stacked_joints: bool = False
 
     def scores(self, features):
-        h = jnp.stack(
-            [
-                JointEmbedding(self.hidden, self.embed, name=f"joint{j}")(features[..., j, :])
-                for j in range(self.n_joints)
-            ],
-            axis=-2,
-        )
+        h = _joint_embeddings(self, features, self.hidden, self.embed, self.stacked_joints)
         onehot = jnp.broadcast_to(
             jnp.eye(self.n_joints, dtype=h.dtype), h.shape[:-1] + (self.n_joints,)
         )

@@ -67,6 +67,7 @@ __all__ = [
     "Epoch",
     "TrainConfig",
     "TrainState",
+    "accelerated_epochs",
     "attention_loss",
     "draw_sets",
     "feature_config_from",
@@ -123,12 +124,15 @@ def _any_trainable(params, trainable: str) -> bool:
                for path, _ in jax.tree_util.tree_flatten_with_path(params)[0])
 
 
-def optimizer(lr: float, *, trainable: str = "all") -> optax.GradientTransformation:
+def optimizer(lr: float, *, trainable: str = "all", flat: bool = False
+              ) -> optax.GradientTransformation:
     """Adam on the parameters ``trainable`` names (:class:`TrainConfig`); the others get
-    no updates."""
-    adam = optax.adam(lr)
+    no updates. ``flat`` (with ``trainable="all"``): Adam on the parameters raveled into one
+    vector (``optax.flatten``): the same arithmetic element by element, in a few kernels
+    instead of a few per parameter."""
     if trainable == "all":
-        return adam
+        return optax.flatten(optax.adam(lr)) if flat else optax.adam(lr)
+    adam = optax.adam(lr)
 
     def labels(params):
         return jax.tree_util.tree_map_with_path(
@@ -187,6 +191,22 @@ def epoch_compiler_options(steps: int, backend: str | None = None) -> tuple:
     if steps >= AUTOTUNE_MIN_STEPS or (backend or jax.default_backend()) != "gpu":
         return ()
     return (("xla_gpu_autotune_level", 0),)
+
+
+def accelerated_epochs(backend: str | None = None) -> dict:
+    """How the epochs on ``backend`` (default: JAX's) are built, as keywords of the epoch
+    builders: on a GPU the joints' embedding layers as batched products (``stacked``: the
+    networks' ``stacked_joints``) and Adam on the raveled parameters (``flat``:
+    :func:`optimizer`'s); elsewhere neither. One minibatch step of the small
+    MLPs is a chain of small kernels whose count, not their size, sets its time on a GPU:
+    these cut it from 64 fusions and 33 matrix products to 41 and 14 per step of the
+    physical torque model, and an epoch of the folds' shapes to 0.68-0.73 x (attention
+    0.85 x) on an H100 (``experiments/epoch_step.py``; docs/benchmarks.md). The same
+    models and parameters, the products summed in another order: equal up to float
+    rounding, which training carries. On a CPU they gain nothing measurable, and a CPU
+    run's numbers stay those of the per-joint products."""
+    gpu = (backend or jax.default_backend()) == "gpu"
+    return {"stacked": gpu, "flat": gpu}
 
 
 def make_epoch(tx: optax.GradientTransformation, loss_fn, batches_fn, val_fn,
@@ -286,7 +306,8 @@ def train_torque_models(
     k_init, k_epochs = jax.random.split(key)
     batch = min(cfg.torque_batch, len(X))
     epoch = _torque_epoch(model, cfg.torque_lr, cfg.trainable, batch,
-                          epoch_compiler_options(cfg.torque_epochs * (len(X) // batch)))
+                          epoch_compiler_options(cfg.torque_epochs * (len(X) // batch)),
+                          **accelerated_epochs())
     state = epoch.init(_start(model, k_init, cfg.n_models, X[:1], init), jnp.float32,
                        None if init is None else ((Xv, Yv), None))
     state, hist = run_epochs(epoch, state, ((X, Y), None), ((Xv, Yv), None), cfg.torque_epochs,
@@ -299,8 +320,11 @@ def train_torque_models(
 # the jitted epoch it already traced, instead of tracing and lowering it again.
 @functools.lru_cache(maxsize=32)
 def _torque_epoch(model, lr: float, trainable: str, batch: int,
-                  compiler_options: tuple = ()) -> Epoch:
-    """Minibatches of ``batch`` samples of the features and scaled torques ``(X, Y)``."""
+                  compiler_options: tuple = (), stacked: bool = False,
+                  flat: bool = False) -> Epoch:
+    """Minibatches of ``batch`` samples of the features and scaled torques ``(X, Y)``;
+    ``stacked`` and ``flat``: :func:`accelerated_epochs`."""
+    model = model.clone(stacked_joints=stacked)
 
     def mse(p, x, y):
         return jnp.mean((model.apply(p, x) - y) ** 2)
@@ -309,7 +333,7 @@ def _torque_epoch(model, lr: float, trainable: str, batch: int,
         S = XY[0].shape[0]
         return jax.random.permutation(k, S)[: S // batch * batch].reshape(-1, batch)
 
-    return make_epoch(optimizer(lr, trainable=trainable),
+    return make_epoch(optimizer(lr, trainable=trainable, flat=flat),
                       loss_fn=lambda p, XY, _, idx: mse(p, XY[0][idx], XY[1][idx]),
                       batches_fn=batches, val_fn=lambda p, XYv, _: mse(p, *XYv),
                       compiler_options=compiler_options)
@@ -317,9 +341,12 @@ def _torque_epoch(model, lr: float, trainable: str, batch: int,
 
 @functools.lru_cache(maxsize=32)
 def _attention_epoch(model, lr: float, trainable: str, batch: int, w_mass: float,
-                     w_com: float, compiler_options: tuple = ()) -> Epoch:
+                     w_com: float, compiler_options: tuple = (), stacked: bool = False,
+                     flat: bool = False) -> Epoch:
     """Minibatches of ``batch`` of the sets; ``shared`` is (features, A, x per sample,
-    sets), each model's own data its torque model's ``tau_hat - tau_g``."""
+    sets), each model's own data its torque model's ``tau_hat - tau_g``; ``stacked`` and
+    ``flat``: :func:`accelerated_epochs`."""
+    model = model.clone(stacked_joints=stacked)
 
     def loss(p, shared, y, idx):
         feats, A, x_obj, _ = shared
@@ -333,7 +360,7 @@ def _attention_epoch(model, lr: float, trainable: str, batch: int, w_mass: float
         perm = jax.random.permutation(k, sets.shape[0])[: sets.shape[0] // batch * batch]
         return sets[perm].reshape(-1, batch, sets.shape[1])
 
-    return make_epoch(optimizer(lr, trainable=trainable), loss, batches,
+    return make_epoch(optimizer(lr, trainable=trainable, flat=flat), loss, batches,
                       val_fn=lambda p, shared, y: loss(p, shared, y, shared[3]),
                       compiler_options=compiler_options)
 
@@ -425,7 +452,8 @@ def train_attention_models(
     batch = min(cfg.attention_batch, sets.shape[0])
     epoch = _attention_epoch(model, cfg.attention_lr, cfg.trainable, batch, cfg.w_mass,
                              cfg.w_com, epoch_compiler_options(
-                                 cfg.attention_epochs * (sets.shape[0] // batch)))
+                                 cfg.attention_epochs * (sets.shape[0] // batch)),
+                             **accelerated_epochs())
     data, val_data = ((feats, A, x_obj, sets), y), ((vf, vA, vx, vsets), vy)
     state = epoch.init(_start(model, k_init, K, feats[:1], init), dtype,
                        None if init is None else val_data)

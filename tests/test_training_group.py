@@ -17,6 +17,7 @@ from jaxinertia.app.programs import side_by_side
 from jaxinertia.errors import TrainingError
 from jaxinertia.estimation import ModelPair, estimate_sets
 from jaxinertia.evaluation import stack
+from jaxinertia.networks import AttentionModel, PhysicalTorqueModel, TorqueModel
 from jaxinertia.training import TrainConfig, train_attention_models, train_torque_models
 from jaxinertia.training_group import TrainingGroup
 from jaxinertia.training_setup import draw_sets, feature_config_from, split_validation
@@ -194,3 +195,45 @@ def test_short_trainings_compile_their_epochs_without_the_gpu_autotuner(monkeypa
     assert_tree_equal(_torque(_job(1)).variables, want["a"].variables, what="alone")
     for got, name in zip(grouped(), "ab"):
         _assert_torque_close(got, want[name], name)
+
+
+def test_a_gpus_epochs_train_the_same_models_up_to_rounding(monkeypatch):
+    """On a GPU the epochs compute the joints' embedding layers as batched products and
+    ravel Adam's parameters (``training.accelerated_epochs``: fewer kernels per step); the
+    models are the same up to float rounding, alone and in a group, and their folders
+    keep the per-joint architecture. On a CPU the epochs are the plain ones."""
+    assert training.accelerated_epochs("gpu") == {"stacked": True, "flat": True}
+    assert training.accelerated_epochs("cpu") == {"stacked": False, "flat": False}
+    x = np.random.default_rng(0).normal(size=(32, 4, 4)).astype(np.float32)
+    for cls in (TorqueModel, PhysicalTorqueModel, AttentionModel):
+        variables = cls().init(jax.random.key(0), x)
+        assert_tree_equal(cls(stacked_joints=True).init(jax.random.key(0), x), variables,
+                          what=f"{cls.__name__}'s parameters")
+        np.testing.assert_allclose(cls(stacked_joints=True).apply(variables, x),
+                                   cls().apply(variables, x), rtol=1e-5, atol=1e-6)
+    jobs = {"a": _job(1, physical=True), "b": _job(2, physical=True)}
+    want = {"a": _pair(jobs["a"]), "b": _torque(jobs["b"])}
+    monkeypatch.setattr(training, "accelerated_epochs",
+                        lambda: {"stacked": True, "flat": True})
+    alone = _pair(jobs["a"])  # the torque and the attention epochs
+    group = TrainingGroup(jobs)
+
+    def member(name):
+        with group.member(name):
+            return _torque(jobs[name])
+
+    grouped = dict(zip(jobs, side_by_side([lambda n=n: member(n) for n in jobs], workers=2)))
+    for what, got, name in (("alone", alone[0], "a"), ("grouped", grouped["a"], "a"),
+                            ("grouped", grouped["b"], "b")):
+        # Every product's terms in another order: float32 rounding (here up to 5e-8 in a
+        # parameter of 7e-4, below one unit in the last place of 1), which three epochs
+        # carry. A joint's layer applied to another joint's features, or Adam's state
+        # raveled in another order than the parameters, would move them by 1e-3 and more.
+        wanted = want[name][0] if name == "a" else want[name]
+        assert_tree_close(got.variables, wanted.variables, rtol=1e-5, atol=1e-7,
+                          what=f"{name} {what} torque parameters")
+        np.testing.assert_allclose(got.history, wanted.history, rtol=1e-5)
+        assert got.model == wanted.model == PhysicalTorqueModel(n_joints=4)
+    _assert_attention_close(alone, want["a"], jobs["a"], "alone")
+    assert alone[1].model == want["a"][1].model == AttentionModel(n_joints=4)
+
