@@ -27,7 +27,6 @@ shapes no other member shares runs alone.
 
 from __future__ import annotations
 
-import collections
 import contextlib
 import functools
 import threading
@@ -47,14 +46,6 @@ from jaxinertia.sharding import shard
 __all__ = ["TrainingGroup", "run_epochs"]
 
 _local = threading.local()
-
-#: Epochs a training's host loop dispatches ahead of the one whose losses it reads. The
-#: device runs them in order (each epoch's state is the next one's input), so nothing
-#: changes but when the host waits. Reading each epoch's losses right after dispatching
-#: it, the host waited for that epoch and for every program queued ahead of it on the
-#: device (other threads' trainings), and then the device had nothing of this training to
-#: run until the host's next dispatch (docs/benchmarks.md).
-EPOCHS_IN_FLIGHT = 2
 
 
 @dataclass(frozen=True)
@@ -218,41 +209,32 @@ def _run_stacked(trainings: list[_Training]) -> list:
     history: list[list] = [[] for _ in trainings]
     failed: list[BaseException | None] = [None] * G
     desc = first.desc if G == 1 else f"{first.desc} (x{G}, one program)"
-    pending: collections.deque = collections.deque()  # epochs dispatched, not yet read
-
-    def read(e, train_loss, val_loss) -> None:
-        losses = np.asarray(train_loss), np.asarray(val_loss)
-        if G == 1:
-            losses = losses[0][None], losses[1][None]
-        for g, t in enumerate(trainings):
-            if failed[g] is not None:
-                continue
-            history[g].append((losses[0][g], losses[1][g]))
-            bad = ~(np.isfinite(losses[0][g]) & np.isfinite(losses[1][g]))
-            if bad.any():
-                failed[g] = TrainingError(
-                    f"{t.desc}: the loss went non-finite at epoch {e} (model(s) "
-                    f"{np.flatnonzero(bad).tolist()}); lower the learning rate or check "
-                    "the training data")
-                continue
-            if t.on_epoch is not None:
-                t.on_epoch(e, history[g][-1])
-        bar.set_postfix(val=f"{float(np.min(losses[1])):.3g}")
-        bar.update()
-
     with tqdm(total=first.n_epochs, desc=desc, unit="epoch",
               disable=not any(t.progress for t in trainings)) as bar:
         for e in range(first.n_epochs):
             keys = [jax.random.fold_in(t.key, e) for t in trainings]
             state, train_loss, val_loss = update(state, keys[0] if G == 1 else jnp.stack(keys),
                                                  data, val_data)
-            pending.append((e, train_loss, val_loss))
-            if len(pending) > EPOCHS_IN_FLIGHT:
-                read(*pending.popleft())
+            losses = np.asarray(train_loss), np.asarray(val_loss)
+            if G == 1:
+                losses = losses[0][None], losses[1][None]
+            for g, t in enumerate(trainings):
+                if failed[g] is not None:
+                    continue
+                history[g].append((losses[0][g], losses[1][g]))
+                bad = ~(np.isfinite(losses[0][g]) & np.isfinite(losses[1][g]))
+                if bad.any():
+                    failed[g] = TrainingError(
+                        f"{t.desc}: the loss went non-finite at epoch {e} (model(s) "
+                        f"{np.flatnonzero(bad).tolist()}); lower the learning rate or check "
+                        "the training data")
+                    continue
+                if t.on_epoch is not None:
+                    t.on_epoch(e, history[g][-1])
             if G == 1 and failed[0] is not None:
                 break
-        while pending and not (G == 1 and failed[0] is not None):
-            read(*pending.popleft())
+            bar.set_postfix(val=f"{float(np.min(losses[1])):.3g}")
+            bar.update()
     if G == 1:
         return [failed[0] or (state, np.asarray(history[0]))]
     return [failed[g] or (jax.tree_util.tree_map(lambda a, g=g: a[g], state),

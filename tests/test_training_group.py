@@ -237,26 +237,3 @@ def test_a_gpus_epochs_train_the_same_models_up_to_rounding(monkeypatch):
     _assert_attention_close(alone, want["a"], jobs["a"], "alone")
     assert alone[1].model == want["a"][1].model == AttentionModel(n_joints=4)
 
-
-def test_epochs_dispatched_ahead_of_their_reading_change_nothing(monkeypatch):
-    """The host loop reads an epoch's losses ``EPOCHS_IN_FLIGHT`` epochs after dispatching
-    it: the same models, histories and callbacks, in order, as reading each at once; a
-    non-finite loss still fails the training at its epoch."""
-    def run(in_flight):
-        monkeypatch.setattr(training_group, "EPOCHS_IN_FLIGHT", in_flight)
-        seen = []
-        cfg, fc, tr, va, key = _job(7)
-        out = train_torque_models(cfg.replace(torque_epochs=5), fc, tr, va, key,
-                                  progress=False, on_epoch=lambda e, h: seen.append((e, h)))
-        return out, seen
-
-    ahead = training_group.EPOCHS_IN_FLIGHT
-    assert ahead >= 1
-    (want, want_seen), (got, got_seen) = run(0), run(ahead)
-    assert_tree_equal(got.variables, want.variables, what="parameters")
-    np.testing.assert_array_equal(got.history, want.history)
-    assert [e for e, _ in got_seen] == list(range(5))
-    np.testing.assert_array_equal(np.asarray([h for _, h in got_seen]),
-                                  np.asarray([h for _, h in want_seen]))
-    with pytest.raises(TrainingError, match="non-finite at epoch 0"):
-        _torque(_job(6, nan=True))
