@@ -60,14 +60,15 @@ class JointEmbedding(nn.Module):
 
 
 def _joint_embeddings(module: nn.Module, features, hidden: int, embed: int, stacked: bool):
-    """(..., N, F) features -> (..., N, embed): joint j's :class:`JointEmbedding`
-    ``joint{j}`` on its own features. ``stacked``: the N joints' layers as one batched
-    product each (their parameters stacked on the fly; the same parameters, fewer and
-    larger kernels; equal to the per-joint products up to float rounding)."""
+    """(..., N, F) features -> N arrays (..., embed): joint j's :class:`JointEmbedding`
+    ``joint{j}`` on its own features, or, ``stacked`` (once the parameters exist), the N
+    joints' layers as one batched product each: their parameters stacked on the fly, the
+    same parameters, fewer and larger kernels, equal to the per-joint products up to float
+    rounding; returned (..., N, embed)."""
     N = features.shape[-2]
     if not stacked or module.is_initializing():
-        return jnp.stack([JointEmbedding(hidden, embed, name=f"joint{j}")(features[..., j, :])
-                          for j in range(N)], axis=-2)
+        return [JointEmbedding(hidden, embed, name=f"joint{j}")(features[..., j, :])
+                for j in range(N)]
     p = module.variables["params"]
 
     def layer(x, name):
@@ -91,7 +92,8 @@ class TorqueModel(nn.Module):
     @nn.compact
     def __call__(self, features):
         h = _joint_embeddings(self, features, self.hidden, self.embed, self.stacked_joints)
-        x = h.reshape(h.shape[:-2] + (h.shape[-2] * h.shape[-1],))
+        x = (jnp.concatenate(h, axis=-1) if isinstance(h, list)
+             else h.reshape(h.shape[:-2] + (h.shape[-2] * h.shape[-1],)))
         for i, width in enumerate(self.head):
             x = nn.relu(nn.Dense(width, name=f"head{i}")(x))
         return nn.Dense(self.n_joints, name="out")(x)
@@ -117,7 +119,7 @@ class PhysicalTorqueModel(nn.Module):
     hidden: int = 12
     embed: int = 12
     head: Sequence[int] = (64, 64)
-    stacked_joints: bool = False
+    stacked_joints: bool = False  # the residual's, as TorqueModel's
 
     @nn.compact
     def __call__(self, features):
@@ -149,10 +151,11 @@ class AttentionModel(nn.Module):
     hidden: int = 12
     embed: int = 12
     scorer: Sequence[int] = (32,)
-    stacked_joints: bool = False
+    stacked_joints: bool = False  # as TorqueModel's
 
     def scores(self, features):
         h = _joint_embeddings(self, features, self.hidden, self.embed, self.stacked_joints)
+        h = jnp.stack(h, axis=-2) if isinstance(h, list) else h
         onehot = jnp.broadcast_to(
             jnp.eye(self.n_joints, dtype=h.dtype), h.shape[:-1] + (self.n_joints,)
         )
