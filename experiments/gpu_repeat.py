@@ -2,10 +2,12 @@
 (G = 4 trainings of K = 10 models, 74k samples, batch 256, as a GPU builds it), five
 epochs, in fresh processes: XLA compiles (and on a GPU autotunes: times candidate kernels
 and keeps the fastest) anew in each. Runs with the GPU idle and beside a process that
-loads it (as the folds' other programs do), with XLA's defaults and with
-``--xla_gpu_deterministic_ops``; per run a digest of the parameters and the epoch time.
+loads it (as the folds' other programs do), with XLA's defaults, with
+``--xla_gpu_deterministic_ops``, and with a per-fusion autotune cache (the first run
+autotunes and writes it, the later ones read it); per run a digest of the parameters and
+the epoch time.
 
-    python experiments/gpu_repeat.py [--runs 2]
+    python experiments/gpu_repeat.py [--runs 2] [--configs NAME ...] [--idle-only]
 
 docs/benchmarks.md ("A GPU run does not repeat") records what it printed.
 """
@@ -17,9 +19,12 @@ import hashlib
 import os
 import subprocess
 import sys
+import tempfile
 import time
 
-CONFIGS = {"XLA's defaults": "", "deterministic ops": "--xla_gpu_deterministic_ops=true"}
+#: XLA flags per configuration ({autotune_dir}: one new folder for all runs of the run).
+CONFIGS = {"XLA's defaults": "", "deterministic ops": "--xla_gpu_deterministic_ops=true",
+           "autotune cache": "--xla_gpu_per_fusion_autotune_cache_dir={autotune_dir}"}
 
 
 def child() -> None:
@@ -65,6 +70,8 @@ def load() -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--runs", type=int, default=2)
+    ap.add_argument("--configs", nargs="+", choices=list(CONFIGS), default=list(CONFIGS))
+    ap.add_argument("--idle-only", action="store_true", help="no runs beside a GPU load")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--load", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -75,9 +82,11 @@ def main() -> None:
     here = os.path.dirname(os.path.abspath(__file__))
     base_env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
     first = None
-    for name, flags in CONFIGS.items():
+    tmp = tempfile.mkdtemp(prefix="gpu_repeat_")
+    for name in args.configs:
+        flags = CONFIGS[name].format(autotune_dir=os.path.join(tmp, "autotune"))
         env = {**base_env, "XLA_FLAGS": (base_env.get("XLA_FLAGS", "") + " " + flags).strip()}
-        for loaded in (False, True):
+        for loaded in (False,) if args.idle_only else (False, True):
             loader = (subprocess.Popen([sys.executable, __file__, "--load"], env=base_env,
                                        cwd=here) if loaded else None)
             try:
