@@ -200,7 +200,7 @@ def test_short_trainings_compile_their_epochs_without_the_gpu_autotuner(monkeypa
 def test_a_gpus_epochs_train_the_same_models_up_to_rounding(monkeypatch):
     """On a GPU the epochs compute the joints' embedding layers as batched products and
     ravel Adam's parameters (``training.accelerated_epochs``: fewer kernels per step); the
-    models are the same up to float rounding, alone and in a group, and their folders
+    models are the same up to float rounding (a group vmaps the same epoch), and their folders
     keep the per-joint architecture. On a CPU the epochs are the plain ones."""
     assert training.accelerated_epochs("gpu") == {"stacked": True, "flat": True}
     assert training.accelerated_epochs("cpu") == {"stacked": False, "flat": False}
