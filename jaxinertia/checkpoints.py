@@ -75,9 +75,12 @@ def file_sha256(path: str | os.PathLike) -> str:
 
 
 def _arch(model) -> dict:
+    """A network's architecture as config.json records it. ``stacked_joints`` is how a
+    program computes it (a GPU's training epochs), not what it is: left out, so a folder
+    reads the same wherever it was trained."""
     return {k: list(v) if isinstance(v, tuple) else v
             for k, v in model.__dict__.items() if k in model.__dataclass_fields__
-            and k not in ("parent", "name")}
+            and k not in ("parent", "name", "stacked_joints")}
 
 
 #: One orbax save or restore at a time in this process: orbax's checkpointers are not safe

@@ -12,7 +12,7 @@ import pytest
 from support.asserts import assert_tree_close, assert_tree_equal
 from support.synthetic import synthetic_samples
 
-from jaxinertia import training, training_group
+from jaxinertia import checkpoints, training, training_group
 from jaxinertia.app.programs import side_by_side
 from jaxinertia.errors import TrainingError
 from jaxinertia.estimation import ModelPair, estimate_sets
@@ -232,4 +232,6 @@ def test_a_gpus_epochs_train_the_same_models_up_to_rounding(monkeypatch):
     _assert_attention_close(got, want, job, "attention")
     assert got[0].model == want[0].model == PhysicalTorqueModel(n_joints=4)
     assert got[1].model == want[1].model == AttentionModel(n_joints=4)
+    for model in (PhysicalTorqueModel(stacked_joints=True), AttentionModel(stacked_joints=True)):
+        assert checkpoints._arch(model) == checkpoints._arch(model.clone(stacked_joints=False))
 
