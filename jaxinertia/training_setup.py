@@ -55,6 +55,10 @@ class TrainConfig:
     session_strength: float = 1.0
     #: The servo's current torque as a fifth input per joint (features.FeatureConfig).
     current_input: bool = False
+    #: Fine-tuning on several files: each file its own servo term, a factor per joint on
+    #: its discrepancy fitted from its known torques and centred over the files
+    #: (:mod:`jaxinertia.session_terms`); the shared servo learns what the files share.
+    session_terms: bool = False
 
     def __post_init__(self):
         positive = ("n_models", "torque_epochs", "torque_batch", "attention_epochs",

@@ -14,6 +14,7 @@ from support.asserts import assert_tree_equal
 from support.synthetic import feature_config, synthetic_samples
 
 from jaxinertia.app.cli import main
+from jaxinertia.app.pipeline import _with_session_terms
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import load_models, save_models
 from jaxinertia.errors import ModelFolderError, UsageError
@@ -283,3 +284,61 @@ def test_drawn_sessions_scale_the_supply_by_the_prior_and_nothing_else():
     arm = drawn(params, jax.random.key(0), DomainSpread(np.full(4, 0.1), np.zeros(4)))
     assert_tree_equal(arm, perturbed(params, jax.random.key(0),
                                      DomainSpread(np.full(4, 0.1), np.zeros(4))), what="arm")
+
+
+
+def _servo_law_folder(path, k, f, K=2):
+    """A physical model folder whose servo part is the synthetic law (stiffness ``k``,
+    friction ``f``, offset 0.01 N m; support.synthetic) and whose residual is zero."""
+    feats = jnp.zeros((1, 4, 4), jnp.float32)
+    tm, am = PhysicalTorqueModel(), AttentionModel()
+    keys = jax.random.split(jax.random.key(3), K)
+    tv, av = (jax.vmap(lambda key, m=m: m.init(key, feats))(keys) for m in (tm, am))
+    fc = feature_config()
+    tau_scale = np.asarray(fc.tau_scale)
+    p = dict(tv["params"])
+    servo = {"stiffness": np.asarray(k) * np.asarray(fc.qe_scale) / tau_scale,
+             "offset": 0.01 / tau_scale, "friction": -np.asarray(f) / tau_scale,
+             "load_friction": np.zeros(4)}
+    p.update({n: jnp.asarray(np.tile(v, (K, 1)), jnp.float32) for n, v in servo.items()})
+    p["residual"] = {**p["residual"], "out": jax.tree.map(jnp.zeros_like, p["residual"]["out"])}
+    d = synthetic_samples(np.random.default_rng(4))
+    b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.tau)
+    save_models(path, ModelPair({"params": p}, av, jnp.asarray(tau_scale, jnp.float32), tm, am),
+                b, fc, robot="open_manipulator_x")
+
+
+def test_finetuning_gives_each_file_its_session_term_and_records_it(folders, capsys):
+    """``--session-terms`` (jaxinertia.session_terms): two files of one servo law, the
+    second's servo 15 % stiffer on joint 1 and 10 % softer on joint 4."""
+    tmp, _, _ = folders
+    rng = np.random.default_rng(5)
+    k, f = np.array([16.0, 18.0, 17.0, 10.0]), np.array([0.02, 0.05, 0.03, 0.01])
+    a = _file(tmp / "a.npz", rng, 300, k=k, f=f)
+    b = _file(tmp / "b.npz", rng, 300, k=k * [1.15, 1.0, 1.0, 0.9], f=f)
+    _servo_law_folder(tmp / "law", k * 1.05, f)  # a start 5 % stiffer than both
+    ft = ["--init", str(tmp / "law"), "--trainable", "servo", "--torque-epochs", "3",
+          "--attention-epochs", "1", "--attention-sets", "6", "--attention-val-sets", "3",
+          "--set-size", "16", "--session-strength", "0"]
+    assert main(["train", "--data", str(a), str(b), "--out", str(tmp / "terms"),
+                 "--session-terms", *ft]) == 0
+    rec = json.loads((tmp / "terms" / "config.json").read_text())["session_terms"]
+    f, raw = np.asarray(rec["factor"]), np.asarray(rec["raw"])
+    np.testing.assert_allclose(np.exp(np.log(f).mean(axis=0)), 1.0, atol=1e-12)
+    # The start's servo is 5 % stiffer than a's: a's discrepancy, read by it, is 1.05
+    # times too large (raw term 1 / 1.05), b's by 1.05 / (1.15, 1, 1, 0.9). Centred, b's
+    # discrepancy grows by 1.15 on joint 1 against a's and shrinks by 0.9 on joint 4.
+    np.testing.assert_allclose(raw, [[1 / 1.05] * 4, np.array([1.15, 1, 1, 0.9]) / 1.05],
+                               rtol=1e-5)
+    np.testing.assert_allclose(f[1] / f[0], [1.15, 1.0, 1.0, 0.9], rtol=1e-5)
+    # One file: no term, the pooled fine-tuning's samples as they are.
+    one = [load_samples(a)[0]]
+    split = split_validation(one[0], 0.1, 0)
+    *same, rec = _with_session_terms(load_models(tmp / "law"), one, *split)
+    assert same[0] is split[0] and same[1] is split[1]
+    assert rec == {"raw": None, "factor": [[1.0] * 4]}
+    # A training from scratch has no models to fit the terms under.
+    capsys.readouterr()
+    assert main(["train", "--data", str(a), str(b), "--out", str(tmp / "x"),
+                 "--session-terms", *TINY]) == 2
+    assert "fine-tuning" in capsys.readouterr().err and not (tmp / "x").exists()

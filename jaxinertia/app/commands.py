@@ -290,6 +290,11 @@ def _register_train(sub) -> None:
                    help="real sample files whose recording session is the models' (e.g. the "
                    "files the simulator was calibrated on; default: --init's, else the "
                    "training data's own)")
+    t.add_argument("--session-terms", action="store_true", default=None,
+                   help="with --init and several files: each file its own servo term (a "
+                   "factor per joint on its discrepancy, fitted from its known torques, "
+                   "centred over the files), so that the fine-tuning's shared servo learns "
+                   "what the files' sessions share, not their difference")
     t.add_argument("--torque-model", choices=["paper", "physical"], default=None,
                    help="the paper's network (default) or a physics-structured one: per "
                    "joint stiffness, offset, direction and load friction plus the paper's "

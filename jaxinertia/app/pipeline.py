@@ -27,7 +27,7 @@ from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.estimation import ModelPair
 from jaxinertia.evaluation import choose_sets, evaluate, l_max_of
 from jaxinertia.features import LBIPE_FEATURES
-from jaxinertia.fileio import check_output
+from jaxinertia.fileio import check_output, nan_to_null
 from jaxinertia.lbipe import (
     LbipeLayout,
     find_layout,
@@ -39,6 +39,7 @@ from jaxinertia.lbipe import (
 from jaxinertia.networks import torque_model_kind
 from jaxinertia.samples import SampleFile, Samples, load_samples, read_sample_file
 from jaxinertia.session import ServoSession, SessionReference, adapt, servo_session
+from jaxinertia.session_terms import apply_session_terms, centred, fit_session_terms
 from jaxinertia.training import (
     TrainConfig,
     feature_config_from,
@@ -100,6 +101,9 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
                          "validation: both need samples")
     fc = (feature_config_from(train_set, current_input=cfg.current_input) if start is None
           else start.features)
+    terms = None
+    if cfg.session_terms:
+        train_set, val_set, terms = _with_session_terms(start, parts, train_set, val_set)
     cfg = cfg.replace(current_input=fc.current_scale is not None)  # fine-tuning: the folder's
     pair, baselines, torque, attention, t1 = _fit(cfg, fc, train_set, val_set,
                                                   None if start is None else start.pair, progress)
@@ -112,6 +116,7 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
         "session": reference.to_dict(),
         "simulator_session": None if sim_reference is None else sim_reference.to_dict(),
         "samples_per_object": samples_per_object,
+        "session_terms": terms,
         "simulator": metas[0].get("simulator") or (start and start.config.get("simulator")),
         "samples": {"train": train_set.n_samples, "validation": val_set.n_samples},
         # What the uncertainty's floor needs: the torque models' error on this run's own
@@ -149,6 +154,34 @@ def _fit(cfg: TrainConfig, fc, train_set: Samples, val_set: Samples, start: Mode
                      tau_scale=np.asarray(fc.tau_scale, np.float32),
                      torque_model=torque.model, attention_model=attention.model)
     return pair, baselines, torque, attention, t1
+
+
+def _with_session_terms(start, parts: list[Samples], train_set: Samples, val_set: Samples):
+    """Each file its own servo term (:mod:`jaxinertia.session_terms`): fitted on the
+    file's training samples under the start models, centred over the files, applied to
+    the file's training and validation samples alike (one file: no term, the samples as
+    they are). Returns both splits and the record (per file: the raw and the centred
+    factors)."""
+    if start is None:
+        raise UsageError("session terms are a fine-tuning's (train --init): they are fitted "
+                         "under the models being fine-tuned")
+    if not train_set.known:
+        raise UsageError("session terms need the files' known torques")
+    file_of_object = np.repeat(np.arange(len(parts)), [p.n_objects for p in parts])
+    files = file_of_object[np.asarray(train_set.object_id)]
+    present = np.unique(files)
+    if len(present) < 2:  # one session: no term to tell apart, the pooled fine-tuning
+        return train_set, val_set, {"raw": None, "factor": np.ones((len(parts),
+                                                                     train_set.n_joints)).tolist()}
+    raw = fit_session_terms(start.pair, start.features,
+                            [train_set.take(files == p) for p in present])
+    u = np.ones((len(parts), train_set.n_joints))
+    u[present] = centred(raw)
+    split = [apply_session_terms(s, file_of_object[np.asarray(s.object_id)], u)
+             for s in (train_set, val_set)]
+    raw_all = np.full_like(u, np.nan)
+    raw_all[present] = raw
+    return *split, {"raw": [nan_to_null(r) for r in raw_all], "factor": u.tolist()}
 
 
 def _training_files(sample_files, arm: str | None) -> tuple[list[SampleFile], str | None]:

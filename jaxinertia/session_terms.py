@@ -1,0 +1,95 @@
+"""Per-session servo terms of a fine-tuning on several real files (issue 30, item 1).
+
+A fine-tuning on real files of known objects sees each file's recording session: its
+servos' effective gain (supply, winding temperature, wear) differs from the other files'
+by a few per cent. Pooled, a fine-tuning has one servo for all of them, and where each
+session holds its own objects (the paper's data: one object per file) it learns the
+sessions' difference as a difference between the objects' loads: a light object's session
+read stiffer than a heavy one's is, to a pooled model, a servo that softens with load. A
+new object of another mass then inherits that false load law.
+
+Here each file gets its own term: a factor ``u_p`` per joint on its discrepancy (the
+servo's gain in this session relative to the sessions' common servo; it acts where
+:func:`jaxinertia.session.adapt` acts, and the current cannot see all of it), fitted from
+the file's known torques under the models being fine-tuned (least squares of their mean
+torque, in their output units), and centred: the geometric mean over the files is 1,
+so the common part of the sim-to-real difference stays for the fine-tuning's shared
+servo parameters to learn. With one file the term is 1 and the fine-tuning is the pooled
+one. The folder records the terms; a new file is read in the common session (its own
+term is unknown: the session strength's current-gain rescaling is what estimates it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxinertia.estimation import ModelPair, predict_torques
+from jaxinertia.features import FeatureConfig, featurize
+from jaxinertia.samples import Samples
+from jaxinertia.session import RATIO_RANGE
+
+__all__ = ["apply_session_terms", "centred", "fit_session_terms"]
+
+
+def fit_session_terms(pair: ModelPair, fc: FeatureConfig, sessions: Sequence[Samples], *,
+                      iters: int = 20) -> np.ndarray:
+    """(P, N) per session and joint, the factor on the discrepancy that best explains the
+    session's known torques under the mean of ``pair``'s K torque models (Gauss-Newton on its log,
+    within :data:`jaxinertia.session.RATIO_RANGE`). Not centred."""
+    lo, hi = np.log(RATIO_RANGE)
+    out = []
+    for s in sessions:
+        if s.tau is None:
+            raise ValueError("session terms need the files' known torques")
+        step = _gauss_newton_step(pair, fc)
+        q, e = np.asarray(s.q, np.float64), np.asarray(s.q_d, np.float64) - np.asarray(s.q)
+        args = (jnp.asarray(q), jnp.asarray(e), jnp.asarray(s.direction),
+                jnp.asarray(s.current_tau), jnp.asarray(s.tau, jnp.float32))
+        v = jnp.zeros(s.n_joints, jnp.float32)
+        for _ in range(iters):
+            v_new = jnp.clip(step(v, *args), lo, hi)
+            done = bool(jnp.max(jnp.abs(v_new - v)) < 1e-6)
+            v = v_new
+            if done:
+                break
+        out.append(np.exp(np.asarray(v, np.float64)))
+    return np.stack(out)
+
+
+def centred(u: np.ndarray) -> np.ndarray:
+    """``u`` (P, N) divided per joint by its geometric mean over the sessions."""
+    log_u = np.log(np.asarray(u, np.float64))
+    return np.exp(log_u - log_u.mean(axis=0, keepdims=True))
+
+
+def apply_session_terms(data: Samples, session_of_sample: np.ndarray,
+                        u: np.ndarray) -> Samples:
+    """``data`` with each sample's discrepancy times its session's factor
+    (``session_of_sample`` (S,) indexes the rows of ``u`` (P, N))."""
+    q = np.asarray(data.q)
+    f = np.asarray(u, q.dtype)[np.asarray(session_of_sample)]
+    return data.replace(q_d=q + (np.asarray(data.q_d) - q) * f)
+
+
+def _gauss_newton_step(pair: ModelPair, fc: FeatureConfig):
+    def residuals(v, q, e, direction, current, tau):
+        feats = featurize(fc, q, q + e * jnp.exp(v.astype(q.dtype)), direction, current)
+        feats = feats.astype(jnp.float32)
+        tau_hat = jax.vmap(lambda tv: predict_torques(pair.torque_model, tv, feats,
+                                                      pair.tau_scale))(pair.torque_vars)
+        scale = jnp.asarray(pair.tau_scale, jnp.float32)
+        return ((tau_hat.mean(axis=0) - tau) / scale).reshape(-1)
+
+    @jax.jit
+    def step(v, *data):
+        r = residuals(v, *data)
+        J = jax.jacfwd(residuals)(v, *data)
+        JtJ = J.T @ J
+        damping = 1e-6 * jnp.trace(JtJ) / JtJ.shape[0] * jnp.eye(JtJ.shape[0], dtype=JtJ.dtype)
+        return v - jnp.linalg.solve(JtJ + damping, J.T @ r)
+
+    return step
