@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import contextlib
 import shutil
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 from jaxinertia.app.by_part import attach_com_models
 from jaxinertia.app.pipeline import RealData, copy_models, evaluate_models, train
@@ -62,37 +64,60 @@ def models_real(out: Path, train_files: list[Path], real: RealData, scale,
     """``out/models_real``, the models for a new real object, made as ``recipe`` says (the
     held-out folds' choice; with the COM's recipe under ``com``, its models in
     ``models_real/com``, the COM's source, :mod:`jaxinertia.app.by_part`). Evaluated on
-    the real files (not held out)."""
+    the real files (not held out).
+
+    Each folder is made as the folds made the candidate they judged: the physical model
+    trained on the simulated files, and fine-tuned, at the folds' training strength
+    (``scale.train``'s and :data:`FINETUNE_DEFAULTS`' ``session_strength``: with both real
+    files, each read in the models' reference session), then written with the strength the
+    recipe chose, the strength it was judged at. A simulator-trained model that the mass's
+    and the COM's candidates share is trained once (``models_physical``; another one:
+    ``models_physical_com``), a fine-tuning lands in ``models_real_finetuned[_com]`` and is
+    copied from there."""
     dst = out / "models_real"
     recipes = {"mass": recipe, "com": recipe["com"]} if recipe.get("com") else {"mass": recipe}
-    files = {part: train_files for part in recipes}
-    drawn = [part for part, r in recipes.items() if r.get("sessions_drawn")]
-    if drawn:  # the random scenario over drawn recording sessions, simulated once
+    starts: dict[tuple, list[str]] = {}  # the simulator-trained models the parts start from
+    for part, r in recipes.items():
+        if not r["candidate"].startswith("paper"):
+            starts.setdefault((bool(r.get("current_input")), bool(r.get("sessions_drawn"))),
+                              []).append(part)
+    files = train_files
+    if any(drawn for _, drawn in starts):  # the random scenario over drawn sessions, once
         params = arm_sim_params()
-        sessions = simulate_files(params, [
+        files = simulate_files(params, [
             (out / "data" / "train_random_sessions.npz", "random", scale.random_per_load,
              seed)], spread=session_prior(params.robot.n_joints),
             draws=scale.fold_session_draws or 4, progress=progress) + train_files[1:]
-        files.update(dict.fromkeys(drawn, sessions))
-    # The COM's folder is written beside and moved into the mass's once both exist (the
-    # mass's is written whole, replacing any folder there), each fine-tuning from its own
-    # start. On an accelerator the two train side by side, their trainings of one shape as
-    # one program.
-    where = {"mass": (dst, out / "models_physical"),
-             "com": (out / "models_real_com", out / "models_physical_com")}
-    group = (TrainingGroup(recipes) if len(recipes) > 1 and side_by_side_workers() > 1
-             else None)
+    start_dir = {key: out / ("models_physical" + ("" if i == 0 else "_com"))
+                 for i, key in enumerate(starts)}
 
-    def make(part: str):
-        with group.member(part) if group else contextlib.nullcontext():
-            return _make_models(*where[part], files[part], real, scale, recipes[part],
-                                seed, progress, session, out)
+    def train_start(key):
+        current, drawn = key
+        cfg = scale.train.replace(seed=seed, torque_model="physical", current_input=current)
+        train(files if drawn else train_files, start_dir[key], cfg, overwrite=True,
+              progress=progress, session=session)
 
-    info, *_ = side_by_side([partial(make, part) for part in recipes],
-                            len(recipes) if group else 1)
+    _trainings({parts[0]: partial(train_start, key) for key, parts in starts.items()})
+    start_of = {part: start_dir[key] for key, parts in starts.items() for part in parts}
+    tuned = {part: out / ("models_real_finetuned" + ("" if part == "mass" else f"_{part}"))
+             for part, r in recipes.items() if "fine-tuned" in r["candidate"]}
+
+    def finetune(part):
+        n = recipes[part].get("finetune_samples") or scale.real_finetune_samples
+        return train(real.files, tuned[part], TrainConfig(**FINETUNE_DEFAULTS, seed=seed,
+                                                          trainable="servo"),
+                     overwrite=True, progress=progress, init=start_of[part],
+                     samples_per_object=n)
+
+    info = _trainings({part: partial(finetune, part) for part in tuned}).get("mass")
+    # Each part's folder, read at its recipe's strength; the COM's inside the mass's.
+    where = {"mass": dst, "com": out / "models_real_com"}
+    for part, r in recipes.items():
+        src = tuned.get(part) or start_of.get(part) or out / "models"
+        copy_models(src, where[part], session_strength=float(r["session_strength"]))
     if "com" in recipes:
         shutil.rmtree(dst / "com", ignore_errors=True)
-        shutil.move(where["com"][0], dst / "com")
+        shutil.move(where["com"], dst / "com")
         attach_com_models(dst, "com")
     res = evaluate_models(dst, real.objects, real.sets, l_max=real.l_max)
     return {"objects": res["objects"], "files": [str(f.path) for f in real.files],
@@ -100,32 +125,15 @@ def models_real(out: Path, train_files: list[Path], real: RealData, scale,
             "recipe": recipe, "session_ratio": res["session_ratio"]}
 
 
-def _make_models(dst: Path, start: Path, train_files: list[Path], real: RealData,
-                 scale, recipe: dict, seed: int, progress: bool,
-                 session: ServoSession | None, out: Path) -> dict | None:
-    """One model folder at ``dst`` as ``recipe`` says: the run's simulator-trained paper
-    models, the physical model trained on the simulated files (``train_files``: with the
-    random scenario drawn over recording sessions when a recipe says so), or that model's
-    servo part fine-tuned on every real file of the folder; the session strength the
-    recipe chose; a fine-tuning starts from the physical model trained at ``start``.
-    Returns the fine-tuning's record (None without one)."""
-    strength = float(recipe["session_strength"])
-    info = None
-    if recipe["candidate"].startswith("paper"):
-        copy_models(out / "models", dst, session_strength=strength)
-    else:
-        physical_cfg = scale.train.replace(seed=seed, torque_model="physical",
-                                           current_input=bool(recipe.get("current_input")),
-                                           session_strength=strength)
-        if "fine-tuned" not in recipe["candidate"]:
-            train(train_files, dst, physical_cfg, overwrite=True, progress=progress,
-                  session=session)
-        else:
-            train(train_files, start, physical_cfg, overwrite=True, progress=progress,
-                  session=session)
-            n = recipe.get("finetune_samples") or scale.real_finetune_samples
-            info = train(real.files, dst,
-                         TrainConfig(**FINETUNE_DEFAULTS, seed=seed, trainable="servo",
-                                     session_strength=strength),
-                         overwrite=True, progress=progress, init=start, samples_per_object=n)
-    return info
+def _trainings(calls: dict[str, Callable[[], Any]]) -> dict:
+    """``{name: call()}``; on an accelerator side by side, their trainings of one shape as
+    one program (:class:`TrainingGroup`); on a CPU in order."""
+    names = list(calls)
+    group = TrainingGroup(names) if len(names) > 1 and side_by_side_workers() > 1 else None
+
+    def run(name):
+        with group.member(name) if group else contextlib.nullcontext():
+            return calls[name]()
+
+    results = side_by_side([partial(run, n) for n in names], len(names) if group else 1)
+    return dict(zip(names, results))
