@@ -32,32 +32,42 @@ from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.samples import Samples
 from jaxinertia.session import RATIO_RANGE
 
-__all__ = ["apply_session_terms", "centred", "fit_session_terms"]
+__all__ = ["apply_session_terms", "centred", "fit_discrepancy_factor", "fit_session_terms"]
 
 
 def fit_session_terms(pair: ModelPair, fc: FeatureConfig, sessions: Sequence[Samples], *,
                       iters: int = 20) -> np.ndarray:
     """(P, N) per session and joint, the factor on the discrepancy that best explains the
-    session's known torques under the mean of ``pair``'s K torque models (Gauss-Newton on its log,
-    within :data:`jaxinertia.session.RATIO_RANGE`). Not centred."""
+    session's known torques under the mean of ``pair``'s K torque models (Gauss-Newton on
+    its log, within :data:`jaxinertia.session.RATIO_RANGE`). Not centred."""
+    if any(s.tau is None for s in sessions):
+        raise ValueError("session terms need the files' known torques")
+    scale = jnp.asarray(pair.tau_scale, jnp.float32)
+    return np.stack([
+        fit_discrepancy_factor(pair, fc, s, lambda tau_hat, tau: (tau_hat - tau) / scale,
+                               jnp.asarray(s.tau, jnp.float32), iters=iters)
+        for s in sessions])
+
+
+def fit_discrepancy_factor(pair: ModelPair, fc: FeatureConfig, data: Samples, residual,
+                           target, *, iters: int = 20) -> np.ndarray:
+    """(N,) the factor per joint on ``data``'s discrepancy that minimises the sum of squares
+    of ``residual(tau_hat, target)``, ``tau_hat`` (S, N) the mean torque of ``pair``'s K
+    models [N m] (Gauss-Newton on the factor's log, within
+    :data:`jaxinertia.session.RATIO_RANGE`; ``residual`` traceable by JAX)."""
+    step = _gauss_newton_step(pair, fc, residual)
     lo, hi = np.log(RATIO_RANGE)
-    out = []
-    for s in sessions:
-        if s.tau is None:
-            raise ValueError("session terms need the files' known torques")
-        step = _gauss_newton_step(pair, fc)
-        q, e = np.asarray(s.q, np.float64), np.asarray(s.q_d, np.float64) - np.asarray(s.q)
-        args = (jnp.asarray(q), jnp.asarray(e), jnp.asarray(s.direction),
-                jnp.asarray(s.current_tau), jnp.asarray(s.tau, jnp.float32))
-        v = jnp.zeros(s.n_joints, jnp.float32)
-        for _ in range(iters):
-            v_new = jnp.clip(step(v, *args), lo, hi)
-            done = bool(jnp.max(jnp.abs(v_new - v)) < 1e-6)
-            v = v_new
-            if done:
-                break
-        out.append(np.exp(np.asarray(v, np.float64)))
-    return np.stack(out)
+    q = np.asarray(data.q, np.float64)
+    args = (jnp.asarray(q), jnp.asarray(np.asarray(data.q_d, np.float64) - q),
+            jnp.asarray(data.direction), jnp.asarray(data.current_tau), target)
+    v = jnp.zeros(data.n_joints, jnp.float32)
+    for _ in range(iters):
+        v_new = jnp.clip(step(v, *args), lo, hi)
+        done = bool(jnp.max(jnp.abs(v_new - v)) < 1e-6)
+        v = v_new
+        if done:
+            break
+    return np.exp(np.asarray(v, np.float64))
 
 
 def centred(u: np.ndarray) -> np.ndarray:
@@ -75,14 +85,13 @@ def apply_session_terms(data: Samples, session_of_sample: np.ndarray,
     return data.replace(q_d=q + (np.asarray(data.q_d) - q) * f)
 
 
-def _gauss_newton_step(pair: ModelPair, fc: FeatureConfig):
-    def residuals(v, q, e, direction, current, tau):
+def _gauss_newton_step(pair: ModelPair, fc: FeatureConfig, residual):
+    def residuals(v, q, e, direction, current, target):
         feats = featurize(fc, q, q + e * jnp.exp(v.astype(q.dtype)), direction, current)
         feats = feats.astype(jnp.float32)
         tau_hat = jax.vmap(lambda tv: predict_torques(pair.torque_model, tv, feats,
                                                       pair.tau_scale))(pair.torque_vars)
-        scale = jnp.asarray(pair.tau_scale, jnp.float32)
-        return ((tau_hat.mean(axis=0) - tau) / scale).reshape(-1)
+        return residual(tau_hat.mean(axis=0), target).reshape(-1)
 
     @jax.jit
     def step(v, *data):
