@@ -337,6 +337,11 @@ def test_finetuning_gives_each_file_its_session_term_and_records_it(folders, cap
     *same, rec = _with_session_terms(load_models(tmp / "law"), one, *split)
     assert same[0] is split[0] and same[1] is split[1]
     assert rec == {"raw": None, "factor": [[1.0] * 4]}
+    # Models whose torque does not follow the files (the tiny paper network): refused.
+    capsys.readouterr()
+    assert main(["train", "--data", str(a), str(b), "--out", str(tmp / "x"),
+                 "--session-terms", *ft[:1], str(tmp / "m0"), *ft[2:]]) == 2
+    assert "factor reaches the 0.7-1.4 limit" in capsys.readouterr().err
     # A training from scratch has no models to fit the terms under.
     capsys.readouterr()
     assert main(["train", "--data", str(a), str(b), "--out", str(tmp / "x"),

@@ -38,7 +38,13 @@ from jaxinertia.lbipe import (
 )
 from jaxinertia.networks import torque_model_kind
 from jaxinertia.samples import SampleFile, Samples, load_samples, read_sample_file
-from jaxinertia.session import ServoSession, SessionReference, adapt, servo_session
+from jaxinertia.session import (
+    RATIO_RANGE,
+    ServoSession,
+    SessionReference,
+    adapt,
+    servo_session,
+)
 from jaxinertia.session_terms import apply_session_terms, centred, fit_session_terms
 from jaxinertia.training import (
     TrainConfig,
@@ -175,6 +181,15 @@ def _with_session_terms(start, parts: list[Samples], train_set: Samples, val_set
                                                                      train_set.n_joints)).tolist()}
     raw = fit_session_terms(start.pair, start.features,
                             [train_set.take(files == p) for p in present])
+    clipped = np.isclose(np.log(raw), np.log(RATIO_RANGE)[0]) | np.isclose(
+        np.log(raw), np.log(RATIO_RANGE)[1])
+    if clipped.any():
+        p, j = np.argwhere(clipped)[0]
+        raise UsageError(
+            f"--session-terms: the start models' torque does not follow the discrepancy of "
+            f"{parts[present[p]].names[0]!r}'s file on joint {j + 1} (its factor reaches "
+            f"the {RATIO_RANGE[0]:g}-{RATIO_RANGE[1]:g} limit): they cannot tell its session "
+            "from the others'; fine-tune without session terms, or from better models")
     u = np.ones((len(parts), train_set.n_joints))
     u[present] = centred(raw)
     split = [apply_session_terms(s, file_of_object[np.asarray(s.object_id)], u)
