@@ -27,12 +27,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxinertia.errors import UsageError
 from jaxinertia.estimation import ModelPair, predict_torques
 from jaxinertia.features import FeatureConfig, featurize
+from jaxinertia.fileio import nan_to_null
 from jaxinertia.samples import Samples
 from jaxinertia.session import RATIO_RANGE
 
-__all__ = ["apply_session_terms", "centred", "fit_discrepancy_factor", "fit_session_terms"]
+__all__ = ["apply_session_terms", "centred", "fit_discrepancy_factor", "fit_session_terms",
+           "with_session_terms"]
 
 
 def fit_session_terms(pair: ModelPair, fc: FeatureConfig, sessions: Sequence[Samples], *,
@@ -102,3 +105,43 @@ def _gauss_newton_step(pair: ModelPair, fc: FeatureConfig, residual):
         return v - jnp.linalg.solve(JtJ + damping, J.T @ r)
 
     return step
+
+
+def with_session_terms(start, parts: Sequence[Samples], train_set: Samples,
+                       val_set: Samples) -> tuple[Samples, Samples, dict]:
+    """A fine-tuning's training and validation splits with each file its own servo term
+    (``train --session-terms``): fitted on the file's training samples under the start
+    models (``start``: the loaded model folder; ``parts``: the files' records, in the
+    order their objects were concatenated), centred over the files, applied to
+    the file's training and validation samples alike (one file: no term, the samples as
+    they are). Returns both splits and the record (per file: the raw and the centred
+    factors)."""
+    if start is None:
+        raise UsageError("session terms are a fine-tuning's (train --init): they are fitted "
+                         "under the models being fine-tuned")
+    if not train_set.known:
+        raise UsageError("session terms need the files' known torques")
+    file_of_object = np.repeat(np.arange(len(parts)), [p.n_objects for p in parts])
+    files = file_of_object[np.asarray(train_set.object_id)]
+    present = np.unique(files)
+    if len(present) < 2:  # one session: no term to tell apart, the pooled fine-tuning
+        ones = np.ones((len(parts), train_set.n_joints)).tolist()
+        return train_set, val_set, {"raw": None, "factor": ones}
+    raw = fit_session_terms(start.pair, start.features,
+                            [train_set.take(files == p) for p in present])
+    clipped = np.isclose(np.log(raw), np.log(RATIO_RANGE)[0]) | np.isclose(
+        np.log(raw), np.log(RATIO_RANGE)[1])
+    if clipped.any():
+        p, j = np.argwhere(clipped)[0]
+        raise UsageError(
+            f"--session-terms: the start models' torque does not follow the discrepancy of "
+            f"{parts[present[p]].names[0]!r}'s file on joint {j + 1} (its factor reaches "
+            f"the {RATIO_RANGE[0]:g}-{RATIO_RANGE[1]:g} limit): they cannot tell its session "
+            "from the others'; fine-tune without session terms, or from better models")
+    u = np.ones((len(parts), train_set.n_joints))
+    u[present] = centred(raw)
+    split = [apply_session_terms(s, file_of_object[np.asarray(s.object_id)], u)
+             for s in (train_set, val_set)]
+    raw_all = np.full_like(u, np.nan)
+    raw_all[present] = raw
+    return *split, {"raw": [nan_to_null(r) for r in raw_all], "factor": u.tolist()}

@@ -14,7 +14,6 @@ from support.asserts import assert_tree_equal
 from support.synthetic import feature_config, synthetic_samples
 
 from jaxinertia.app.cli import main
-from jaxinertia.app.pipeline import _with_session_terms
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import load_models, save_models
 from jaxinertia.errors import ModelFolderError, UsageError
@@ -22,6 +21,7 @@ from jaxinertia.estimation import ModelPair
 from jaxinertia.networks import AttentionModel, PhysicalTorqueModel, TorqueModel
 from jaxinertia.samples import load_samples, save_native
 from jaxinertia.session import servo_session
+from jaxinertia.session_terms import with_session_terms
 from jaxinertia.sim.params import default_sim_params
 from jaxinertia.sim.randomize import (
     SESSION_PRIOR_REL,
@@ -334,7 +334,7 @@ def test_finetuning_gives_each_file_its_session_term_and_records_it(folders, cap
     # One file: no term, the pooled fine-tuning's samples as they are.
     one = [load_samples(a)[0]]
     split = split_validation(one[0], 0.1, 0)
-    *same, rec = _with_session_terms(load_models(tmp / "law"), one, *split)
+    *same, rec = with_session_terms(load_models(tmp / "law"), one, *split)
     assert same[0] is split[0] and same[1] is split[1]
     assert rec == {"raw": None, "factor": [[1.0] * 4]}
     # Models whose torque does not follow the files (the tiny paper network): refused.

@@ -27,7 +27,7 @@ from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.estimation import ModelPair
 from jaxinertia.evaluation import choose_sets, evaluate, l_max_of
 from jaxinertia.features import LBIPE_FEATURES
-from jaxinertia.fileio import check_output, nan_to_null
+from jaxinertia.fileio import check_output
 from jaxinertia.lbipe import (
     LbipeLayout,
     find_layout,
@@ -38,14 +38,8 @@ from jaxinertia.lbipe import (
 )
 from jaxinertia.networks import torque_model_kind
 from jaxinertia.samples import SampleFile, Samples, load_samples, read_sample_file
-from jaxinertia.session import (
-    RATIO_RANGE,
-    ServoSession,
-    SessionReference,
-    adapt,
-    servo_session,
-)
-from jaxinertia.session_terms import apply_session_terms, centred, fit_session_terms
+from jaxinertia.session import ServoSession, SessionReference, adapt, servo_session
+from jaxinertia.session_terms import with_session_terms
 from jaxinertia.training import (
     TrainConfig,
     feature_config_from,
@@ -109,7 +103,7 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
           else start.features)
     terms = None
     if cfg.session_terms:
-        train_set, val_set, terms = _with_session_terms(start, parts, train_set, val_set)
+        train_set, val_set, terms = with_session_terms(start, parts, train_set, val_set)
     cfg = cfg.replace(current_input=fc.current_scale is not None)  # fine-tuning: the folder's
     pair, baselines, torque, attention, t1 = _fit(cfg, fc, train_set, val_set,
                                                   None if start is None else start.pair, progress)
@@ -160,43 +154,6 @@ def _fit(cfg: TrainConfig, fc, train_set: Samples, val_set: Samples, start: Mode
                      tau_scale=np.asarray(fc.tau_scale, np.float32),
                      torque_model=torque.model, attention_model=attention.model)
     return pair, baselines, torque, attention, t1
-
-
-def _with_session_terms(start, parts: list[Samples], train_set: Samples, val_set: Samples):
-    """Each file its own servo term (:mod:`jaxinertia.session_terms`): fitted on the
-    file's training samples under the start models, centred over the files, applied to
-    the file's training and validation samples alike (one file: no term, the samples as
-    they are). Returns both splits and the record (per file: the raw and the centred
-    factors)."""
-    if start is None:
-        raise UsageError("session terms are a fine-tuning's (train --init): they are fitted "
-                         "under the models being fine-tuned")
-    if not train_set.known:
-        raise UsageError("session terms need the files' known torques")
-    file_of_object = np.repeat(np.arange(len(parts)), [p.n_objects for p in parts])
-    files = file_of_object[np.asarray(train_set.object_id)]
-    present = np.unique(files)
-    if len(present) < 2:  # one session: no term to tell apart, the pooled fine-tuning
-        return train_set, val_set, {"raw": None, "factor": np.ones((len(parts),
-                                                                     train_set.n_joints)).tolist()}
-    raw = fit_session_terms(start.pair, start.features,
-                            [train_set.take(files == p) for p in present])
-    clipped = np.isclose(np.log(raw), np.log(RATIO_RANGE)[0]) | np.isclose(
-        np.log(raw), np.log(RATIO_RANGE)[1])
-    if clipped.any():
-        p, j = np.argwhere(clipped)[0]
-        raise UsageError(
-            f"--session-terms: the start models' torque does not follow the discrepancy of "
-            f"{parts[present[p]].names[0]!r}'s file on joint {j + 1} (its factor reaches "
-            f"the {RATIO_RANGE[0]:g}-{RATIO_RANGE[1]:g} limit): they cannot tell its session "
-            "from the others'; fine-tune without session terms, or from better models")
-    u = np.ones((len(parts), train_set.n_joints))
-    u[present] = centred(raw)
-    split = [apply_session_terms(s, file_of_object[np.asarray(s.object_id)], u)
-             for s in (train_set, val_set)]
-    raw_all = np.full_like(u, np.nan)
-    raw_all[present] = raw
-    return *split, {"raw": [nan_to_null(r) for r in raw_all], "factor": u.tolist()}
 
 
 def _training_files(sample_files, arm: str | None) -> tuple[list[SampleFile], str | None]:
