@@ -283,7 +283,9 @@ def _new_object_section(ft: dict | None) -> list[str]:
             f"`{ft['models']}`: {recipe['candidate']}{used}, session adaptation "
             f"{'on' if recipe['session_strength'] > 0 else 'off'}{com_text}; the recipe was "
             "chosen by "
-            f"{recipe.get('chosen_by', 'the held-out folds')} (table in the held-out section). "
+            f"{recipe.get('chosen_by', 'the held-out folds')} (table in the held-out section), "
+            "and the models were made as the folds made what they judged (trained and "
+            "fine-tuned at the folds' training strength, then read at the strength chosen). "
             "Use it (`jaxinertia estimate --models ...`) on objects none of the models saw; "
             "how well such models do on an object they did not see is what the held-out "
             "folds below measure.", "",
