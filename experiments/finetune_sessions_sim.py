@@ -11,8 +11,11 @@ is known:
   drawn around it (``--session-rel``: electrical spread per joint, the supply and the
   winding's temperature; ``--torque-rel``: a torque-only spread beyond it);
 * the *known objects*: cube recorded in one session, white in another (1000 samples each);
-  the models are fine-tuned on them pooled (one servo for both files) and with a servo term
-  per file (``TrainConfig.session_terms``), on ``--finetune`` samples per object;
+  the models are fine-tuned on them pooled (one servo for both files), with a servo term
+  per file (``TrainConfig.session_terms``), and with each file read in the two files'
+  pooled session by its current gain (session strength 1, as ``models_real`` fine-tunes),
+  on ``--finetune`` samples per object; that last one judged with the test files read as
+  recorded (strength 0) and read in that session (1);
 * the *judges*: the four test objects (red and black are the paper's objects that
   shared/ lacks) recorded in ``--test-sessions`` further sessions of reality.
 
@@ -33,7 +36,7 @@ import jax
 import numpy as np
 
 from jaxinertia import apply_xla_workarounds
-from jaxinertia.app.pipeline import evaluate_samples, train
+from jaxinertia.app.pipeline import copy_models, evaluate_samples, train
 from jaxinertia.app.reproduce import FULL, QUICK
 from jaxinertia.app.simdata import simulate_files
 from jaxinertia.samples import SampleFile
@@ -106,30 +109,41 @@ def main():
           overwrite=True, progress=False)
     variants = {"simulator only": None}
     for n in a.finetune:
-        for terms in (False, True):
-            variants[f"fine-tuned on {n}, {'session terms' if terms else 'pooled'}"] = (n, terms)
+        variants[f"fine-tuned on {n}, pooled"] = (n, "pooled", 0.0)
+        variants[f"fine-tuned on {n}, session terms"] = (n, "terms", 0.0)
+        for judged in (0.0, 1.0):
+            variants[f"fine-tuned on {n}, read by current, judged at {judged:g}"] = (
+                n, "current", judged)
     results = {"args": vars(a), "known_sessions": [servo_factors(p, reality)
                                                    for p in known_sessions],
                "test_sessions": [servo_factors(p, reality) for p in test_sessions],
                "reality": servo_factors(reality, base), "rows": {}}
+    tuned = set()
     for label, v in variants.items():
         models = start
         row = {}
         if v is not None:
-            n, terms = v
-            models = out / f"models_ft{n}_{'terms' if terms else 'pooled'}"
-            info = train(known, models, TrainConfig(
-                **FINETUNE_DEFAULTS, seed=a.seed, trainable="servo", session_strength=0.0,
-                session_terms=terms), overwrite=True, progress=False, init=start,
-                samples_per_object=n)
-            row["session_terms"] = info["session_terms"]
+            n, how, judged = v
+            models = out / f"models_ft{n}_{how}"
+            if models not in tuned:  # "current" is fine-tuned once, judged twice
+                tuned.add(models)
+                info = train(known, models, TrainConfig(
+                    **FINETUNE_DEFAULTS, seed=a.seed, trainable="servo",
+                    session_strength=1.0 if how == "current" else 0.0,
+                    session_terms=how == "terms"), overwrite=True, progress=False,
+                    init=start, samples_per_object=n)
+                row["session_terms"] = info["session_terms"]
+                row["session_ratios"] = [d["session_ratio"] for d in info["data"]]
+            if how == "current":  # the file read in the known files' pooled session, or not
+                models = copy_models(models, out / f"models_ft{n}_{how}_judged_{judged:g}",
+                                     session_strength=judged)
         per = [evaluate_samples(models, f, n_sets=scale.n_sets, seed=a.seed) for f in tests]
         for o in per[0]["objects"]:
             for m in ("T", "T-A"):
                 for q in ("mass_NMAE_pct", "com_NMAE_pct"):
                     row[f"{o} {m} {q}"] = float(np.mean([r["objects"][o][m][q] for r in per]))
         results["rows"][label] = row
-        print(f"{label:<36} " + "  ".join(
+        print(f"{label:<52} " + "  ".join(
             f"{o} {row[f'{o} T-A mass_NMAE_pct']:5.2f}/{row[f'{o} T-A com_NMAE_pct']:5.2f}"
             for o in per[0]["objects"]), flush=True)
     results["wall_time_s"] = {"simulate": t_sim, "total": time.perf_counter() - t0}
