@@ -119,6 +119,15 @@ def _is_trainable(path, trainable: str) -> bool:
     return True
 
 
+def _part_trainable(trainable: str, part: str) -> str:
+    """What ``trainable`` (:class:`TrainConfig`) leaves trainable in the torque model
+    (``part="torque"``) or the attention model (``"attention"``), as one of "all",
+    "head", "servo"."""
+    if trainable == "servo+attention":
+        return "servo" if part == "torque" else "all"
+    return trainable
+
+
 def _any_trainable(params, trainable: str) -> bool:
     return any(_is_trainable(path, trainable)
                for path, _ in jax.tree_util.tree_flatten_with_path(params)[0])
@@ -296,16 +305,17 @@ def train_torque_models(
     ``init``: stacked (K, ...) parameters to start from (fine-tuning) instead of fresh ones;
     ``on_epoch(e, (train_loss, val_loss))`` after each epoch if given."""
     model = model or TORQUE_MODELS[cfg.torque_model](n_joints=train.q.shape[1])
-    if cfg.trainable == "servo" and not isinstance(model, PhysicalTorqueModel):
-        raise UsageError("trainable 'servo' needs the physical torque model (the paper's "
-                         "network has no servo parameters)")
+    trainable = _part_trainable(cfg.trainable, "torque")
+    if trainable == "servo" and not isinstance(model, PhysicalTorqueModel):
+        raise UsageError(f"trainable {cfg.trainable!r} needs the physical torque model (the "
+                         "paper's network has no servo parameters)")
     X, Xv = _features(fc, train), _features(fc, val)
     scale = jnp.asarray(fc.tau_scale, jnp.float32)
     Y = jnp.asarray(train.tau, jnp.float32) / scale
     Yv = jnp.asarray(val.tau, jnp.float32) / scale
     k_init, k_epochs = jax.random.split(key)
     batch = min(cfg.torque_batch, len(X))
-    epoch = _torque_epoch(model, cfg.torque_lr, cfg.trainable, batch,
+    epoch = _torque_epoch(model, cfg.torque_lr, trainable, batch,
                           epoch_compiler_options(cfg.torque_epochs * (len(X) // batch)),
                           **accelerated_epochs())
     state = epoch.init(_start(model, k_init, cfg.n_models, X[:1], init), jnp.float32,
@@ -430,7 +440,8 @@ def train_attention_models(
     K = cfg.n_models
     dtype = jnp.result_type(float)
     k_init, k_epochs = jax.random.split(key)
-    if init is not None and not _any_trainable(init, cfg.trainable):
+    trainable = _part_trainable(cfg.trainable, "attention")
+    if init is not None and not _any_trainable(init, trainable):
         # Nothing to train (``trainable="servo"``: the attention fixed): its epochs would
         # change no parameter and keep the start (epoch -1), so none are run or compiled.
         features = jax.eval_shape(lambda: _features(fc, train))  # (S, N, F): no compile
@@ -450,7 +461,7 @@ def train_attention_models(
 
     (feats, A, y, x_obj), (vf, vA, vy, vx) = arrays(train), arrays(val)
     batch = min(cfg.attention_batch, sets.shape[0])
-    epoch = _attention_epoch(model, cfg.attention_lr, cfg.trainable, batch, cfg.w_mass,
+    epoch = _attention_epoch(model, cfg.attention_lr, trainable, batch, cfg.w_mass,
                              cfg.w_com, epoch_compiler_options(
                                  cfg.attention_epochs * (sets.shape[0] // batch)),
                              **accelerated_epochs())

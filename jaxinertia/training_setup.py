@@ -21,7 +21,7 @@ __all__ = ["FINETUNE_DEFAULTS", "TRAINABLE", "TrainConfig", "draw_sets", "featur
 
 
 #: What fine-tuning may change (``TrainConfig.trainable``).
-TRAINABLE = ("all", "head", "servo")
+TRAINABLE = ("all", "head", "servo", "servo+attention")
 
 
 @dataclass(frozen=True)
@@ -45,7 +45,8 @@ class TrainConfig:
     w_com: float = 0.3
     val_fraction: float = 0.1
     #: What training may change (fine-tuning): "all"; "head" (the per-joint encoders
-    #: fixed); "servo" (only the physical model's servo parameters; the attention fixed).
+    #: fixed); "servo" (only the physical model's servo parameters; the attention fixed);
+    #: "servo+attention" (the servo parameters and every attention parameter).
     trainable: str = "all"
     torque_model: str = "paper"  # or "physical" (networks.TORQUE_MODELS)
     #: Each training file is a recording session: its discrepancy is rescaled towards the

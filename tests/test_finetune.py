@@ -347,3 +347,39 @@ def test_finetuning_gives_each_file_its_session_term_and_records_it(folders, cap
     assert main(["train", "--data", str(a), str(b), "--out", str(tmp / "x"),
                  "--session-terms", *TINY]) == 2
     assert "fine-tuning" in capsys.readouterr().err and not (tmp / "x").exists()
+
+
+def test_servo_and_attention_finetuning_moves_both_and_nothing_else(folders):
+    """``--trainable servo+attention``: the physical model's servo parameters and the whole
+    attention model train; the torque residual stays the start's, bit for bit. With
+    ``servo`` alone no attention epoch runs."""
+    tmp, _, real = folders
+    k, f = np.array([16.0, 18.0, 17.0, 10.0]), np.array([0.02, 0.05, 0.03, 0.01])
+    _servo_law_folder(tmp / "law_att", k * 1.1, f)
+    start = load_models(tmp / "law_att").pair
+    ft = ["--init", str(tmp / "law_att"), "--torque-epochs", "3", "--torque-lr", "1e-3",
+          "--attention-epochs", "3", "--attention-lr", "3e-3", "--attention-sets", "6",
+          "--attention-val-sets", "3", "--set-size", "16", "--session-strength", "0"]
+    for mode in ("servo", "servo+attention"):
+        out = tmp / f"ft_{mode.replace('+', '_')}"
+        assert main(["train", "--data", str(real), "--out", str(out), "--trainable", mode,
+                     *ft]) == 0
+        folder = load_models(out)
+        pair, config = folder.pair, folder.config
+        assert config["training"]["trainable"] == mode
+        assert_tree_equal(pair.torque_vars["params"]["residual"],
+                          start.torque_vars["params"]["residual"], what="residual frozen")
+        assert min(config["best_epoch"]["torque"]) >= 0  # the stiffer start moved
+        assert not np.allclose(pair.torque_vars["params"]["stiffness"],
+                               start.torque_vars["params"]["stiffness"])
+        if mode == "servo":
+            assert config["history"]["attention"] == []
+            assert_tree_equal(pair.attention_vars, start.attention_vars, what="kept")
+        else:
+            assert len(config["history"]["attention"]) == 3
+            best = np.asarray(config["best_epoch"]["attention"])
+            assert np.all(best >= 0), best  # the random start's attention improved
+            moved = jax.tree.leaves(jax.tree.map(
+                lambda a, b: bool(np.all(np.asarray(a) != np.asarray(b))),
+                pair.attention_vars, start.attention_vars))
+            assert any(moved)

@@ -20,11 +20,12 @@ from jaxinertia import samples
 from jaxinertia.app import folds
 from jaxinertia.app.cli import main
 from jaxinertia.app.folds import FoldScale, run_folds
-from jaxinertia.app.pipeline import train
+from jaxinertia.app.pipeline import evaluate_models, load_real, train
 from jaxinertia.app.programs import folds_side_by_side
 from jaxinertia.app.report import format_folds
 from jaxinertia.checkpoints import load_models
 from jaxinertia.errors import UsageError
+from jaxinertia.metrics import inertial_metrics
 from jaxinertia.samples import load_native, save_lbipe, save_native
 from jaxinertia.sim import real_fit
 from jaxinertia.training import TrainConfig
@@ -123,13 +124,43 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
         assert f["by_strength"]["1.0"] == f["ours"]
         assert len(f["session_ratio"][other]) == 4
         assert set(f["fine_tuned"]["30"]["by_strength"]) == {"0.0", "1.0"}
+        # Every candidate averaged: per model pair and set, the mean of the candidates'
+        # estimates, judged like one folder. Checked against the saved folders evaluated
+        # anew and averaged here (the randomized models are no candidate: not a member).
+        ens = f["ensemble"]
+        assert ens["members"] == ["models", "models_finetuned_30", "models_physical"]
+        real = load_real(small_lbipe_dir, seed=0)
+        i = [o.name for o in real.objects].index(other)
+        for s in (0.0, 1.0):
+            x = np.mean([evaluate_models(fold / name, [real.objects[i]], [real.sets[i]],
+                                         l_max=[real.l_max[i]], session_strength=s
+                                         )["estimates"]["T-A"][0]
+                         for name in ens["members"]], axis=0).reshape(-1, 4)
+            x = x[np.all(np.isfinite(x), axis=-1)]
+            want = inertial_metrics(x, real.objects[i].x[0], real.l_max[i])
+            got = ens["by_strength"][str(s)][other]["T-A"]
+            np.testing.assert_allclose([got[k] for k in sorted(want)],
+                                       [want[k] for k in sorted(want)], rtol=1e-9)
     # The recipe for a new object's models: chosen from the held-out numbers alone, among
     # every candidate both folds judged.
     recipe = res["recipe"]
     assert recipe["folds"] == 2 and len(recipe["scores"]) == 3 * 2
     assert recipe["score"] == min(c["score"] for c in recipe["scores"])
+    # The candidates' mean is scored the same way but never chosen (models_real cannot
+    # make it): its scores beside the recipe, one per strength.
+    assert "mean of every candidate" not in {c["candidate"] for c in recipe["scores"]}
+    assert [c["session_strength"] for c in recipe["not_eligible"]] == [0.0, 1.0]
+    for c in recipe["not_eligible"]:
+        s = str(c["session_strength"])
+        ratios = [res["folds"][fit]["ensemble"]["by_strength"][s][other]["T-A"][k]
+                  / res["folds"][fit]["released"][other]["T-A"][k]
+                  for fit, other in (("cube", "white"), ("white", "cube"))
+                  for k in ("mass_NMAE_pct", "com_NMAE_pct")]
+        assert c["score"] == pytest.approx(np.mean(ratios), rel=1e-12)
+        assert c["mass_score"] == pytest.approx(np.mean(ratios[0::2]), rel=1e-12)
     text = format_folds(res)
     assert "Recipes ranked on the held-out sessions" in text
+    assert "| mean of every candidate | models_real cannot make it yet | 0 |" in text
     assert "Calibrated and trained with cube only, judged on white" in text
     assert "white's real plan replayed in the simulator calibrated on cube" in text
     assert "fine-tuned (servo part) on 24 + 6 (validation) real samples of cube" in text

@@ -277,10 +277,12 @@ def _register_train(sub) -> None:
                                for k, v in defaults.FINETUNE.items()))
     t.add_argument("--samples-per-object", type=positive_int, metavar="N",
                    help="use at most N samples of each object (seeded random choice)")
-    t.add_argument("--trainable", choices=["all", "head", "servo"], default=None,
+    t.add_argument("--trainable", choices=["all", "head", "servo", "servo+attention"],
+                   default=None,
                    help="what fine-tuning may change: all (default), head (the per-joint "
-                   "encoders fixed) or servo (only the physical torque model's stiffness, "
-                   "offset and friction; the attention model fixed)")
+                   "encoders fixed), servo (only the physical torque model's stiffness, "
+                   "offset and friction; the attention model fixed) or servo+attention "
+                   "(those and the attention model)")
     t.add_argument("--session-strength", type=zero_to_one, default=None, metavar="S",
                    help="each real file's discrepancy read in the models' recording session "
                    "from its own current gain, this strongly (0: off; default "

@@ -32,7 +32,7 @@ from __future__ import annotations
 import contextlib
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 
@@ -55,6 +55,7 @@ from jaxinertia.app.simdata import simulate_files
 from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import evaluate
 from jaxinertia.fileio import write_json
+from jaxinertia.metrics import inertial_metrics
 from jaxinertia.session import ServoSession, servo_session
 from jaxinertia.sim.identify import ESConfig, identify
 from jaxinertia.sim.params import datasheet_sim_params, params_to_dict
@@ -117,6 +118,9 @@ class _Fold:
     seed: int
     progress: bool
     groups: FoldGroups | None = None
+    #: (folder name, strength) -> {method: held-out estimates (O, K, B, 4)} of every folder
+    #: judged: the members of the candidates' mean (:func:`_ensemble`).
+    estimates: dict = field(default_factory=dict)
 
     def member(self, group: str, name: str):
         """This thread's trainings as the member ``fit_on/name`` of the fold's ``group``
@@ -172,6 +176,7 @@ class _Fold:
             res = evaluate(adapted, sets, pair=folder.pair, baselines=folder.baselines,
                            fc=folder.features, l_max=l_max)
             out["by_strength"][str(s)] = res["objects"]
+            self.estimates[(models.name, s)] = {m: res["estimates"][m] for m in ENSEMBLE_METHODS}
             if own is None or own.strength == s:
                 out.update(objects=res["objects"], torque=res["torque"],
                            session_ratio={o.name: r for o, r in zip(objects, ratios)})
@@ -262,10 +267,46 @@ def _run_fold(fold: _Fold) -> dict:
             "physical": physical, "fine_tuned": fine, "randomized": randomized,
             "physical_current": physical_c, "fine_tuned_current": fine_c,
             "physical_current_sessions": physical_s, "fine_tuned_current_sessions": fine_s,
-            **replay,
+            "ensemble": _ensemble(fold), **replay,
             "wall_time_s": {k: wall.get(k, 0.0) for k in (
                 "calibrate", "simulate", "train", "evaluate", "randomized", "fine-tune",
                 "current input", "sessions drawn")}}
+
+
+#: The methods the candidates' mean is judged by.
+ENSEMBLE_METHODS = ("T", "T-A")
+#: Judged folders that are no candidate of the recipe (:func:`jaxinertia.app.recipe.candidates`).
+_NOT_CANDIDATES = ("models_randomized",)
+
+
+def _ensemble(fold: _Fold) -> dict | None:
+    """Every candidate of the fold averaged (issue 30: the recipe's near ties): at each
+    session strength, per model pair k and set, the mean over the candidate folders of
+    their estimates ``x`` on the held-out objects, judged like one folder (Table I over the
+    K pairs' sets pooled, as the candidates are; the pairs are not averaged). No choice
+    among the candidates is made, so nothing is tuned on the files it is judged on. None
+    with fewer than two candidates, or candidates of unequal model counts."""
+    names = sorted({n for n, _ in fold.estimates if n not in _NOT_CANDIDATES})
+    objects = [fold.real.objects[i] for i in fold.held_index]
+    l_max = [fold.real.l_max[i] for i in fold.held_index]
+    if len(names) < 2:
+        return None
+    by_strength = {}
+    for s in fold.scale.session_strengths:
+        members = [fold.estimates[(n, s)] for n in names]
+        if len({e["T-A"].shape for e in members}) > 1:
+            return None
+        by_strength[str(s)] = {
+            obj.name: {m: inertial_metrics(_finite(np.mean([e[m][o] for e in members], axis=0)),
+                                           obj.x[0], l_max[o]) for m in ENSEMBLE_METHODS}
+            for o, obj in enumerate(objects)}
+    return {"members": names, "by_strength": by_strength}
+
+
+def _finite(x: np.ndarray) -> np.ndarray:
+    """The estimates (..., 4) as rows, without the sets whose solve failed."""
+    x = np.asarray(x).reshape(-1, 4)
+    return x[np.all(np.isfinite(x), axis=-1)]
 
 
 def _stats(d: dict) -> dict:

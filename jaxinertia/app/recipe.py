@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["CURRENT", "SESSIONS", "candidates", "choose_recipe"]
+__all__ = ["CURRENT", "ENSEMBLE", "SESSIONS", "candidates", "choose_recipe"]
 
 
 def candidates(fold: dict) -> dict[str, dict]:
@@ -31,6 +31,9 @@ def candidates(fold: dict) -> dict[str, dict]:
 CURRENT = "physical with the current input"
 #: ... and trained on recording sessions drawn (``FoldScale.session_draws``).
 SESSIONS = "sessions drawn"
+#: Every candidate averaged (:func:`jaxinertia.app.folds._ensemble`): judged and scored like
+#: the others, but not eligible: ``models_real`` cannot make it yet.
+ENSEMBLE = "mean of every candidate"
 
 
 def choose_recipe(folds: dict, method: str = "T-A") -> dict:
@@ -40,7 +43,8 @@ def choose_recipe(folds: dict, method: str = "T-A") -> dict:
     must hold on every session left out, not on one). Returns the choice and every score."""
     scores: dict[tuple[str, str], list[float]] = {}
     for f in folds.values():
-        for name, by_strength in candidates(f).items():
+        ensemble = {ENSEMBLE: f["ensemble"]["by_strength"]} if f.get("ensemble") else {}
+        for name, by_strength in {**candidates(f), **ensemble}.items():
             for s, objects in by_strength.items():
                 for obj, e in objects.items():
                     ref = f["released"][obj][method]
@@ -48,13 +52,19 @@ def choose_recipe(folds: dict, method: str = "T-A") -> dict:
                         [e[method][k] / ref[k] for k in ("mass_NMAE_pct", "com_NMAE_pct")])
     n_folds = len(folds)
     # Only recipes that every fold judged compete.
-    table = {k: float(np.mean(v)) for k, v in scores.items()
-             if len(v) == 2 * sum(len(f["held_out"]) for f in folds.values())}
+    judged_by_all = {k: v for k, v in scores.items()
+                     if len(v) == 2 * sum(len(f["held_out"]) for f in folds.values())}
+    table = {k: float(np.mean(v)) for k, v in judged_by_all.items() if k[0] != ENSEMBLE}
     (name, strength), best = min(table.items(), key=lambda kv: kv[1])
     return {**_recipe(name, strength), "score": best, "method": method, "folds": n_folds,
             "scores": [{"candidate": k[0], "session_strength": float(k[1]), "score": v}
                        for k, v in sorted(table.items(), key=lambda kv: kv[1])],
-            "by_part": _by_part({k: v for k, v in scores.items() if k in table})}
+            "by_part": _by_part({k: v for k, v in scores.items() if k in table}),
+            "not_eligible": [{"candidate": k[0], "session_strength": float(k[1]),
+                              "score": float(np.mean(v)), "mass_score": float(np.mean(v[0::2])),
+                              "com_score": float(np.mean(v[1::2])),
+                              "why": "models_real cannot make it yet"}
+                             for k, v in judged_by_all.items() if k[0] == ENSEMBLE]}
 
 
 def _recipe(name: str, strength) -> dict:
