@@ -18,6 +18,7 @@ from support.synthetic import synthetic_samples
 
 from jaxinertia import samples
 from jaxinertia.app import folds
+from jaxinertia.app import recipe as R
 from jaxinertia.app.cli import main
 from jaxinertia.app.folds import FoldScale, run_folds
 from jaxinertia.app.pipeline import evaluate_models, load_real, train
@@ -144,23 +145,34 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
     # The recipe for a new object's models: chosen from the held-out numbers alone, among
     # every candidate both folds judged.
     recipe = res["recipe"]
-    assert recipe["folds"] == 2 and len(recipe["scores"]) == 3 * 2
+    assert recipe["folds"] == 2 and len(recipe["scores"]) == (3 + 1) * 2
     assert recipe["score"] == min(c["score"] for c in recipe["scores"])
-    # The candidates' mean is scored the same way but never chosen (models_real cannot
-    # make it): its scores beside the recipe, one per strength.
-    assert "mean of every candidate" not in {c["candidate"] for c in recipe["scores"]}
-    assert [c["session_strength"] for c in recipe["not_eligible"]] == [0.0, 1.0]
-    for c in recipe["not_eligible"]:
+    # The candidates' mean is scored the same way and competes: its members are the
+    # candidates the folds averaged, by the names the recipe gives them.
+    assert {c["candidate"] for c in recipe["scores"]} == {*R.candidates(
+        res["folds"]["cube"]), R.ENSEMBLE}
+    for f in res["folds"].values():
+        assert sorted(R.candidate_of_folder(n) for n in f["ensemble"]["members"]) == sorted(
+            R.candidates(f))
+    for c in recipe["scores"]:
+        if c["candidate"] != R.ENSEMBLE:
+            continue
         s = str(c["session_strength"])
         ratios = [res["folds"][fit]["ensemble"]["by_strength"][s][other]["T-A"][k]
                   / res["folds"][fit]["released"][other]["T-A"][k]
                   for fit, other in (("cube", "white"), ("white", "cube"))
                   for k in ("mass_NMAE_pct", "com_NMAE_pct")]
         assert c["score"] == pytest.approx(np.mean(ratios), rel=1e-12)
-        assert c["mass_score"] == pytest.approx(np.mean(ratios[0::2]), rel=1e-12)
+    chosen = [recipe, recipe["by_part"]["mass"], recipe["by_part"]["com"]]
+    for r in chosen:
+        assert ("members" in r) == (r["candidate"] == R.ENSEMBLE)
+        if "members" in r:
+            assert [m["candidate"] for m in r["members"]] == [
+                R.candidate_of_folder(n) for n in res["folds"]["cube"]["ensemble"]["members"]]
+            assert {m["session_strength"] for m in r["members"]} == {r["session_strength"]}
     text = format_folds(res)
     assert "Recipes ranked on the held-out sessions" in text
-    assert "| mean of every candidate | models_real cannot make it yet | 0 |" in text
+    assert "| mean of every candidate |" in text
     assert "Calibrated and trained with cube only, judged on white" in text
     assert "white's real plan replayed in the simulator calibrated on cube" in text
     assert "fine-tuned (servo part) on 24 + 6 (validation) real samples of cube" in text
@@ -305,3 +317,20 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     for group in (groups.scratch, groups.finetune):
         assert group._left == set(group.members)
     assert getattr(training_group._local, "member", None) is None
+
+
+def test_every_fold_folder_has_the_name_of_its_candidate():
+    """The folds' folder names map onto the names the recipe gives their candidates, for
+    every kind the full scale trains; anything else is refused."""
+    fold = {"by_strength": {}, "physical": {"by_strength": {}}, "fine_tuned": {"64": {
+        "by_strength": {}}}, "physical_current": {"by_strength": {}},
+            "fine_tuned_current": {"1000": {"by_strength": {}}},
+            "physical_current_sessions": {"by_strength": {}},
+            "fine_tuned_current_sessions": {"250": {"by_strength": {}}}}
+    folders = ["models", "models_physical", "models_finetuned_64", "models_physical_current",
+               "models_finetuned_current_1000", "models_physical_current_sessions",
+               "models_finetuned_current_sessions_250"]
+    assert [R.candidate_of_folder(n) for n in folders] == list(R.candidates(fold))
+    for bad in ("models_randomized", "models_finetuned_x", "models_finetuned_current"):
+        with pytest.raises(ValueError, match="no candidate folder"):
+            R.candidate_of_folder(bad)

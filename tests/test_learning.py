@@ -322,7 +322,7 @@ def test_tiny_end_to_end_report_numbers_come_from_the_run(tmp_path, small_lbipe_
     assert config["torque_model"]["kind"] == "physical"
     assert config["training"]["trainable"] == "servo" and config["samples_per_object"] == 30
     # Fine-tuned beside it and written with the recipe's strength (the default recipe's: 1).
-    assert Path(config["copied_from"]).name == "models_real_finetuned"
+    assert Path(config["copied_from"]).name == "models_real_finetuned_30"
     assert config["session"]["strength"] == 1.0
     assert {Path(d["file"]).name for d in config["data"]} == {"data_test_cube.npz",
                                                              "data_test_white.npz"}

@@ -11,6 +11,7 @@ import numpy as np
 
 from jaxinertia.app.arm_options import samples_arm
 from jaxinertia.app.by_part import com_models_of, merge_answers
+from jaxinertia.app.ensemble import NETWORK_METHODS, mean_estimates, mean_uncertainty, members_of
 from jaxinertia.app.pipeline import (
     adapt_objects,
     is_simulated,
@@ -143,7 +144,8 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
     :data:`~jaxinertia.uncertainty.DEFAULT_TORQUE_NOISE_NM`).
 
     A model folder that names COM models (:mod:`jaxinertia.app.by_part`) answers the mass
-    from its own models and the COM of the network methods from those.
+    from its own models and the COM of the network methods from those; one that names
+    ensemble members (:mod:`jaxinertia.app.ensemble`), by their mean with its own.
     """
     kw = dict(set_size=set_size, n_sets=n_sets, seed=seed, max_mass=max_mass,
               max_com=max_com, max_com_se=max_com_se, session_strength=session_strength,
@@ -168,6 +170,9 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
     pair, baselines, fc = folder.pair, folder.baselines, folder.features
     reference = session_reference(folder.config, session_strength,
                                   simulated=is_simulated(meta))
+    # An ensemble's further members (app.ensemble): each reads the objects in its session.
+    members = [_Member(m, objects, meta, session_strength, arm)
+               for m in members_of(models, folder.config)]
     objects, ratios = adapt_objects(objects, reference)
     floor, floor_source = training_validation_error(folder.config)
     noise = floor if floor is not None else np.full(objects[0].n_joints,
@@ -179,7 +184,7 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
                  "session_strength": 0.0 if reference is None else reference.strength,
                  "torque_error_floor": {"Nm": None if floor is None else floor.tolist(),
                                         "source": floor_source}}
-    for obj, ratio in zip(objects, ratios):
+    for o, (obj, ratio) in enumerate(zip(objects, ratios)):
         all_samples = [np.arange(obj.n_samples)[None]]
         res = evaluate([obj], all_samples, pair=pair, baselines=baselines, fc=fc,
                        l_max=[np.nan])
@@ -187,6 +192,9 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
                              floor=floor)
         sets, _ = choose_sets([obj], n_sets=n_sets, set_size=set_size, seed=seed)
         spread = evaluate([obj], sets, pair=pair, baselines=baselines, fc=fc, l_max=[np.nan])
+        if members:
+            _average_members(res, unc, spread, [m.parts(o, all_samples, sets) for m in members],
+                             [models, *(m.path for m in members)])
         methods = {m: _method_answer(x_all, spread["estimates"][m], unc[m], set_size=set_size,
                                      max_mass=max_mass, max_com=max_com)
                    for m, x_all in res["estimates"].items()}
@@ -214,4 +222,40 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
                 f"+-{np.max(pred_se[1:]) * 1e3:.1f} mm (predicted standard error at "
                 f"{x_best[0] * 1e3:.0f} g, torque error {noise_source}), above --max-com-se "
                 f"{max_com_se * 1e3:.1f} mm: sample more varied poses (jaxinertia plan-poses)")
+    if members:
+        out["ensemble_members"] = [str(m.path) for m in members]
     return out, folder.config
+
+
+class _Member:
+    """A further member of an ensemble folder (:mod:`jaxinertia.app.ensemble`): its models,
+    the objects read in its session and its torque error floor."""
+
+    def __init__(self, path, objects, meta, session_strength, arm):
+        self.path = path
+        self.folder = load_models(path, robot=meta.get("robot"), arm=arm)
+        self.objects, _ = adapt_objects(objects, session_reference(
+            self.folder.config, session_strength, simulated=is_simulated(meta)))
+        self.floor, _ = training_validation_error(self.folder.config)
+
+    def parts(self, o: int, all_samples, sets) -> tuple[dict, dict, dict]:
+        """Object ``o``'s network estimates on all its samples, their uncertainty, and the
+        estimates on the ``sets`` (as :func:`_estimate` computes them)."""
+        obj, f = self.objects[o], self.folder
+        kw = dict(pair=f.pair, fc=f.features)
+        return (evaluate([obj], all_samples, l_max=[np.nan], **kw)["estimates"],
+                uncertainty_of([obj], all_samples, floor=self.floor, **kw),
+                evaluate([obj], sets, l_max=[np.nan], **kw)["estimates"])
+
+
+def _average_members(res: dict, unc: dict, spread: dict, parts: list, folders: list) -> None:
+    """The network methods' estimates and uncertainty of one object replaced, in place, by
+    the mean over the folder and its further members (``parts``: :meth:`_Member.parts`)."""
+    for m in NETWORK_METHODS:
+        if m not in res["estimates"]:
+            continue
+        x_all = [res["estimates"][m], *(p[0][m] for p in parts)]
+        unc[m] = mean_uncertainty([unc[m], *(p[1][m] for p in parts)], x_all)
+        res["estimates"][m] = mean_estimates(x_all, folders)
+        spread["estimates"][m] = mean_estimates(
+            [spread["estimates"][m], *(p[2][m] for p in parts)], folders)

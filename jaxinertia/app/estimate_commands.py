@@ -56,6 +56,10 @@ def cmd_estimate(args) -> int:
         else:
             print(f"{name}: session adaptation off (the models' strength 0, or "
                   "--session-strength 0)")
+        if res.get("ensemble_members"):
+            print(f"{name}: T and T-A the mean of these models and "
+                  f"{len(res['ensemble_members'])} more inside them (each read in its own "
+                  "session); the baselines from the models above")
         if res.get("com_models"):
             ratio = ", ".join(f"{r:.3f}" for r in o["com_session_ratio"])
             print(f"{name}: the COM of T and T-A from {res['com_models']} (session strength "

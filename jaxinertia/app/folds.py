@@ -284,7 +284,8 @@ def _ensemble(fold: _Fold) -> dict | None:
     session strength, per model pair k and set, the mean over the candidate folders of
     their estimates ``x`` on the held-out objects, judged like one folder (Table I over the
     K pairs' sets pooled, as the candidates are; the pairs are not averaged). No choice
-    among the candidates is made, so nothing is tuned on the files it is judged on. None
+    among the candidates is made, so nothing is tuned on the files it is judged on; the
+    recipe may choose it (``models_real`` then makes every member on the real files). None
     with fewer than two candidates, or candidates of unequal model counts."""
     names = sorted({n for n, _ in fold.estimates if n not in _NOT_CANDIDATES})
     objects = [fold.real.objects[i] for i in fold.held_index]

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from jaxinertia.app.by_part import attach_com_models
+from jaxinertia.app.ensemble import attach_members
 from jaxinertia.app.pipeline import RealData, copy_models, evaluate_models, train
 from jaxinertia.app.programs import side_by_side, side_by_side_workers
 from jaxinertia.app.simdata import simulate_files
@@ -70,59 +71,96 @@ def models_real(out: Path, train_files: list[Path], real: RealData, scale,
     trained on the simulated files, and fine-tuned, at the folds' training strength
     (``scale.train``'s and :data:`FINETUNE_DEFAULTS`' ``session_strength``: with both real
     files, each read in the models' reference session), then written with the strength the
-    recipe chose, the strength it was judged at. A simulator-trained model that the mass's
-    and the COM's candidates share is trained once (``models_physical``; another one:
-    ``models_physical_com``), a fine-tuning lands in ``models_real_finetuned[_com]`` and is
-    copied from there."""
+    recipe chose, the strength it was judged at. Where the recipe is the folds' average of
+    every candidate (:mod:`jaxinertia.app.ensemble`), each of its members is made so, and
+    lands in ``models_real/members/<i>`` (the first in ``models_real`` itself). A
+    simulator-trained model is trained once per kind, as the folds name theirs
+    (``models_physical[_current[_sessions]]``), shared by every candidate that starts from
+    it, a fine-tuning once per kind and sample count (``models_real_finetuned<kind>_<n>``);
+    the folders are copied from there. The paper network from the simulator alone is the
+    run's ``models``."""
     dst = out / "models_real"
-    recipes = {"mass": recipe, "com": recipe["com"]} if recipe.get("com") else {"mass": recipe}
-    starts: dict[tuple, list[str]] = {}  # the simulator-trained models the parts start from
-    for part, r in recipes.items():
-        if not r["candidate"].startswith("paper"):
-            starts.setdefault((bool(r.get("current_input")), bool(r.get("sessions_drawn"))),
-                              []).append(part)
+    parts = {"mass": recipe, "com": recipe["com"]} if recipe.get("com") else {"mass": recipe}
+    # Each part is one folder, or the mean of several (the folds' average of every
+    # candidate: app.ensemble): the folders to make, by name, each a single candidate.
+    units = {part: [r] if not r.get("members") else
+             [{**m, "session_strength": r["session_strength"]} for m in r["members"]]
+             for part, r in parts.items()}
+    every = [u for us in units.values() for u in us]
+    kinds = sorted({_kind(u) for u in every if not u["candidate"].startswith("paper")})
     files = train_files
-    if any(drawn for _, drawn in starts):  # the random scenario over drawn sessions, once
+    if any(drawn for _, drawn in kinds):  # the random scenario over drawn sessions, once
         params = arm_sim_params()
         files = simulate_files(params, [
             (out / "data" / "train_random_sessions.npz", "random", scale.random_per_load,
              seed)], spread=session_prior(params.robot.n_joints),
             draws=scale.fold_session_draws or 4, progress=progress) + train_files[1:]
-    start_dir = {key: out / ("models_physical" + ("" if i == 0 else "_com"))
-                 for i, key in enumerate(starts)}
+    # The simulator-trained models the candidates start from: one per kind, shared.
+    start_dir = {k: out / f"models_physical{_TAGS[k]}" for k in kinds}
 
-    def train_start(key):
-        current, drawn = key
+    def train_start(kind):
+        current, drawn = kind
         cfg = scale.train.replace(seed=seed, torque_model="physical", current_input=current)
-        train(files if drawn else train_files, start_dir[key], cfg, overwrite=True,
+        train(files if drawn else train_files, start_dir[kind], cfg, overwrite=True,
               progress=progress, session=session)
 
-    _trainings({parts[0]: partial(train_start, key) for key, parts in starts.items()})
-    start_of = {part: start_dir[key] for key, parts in starts.items() for part in parts}
-    tuned = {part: out / ("models_real_finetuned" + ("" if part == "mass" else f"_{part}"))
-             for part, r in recipes.items() if "fine-tuned" in r["candidate"]}
+    _trainings({start_dir[k].name: partial(train_start, k) for k in kinds})
+    # The fine-tunings on every real file: one per kind and sample count, shared.
+    tunings = sorted({(_kind(u), _samples(u, scale)) for u in every
+                      if "fine-tuned" in u["candidate"]})
+    tuned = {t: out / f"models_real_finetuned{_TAGS[t[0]]}_{t[1]}" for t in tunings}
 
-    def finetune(part):
-        n = recipes[part].get("finetune_samples") or scale.real_finetune_samples
-        return train(real.files, tuned[part], TrainConfig(**FINETUNE_DEFAULTS, seed=seed,
-                                                          trainable="servo"),
-                     overwrite=True, progress=progress, init=start_of[part],
-                     samples_per_object=n)
+    def finetune(t):
+        return train(real.files, tuned[t], TrainConfig(**FINETUNE_DEFAULTS, seed=seed,
+                                                       trainable="servo"),
+                     overwrite=True, progress=progress, init=start_dir[t[0]],
+                     samples_per_object=t[1])
 
-    info = _trainings({part: partial(finetune, part) for part in tuned}).get("mass")
-    # Each part's folder, read at its recipe's strength; the COM's inside the mass's.
+    infos = _trainings({tuned[t].name: partial(finetune, t) for t in tunings})
+
+    def source(u):
+        if "fine-tuned" in u["candidate"]:
+            return tuned[(_kind(u), _samples(u, scale))]
+        return out / "models" if u["candidate"].startswith("paper") else start_dir[_kind(u)]
+
+    # Each part's folder, read at its recipe's strength (an ensemble's members inside its
+    # folder); the COM's inside the mass's.
     where = {"mass": dst, "com": out / "models_real_com"}
-    for part, r in recipes.items():
-        src = tuned.get(part) or start_of.get(part) or out / "models"
-        copy_models(src, where[part], session_strength=float(r["session_strength"]))
-    if "com" in recipes:
+    for part, us in units.items():
+        copy_models(source(us[0]), where[part], session_strength=float(us[0]["session_strength"]))
+        names = [f"members/{i}" for i in range(1, len(us))]
+        for name, u in zip(names, us[1:]):
+            copy_models(source(u), where[part] / name,
+                        session_strength=float(u["session_strength"]))
+        if names:
+            attach_members(where[part], names)
+    if "com" in parts:
         shutil.rmtree(dst / "com", ignore_errors=True)
         shutil.move(where["com"], dst / "com")
         attach_com_models(dst, "com")
     res = evaluate_models(dst, real.objects, real.sets, l_max=real.l_max)
+    mass = units["mass"][0]
+    info = infos.get(tuned[(_kind(mass), _samples(mass, scale))].name) \
+        if "fine-tuned" in mass["candidate"] else None
     return {"objects": res["objects"], "files": [str(f.path) for f in real.files],
             "samples": None if info is None else info["samples"], "models": str(dst),
             "recipe": recipe, "session_ratio": res["session_ratio"]}
+
+
+#: A simulator-trained physical model's folder suffix by its kind (current input, drawn
+#: sessions), as the folds name theirs.
+_TAGS = {(False, False): "", (True, False): "_current", (True, True): "_current_sessions",
+         (False, True): "_sessions"}
+
+
+def _kind(recipe: dict) -> tuple[bool, bool]:
+    """A single candidate's simulator-trained start: (current input, drawn sessions)."""
+    return bool(recipe.get("current_input")), bool(recipe.get("sessions_drawn"))
+
+
+def _samples(recipe: dict, scale) -> int:
+    """The real samples per file a fine-tuned candidate takes."""
+    return recipe.get("finetune_samples") or scale.real_finetune_samples
 
 
 def _trainings(calls: dict[str, Callable[[], Any]]) -> dict:

@@ -21,6 +21,7 @@ import numpy as np
 
 from jaxinertia.app.arm_options import LBIPE_ARM, samples_arm
 from jaxinertia.app.by_part import COM_MODELS, com_models_of, merge_evaluations
+from jaxinertia.app.ensemble import ENSEMBLE_MEMBERS, mean_evaluation, members_of
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import load_models, save_models
 from jaxinertia.errors import FileFormatError, UsageError
@@ -84,6 +85,10 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
     files, robot = _training_files(sample_files, arm)
     parts, metas = [f.samples for f in files], [f.meta for f in files]
     start = None if init is None else load_models(init, robot=robot)
+    if start is not None and members_of(init, start.config):
+        raise UsageError(f"{init}: the mean of {len(members_of(init, start.config)) + 1} model "
+                         "folders (app.ensemble), no one set of models to start from: "
+                         f"fine-tune one of them ({init} itself or its members/...) instead")
     if start is not None:
         robot = robot or start.config.get("robot")
         cfg = cfg.replace(n_models=start.pair.n_models,
@@ -253,10 +258,10 @@ def copy_models(src: str | os.PathLike, dst: str | os.PathLike, *,
     changed when given; the weights, baselines and the rest of its record unchanged."""
     folder = load_models(src)
     config = folder.config
-    # A folder's COM models (app.by_part) live inside it and are not copied: neither is
-    # the key that names them.
+    # A folder's COM models (app.by_part) and ensemble members (app.ensemble) live inside
+    # it and are not copied: neither are the keys that name them.
     standard = ("format", "format_version", "robot", "arm", "n_models", "torque_model",
-                "attention_model", "features", "baselines", COM_MODELS)
+                "attention_model", "features", "baselines", COM_MODELS, ENSEMBLE_MEMBERS)
     extra = {k: v for k, v in config.items() if k not in standard}
     for key, simulated in (("session", False), ("simulator_session", True)):
         ref = session_reference(config, session_strength, simulated=simulated)
@@ -293,13 +298,19 @@ def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
     """A model folder (its pairs and baselines) on known objects over the given sets, each
     object read in the folder's session (``simulated``: objects the simulator made, read in
     its session; ``session_strength``: override, 0 = off). A folder that names COM models
-    (:mod:`jaxinertia.app.by_part`) is judged with the network methods' COM from those."""
+    (:mod:`jaxinertia.app.by_part`) is judged with the network methods' COM from those; one
+    that names ensemble members (:mod:`jaxinertia.app.ensemble`), by their mean."""
     folder = load_models(models, robot=robot, arm=arm)
     adapted, ratios = adapt_objects(objects, session_reference(folder.config, session_strength,
                                                                simulated=simulated))
     t = time.perf_counter()
     res = evaluate(adapted, sets, pair=folder.pair, baselines=folder.baselines,
                    fc=folder.features, l_max=l_max)
+    members = members_of(models, folder.config)
+    if members:  # each member reads the objects in its own session
+        res = mean_evaluation([res] + [evaluate_models(
+            m, objects, sets, l_max=l_max, robot=robot, session_strength=session_strength,
+            simulated=simulated, arm=arm) for m in members], objects, [Path(models), *members])
     com = com_models_of(models, folder.config)
     if com is not None:
         res = merge_evaluations(res, evaluate_models(

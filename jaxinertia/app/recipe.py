@@ -7,9 +7,12 @@ COM, judged apart (:mod:`jaxinertia.app.by_part`)."""
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 
-__all__ = ["CURRENT", "ENSEMBLE", "SESSIONS", "candidates", "choose_recipe"]
+__all__ = ["CURRENT", "ENSEMBLE", "SESSIONS", "candidate_of_folder", "candidates",
+           "choose_recipe"]
 
 
 def candidates(fold: dict) -> dict[str, dict]:
@@ -31,9 +34,28 @@ def candidates(fold: dict) -> dict[str, dict]:
 CURRENT = "physical with the current input"
 #: ... and trained on recording sessions drawn (``FoldScale.session_draws``).
 SESSIONS = "sessions drawn"
-#: Every candidate averaged (:func:`jaxinertia.app.folds._ensemble`): judged and scored like
-#: the others, but not eligible: ``models_real`` cannot make it yet.
+#: Every candidate averaged (:func:`jaxinertia.app.folds._ensemble`): judged and chosen like
+#: the others; ``models_real`` then makes every member (:mod:`jaxinertia.app.ensemble`).
 ENSEMBLE = "mean of every candidate"
+
+#: A fold's model folder suffix -> the name its candidates carry (:func:`candidates`).
+_KINDS = {"": "physical", "_current": CURRENT, "_current_sessions": f"{CURRENT}, {SESSIONS}"}
+
+
+def candidate_of_folder(folder: str) -> str:
+    """The candidate name (:func:`candidates`) of a fold's model folder name: ``models``,
+    ``models_physical[_current[_sessions]]``, ``models_finetuned[_current[_sessions]]_N``."""
+    if folder == "models":
+        return "paper network, simulator only"
+    for prefix in ("models_physical", "models_finetuned"):
+        if folder.startswith(prefix):
+            tag, _, n = folder[len(prefix):].rpartition("_") if prefix == "models_finetuned" \
+                else (folder[len(prefix):], "", "")
+            if tag in _KINDS and (n.isdigit() or prefix == "models_physical"):
+                what = _KINDS[tag]
+                return (f"{what}, simulator only" if prefix == "models_physical" else
+                        f"{what}, servo part fine-tuned on {n} real samples")
+    raise ValueError(f"{folder!r} is no candidate folder of a fold")
 
 
 def choose_recipe(folds: dict, method: str = "T-A") -> dict:
@@ -52,23 +74,28 @@ def choose_recipe(folds: dict, method: str = "T-A") -> dict:
                         [e[method][k] / ref[k] for k in ("mass_NMAE_pct", "com_NMAE_pct")])
     n_folds = len(folds)
     # Only recipes that every fold judged compete.
-    judged_by_all = {k: v for k, v in scores.items()
-                     if len(v) == 2 * sum(len(f["held_out"]) for f in folds.values())}
-    table = {k: float(np.mean(v)) for k, v in judged_by_all.items() if k[0] != ENSEMBLE}
+    table = {k: float(np.mean(v)) for k, v in scores.items()
+             if len(v) == 2 * sum(len(f["held_out"]) for f in folds.values())}
+    members = {tuple(f["ensemble"]["members"]) for f in folds.values() if f.get("ensemble")}
+    if len(members) > 1:  # folds that averaged other candidates: no one estimator
+        table = {k: v for k, v in table.items() if k[0] != ENSEMBLE}
+    recipe = partial(_recipe, members=[candidate_of_folder(n) for n in next(iter(members))]
+                     if len(members) == 1 else None)
     (name, strength), best = min(table.items(), key=lambda kv: kv[1])
-    return {**_recipe(name, strength), "score": best, "method": method, "folds": n_folds,
+    return {**recipe(name, strength), "score": best, "method": method, "folds": n_folds,
             "scores": [{"candidate": k[0], "session_strength": float(k[1]), "score": v}
                        for k, v in sorted(table.items(), key=lambda kv: kv[1])],
-            "by_part": _by_part({k: v for k, v in scores.items() if k in table}),
-            "not_eligible": [{"candidate": k[0], "session_strength": float(k[1]),
-                              "score": float(np.mean(v)), "mass_score": float(np.mean(v[0::2])),
-                              "com_score": float(np.mean(v[1::2])),
-                              "why": "models_real cannot make it yet"}
-                             for k, v in judged_by_all.items() if k[0] == ENSEMBLE]}
+            "by_part": _by_part({k: v for k, v in scores.items() if k in table}, recipe)}
 
 
-def _recipe(name: str, strength) -> dict:
-    """A candidate's name and strength as the recipe that ``reproduce`` follows."""
+def _recipe(name: str, strength, members: list[str] | None = None) -> dict:
+    """A candidate's name and strength as the recipe that ``reproduce`` follows; the
+    average of every candidate (:data:`ENSEMBLE`) with the recipe of each of its
+    ``members`` (candidate names) at the same strength."""
+    if name == ENSEMBLE:
+        return {"candidate": name, "session_strength": float(strength),
+                "finetune_samples": None, "current_input": False, "sessions_drawn": False,
+                "members": [_recipe(m, strength) for m in members]}
     finetune = None
     if "fine-tuned on" in name:
         finetune = int(name.split("fine-tuned on ")[1].split()[0])
@@ -77,7 +104,7 @@ def _recipe(name: str, strength) -> dict:
             "sessions_drawn": SESSIONS in name}
 
 
-def _by_part(scores: dict[tuple[str, str], list[float]]) -> dict:
+def _by_part(scores: dict[tuple[str, str], list[float]], recipe=_recipe) -> dict:
     """The best candidate for the mass and the best for the COM, judged apart (the ratios
     of :func:`choose_recipe`, mass and COM alternating), and the score of the estimator
     that takes each part from its own models (:mod:`jaxinertia.app.by_part`): the mean of
@@ -87,5 +114,5 @@ def _by_part(scores: dict[tuple[str, str], list[float]]) -> dict:
     for i, what in enumerate(("mass", "com")):
         (name, s), v = min(((k, float(np.mean(r[i::2]))) for k, r in scores.items()),
                            key=lambda kv: kv[1])
-        part[what] = {**_recipe(name, s), "score": v}
+        part[what] = {**recipe(name, s), "score": v}
     return {**part, "score": 0.5 * (part["mass"]["score"] + part["com"]["score"])}

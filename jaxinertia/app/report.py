@@ -186,20 +186,11 @@ def recipe_table(recipe: dict) -> str:
              f"{part['mass']['score']:.3f}) and the COM from {part['com']['candidate']} "
              f"(strength {part['com']['session_strength']:g}, COM score "
              f"{part['com']['score']:.3f}): {part['score']:.3f} for both")
-    table = render(f"Recipes ranked on the held-out sessions ({recipe['method']} mass and COM "
-                   "NMAE over the released models', mean of every fold; lower is better). "
-                   f"Best single candidate: {recipe['candidate']}, session adaptation "
-                   f"{'on' if recipe['session_strength'] > 0 else 'off'}{apart}",
-                   ["candidate", "session adaptation", "score"], rows, n_left=2)
-    others = recipe.get("not_eligible") or []
-    if not others:
-        return table
-    rows = [[c["candidate"], c["why"], f"{c['session_strength']:g}", f"{c['mass_score']:.3f}",
-             f"{c['com_score']:.3f}", f"{c['score']:.3f}"] for c in others]
-    return "\n\n".join([table, render(
-        "Judged like the candidates, not eligible for the recipe (scores as above; the mass "
-        "and COM parts apart)", ["estimator", "why not eligible", "session strength",
-                                 "mass score", "COM score", "score"], rows, n_left=2)])
+    return render(f"Recipes ranked on the held-out sessions ({recipe['method']} mass and COM "
+                  "NMAE over the released models', mean of every fold; lower is better). "
+                  f"Best single candidate: {recipe['candidate']}, session adaptation "
+                  f"{'on' if recipe['session_strength'] > 0 else 'off'}{apart}",
+                  ["candidate", "session adaptation", "score"], rows, n_left=2)
 
 
 def reproduce_report(results: dict, figs: dict, *, full: bool, seed: int, scale,
@@ -288,6 +279,10 @@ def _new_object_section(ft: dict | None) -> list[str]:
     com_text = ("" if not com else
                 f"; the COM of T and T-A from `{ft['models']}/com`: {com['candidate']}, "
                 f"session adaptation {'on' if com['session_strength'] > 0 else 'off'}")
+    if recipe.get("members"):
+        used = (" (" + "; ".join(m["candidate"] for m in recipe["members"]) + "; each made "
+                f"as one candidate, the fine-tuned ones on every real file of {names}, the "
+                f"first in `{ft['models']}`, the others in `{ft['models']}/members/`)")
     return ["## Models for a new real object", "",
             f"`{ft['models']}`: {recipe['candidate']}{used}, session adaptation "
             f"{'on' if recipe['session_strength'] > 0 else 'off'}{com_text}; the recipe was "

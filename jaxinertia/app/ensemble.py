@@ -1,0 +1,108 @@
+"""A model folder that answers with the mean of several: ``config.json`` names member
+folders inside it (``ensemble_members``, written by :func:`attach_members`); the folder's
+own models are the first member.
+
+Why: the held-out folds judge, beside every candidate, the mean of all of them
+(:func:`jaxinertia.app.folds._ensemble`), and where the recipe chooses it ``models_real``
+is that mean (docs/results.md, "Every candidate averaged"). For the network methods (T,
+T-A), per model pair k and set, the estimate ``x = [m, m p]`` is the mean of the members'
+(their model counts must agree): Table I pools the K pairs' sets as for one folder. Each
+member reads a file in its own session (its reference and strength). The baselines (Sensor,
+PE), the attention weights and the torque metrics are the first member's. ``estimate``'s
+covariance of the mean: the members' residual covariances averaged (their errors are not
+independent, so not divided by their number) plus the covariance of every member's pair
+estimates around the mean (as one folder's pairs give theirs).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from jaxinertia.checkpoints import CONFIG
+from jaxinertia.errors import UsageError
+from jaxinertia.fileio import write_json
+from jaxinertia.metrics import inertial_metrics
+from jaxinertia.samples import Samples
+from jaxinertia.uncertainty import SetUncertainty
+
+__all__ = ["ENSEMBLE_MEMBERS", "NETWORK_METHODS", "attach_members", "mean_estimates",
+           "mean_evaluation", "mean_uncertainty", "members_of"]
+
+#: The ``config.json`` key naming the further members (relative to the folder).
+ENSEMBLE_MEMBERS = "ensemble_members"
+#: The methods whose estimates are averaged.
+NETWORK_METHODS = ("T", "T-A")
+
+
+def members_of(models: str | os.PathLike, config: dict) -> list[Path]:
+    """The further members that a model folder (its ``config``) names (none: [])."""
+    return [Path(models) / name for name in config.get(ENSEMBLE_MEMBERS) or ()]
+
+
+def attach_members(models: str | os.PathLike, names: Sequence[str]) -> None:
+    """Records in ``models/config.json`` that ``models`` answers with the mean of its own
+    models and those of ``models/<name>`` for each name (model folders already there)."""
+    path = Path(models) / CONFIG
+    for name in names:
+        if not (Path(models) / name / CONFIG).is_file():
+            raise FileNotFoundError(f"{Path(models) / name}: no model folder to average")
+    write_json(path, {**json.loads(path.read_text()), ENSEMBLE_MEMBERS: list(names)})
+
+
+def mean_estimates(estimates: Sequence[np.ndarray], folders: Sequence) -> np.ndarray:
+    """The members' estimates (..., K, B, 4) averaged per model pair and set."""
+    shapes = {np.shape(x) for x in estimates}
+    if len(shapes) > 1:
+        raise UsageError("the members of an ensemble must have as many model pairs each: "
+                         + ", ".join(f"{f}: {np.shape(x)}" for f, x in zip(folders, estimates)))
+    return np.mean(np.stack([np.asarray(x) for x in estimates]), axis=0)
+
+
+def _finite(x: np.ndarray) -> np.ndarray:
+    x = np.asarray(x).reshape(-1, 4)
+    return x[np.all(np.isfinite(x), axis=-1)]
+
+
+def mean_evaluation(evaluations: Sequence[dict], objects: Sequence[Samples],
+                    folders: Sequence) -> dict:
+    """An evaluation (``pipeline.evaluate_models``) of the members' mean: the first
+    member's, with the network methods' estimates averaged and their Table I metrics
+    computed again from them. ``evaluations`` and ``folders``: the folder's own and each
+    further member's, in that order."""
+    out = copy.copy(evaluations[0])
+    out["objects"] = copy.deepcopy(out["objects"])
+    out["estimates"] = dict(out["estimates"])
+    for m in NETWORK_METHODS:
+        if m not in out["estimates"]:
+            continue
+        x = mean_estimates([e["estimates"][m] for e in evaluations], folders)
+        out["estimates"][m] = x
+        for o, obj in enumerate(objects):
+            entry = out["objects"][obj.name]
+            if m in entry:
+                entry[m] = inertial_metrics(_finite(x[o]), obj.x[0], entry["L_max_m"])
+    out["ensemble_members"] = [str(f) for f in folders[1:]]  # the further members
+    return out
+
+
+def mean_uncertainty(uncertainties: Sequence[SetUncertainty],
+                     pair_estimates: Sequence[np.ndarray]) -> SetUncertainty:
+    """The answer and covariance of the members' mean, for one set (leading axes (1, 1) as
+    :func:`jaxinertia.uncertainty.uncertainty_of` gives them); ``pair_estimates``: each
+    member's K pairs' estimates (K, 4) on that set."""
+    us = [SetUncertainty(*(np.asarray(a, np.float64) for a in u)) for u in uncertainties]
+    x = np.mean([u.x for u in us], axis=0)
+    cov_noise = np.mean([u.cov_noise for u in us], axis=0)
+    pairs = np.concatenate([np.reshape(p, (-1, 4)) for p in pair_estimates])
+    spread = (np.cov(pairs, rowvar=False, ddof=1) if len(pairs) > 1
+              else np.zeros((4, 4)))[None, None]
+    return SetUncertainty(
+        x=x, cov=cov_noise + spread, cov_noise=cov_noise, cov_ensemble=spread,
+        noise_std=np.sqrt(np.mean([u.noise_std ** 2 for u in us], axis=0)),
+        floor_used=np.mean([u.floor_used for u in us], axis=0))

@@ -1,0 +1,118 @@
+"""A model folder that answers with the mean of several (``jaxinertia.app.ensemble``):
+estimate and evaluate of a folder that names members give the mean of what each member
+gives on its own, per model pair and set; the baselines stay the folder's own."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from support.synthetic import feature_config, synthetic_samples, tiny_pair
+
+from jaxinertia.app.cli import main
+from jaxinertia.app.ensemble import ENSEMBLE_MEMBERS, attach_members
+from jaxinertia.app.estimate import estimate
+from jaxinertia.app.pipeline import copy_models, evaluate_models
+from jaxinertia.baselines import fit_baselines
+from jaxinertia.errors import UsageError
+from jaxinertia.evaluation import choose_sets
+from jaxinertia.metrics import inertial_metrics
+from jaxinertia.samples import save_native
+
+ROBOT = "open_manipulator_x"
+MEMBERS = ["members/1", "members/2"]
+
+
+@pytest.fixture(scope="module")
+def folders(tmp_path_factory):
+    """A sample file and three folders of untrained pairs: one, and two more inside it
+    (seeds whose pairs all give a physically possible answer on that file)."""
+    tmp = tmp_path_factory.mktemp("ensemble")
+    d = synthetic_samples(np.random.default_rng(11), n=96, n_obj=1)
+    path = save_native(tmp / "s.npz", d, {"robot": ROBOT})
+    b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.q_d)
+    from jaxinertia.checkpoints import save_models  # noqa: PLC0415 - orbax at first use
+
+    save_models(tmp / "m", tiny_pair(seed=0), b, feature_config(), robot=ROBOT)
+    for seed, name in zip((1, 3), MEMBERS):
+        save_models(tmp / "m" / name, tiny_pair(seed=seed), b, feature_config(), robot=ROBOT)
+    return d, path, tmp / "m"
+
+
+def test_the_answer_is_the_members_mean_and_the_baselines_the_folders(folders, capsys):
+    d, path, models = folders
+    kw = dict(set_size=32, n_sets=8, max_mass=1e3, max_com=1e3)
+    alone = [estimate(models / sub, path, **kw) for sub in (".", *MEMBERS)]
+    attach_members(models, MEMBERS)
+    assert json.loads((models / "config.json").read_text())[ENSEMBLE_MEMBERS] == MEMBERS
+    both = estimate(models, path, **kw)
+    assert both["ensemble_members"] == [str(models / n) for n in MEMBERS]
+    (name,) = both["objects"]
+    m = both["objects"][name]["methods"]
+    a = [r["objects"][name]["methods"] for r in alone]
+    for method in ("Sensor", "PE"):  # the baselines: the folder's own, whole
+        assert m[method] == a[0][method]
+    answered = 0
+    for method in ("T", "T-A"):
+        if not (m[method]["ok"] and all(r[method]["ok"] for r in a)):
+            continue
+        answered += 1
+        # Each member's answer is the mean over its K pairs: the mean of the three is the
+        # mean of x over every member and pair.
+        x = np.array([[r[method]["mass_kg"], *(r[method]["mass_kg"]
+                                               * np.asarray(r[method]["com_tag_m"]))]
+                      for r in a])
+        want = x.mean(axis=0)
+        assert m[method]["mass_kg"] == pytest.approx(want[0], rel=1e-9)
+        np.testing.assert_allclose(m[method]["com_tag_m"], want[1:] / want[0], rtol=1e-9)
+        # Covariance: the members' residual parts averaged, plus the spread of every
+        # member's pairs (at least the spread of the members' means, which it contains).
+        noise = np.mean([r[method]["covariance_terms"]["noise"] for r in a], axis=0)
+        np.testing.assert_allclose(m[method]["covariance_terms"]["noise"], noise, rtol=1e-9)
+        spread = np.asarray(m[method]["covariance_terms"]["ensemble"])
+        assert spread[0, 0] >= np.var(x[:, 0], ddof=1) * (len(x) - 1) / (3 * 2 - 1) - 1e-18
+        np.testing.assert_allclose(m[method]["covariance_x"], noise + spread, rtol=1e-9)
+    assert answered > 0, "no network method answered in every folder: nothing was checked"
+    assert main(["estimate", "--models", str(models), "--samples", str(path), "--set-size",
+                 "32", "--max-mass", "1000", "--max-com", "1000"]) == 0
+    assert "the mean of these models and 2 more inside them" in capsys.readouterr().out
+    # Table I of such a folder: the metrics of the mean of the members' estimates, per
+    # model pair and set; the baselines' the folder's own.
+    # No fine-tuning starts from the mean of several folders.
+    capsys.readouterr()
+    assert main(["train", "--init", str(models), "--data", str(path), "--out",
+                 str(models.parent / "ft")]) == 2
+    assert "no one set of models to start from" in capsys.readouterr().err
+    assert not (models.parent / "ft").exists()
+    # (A copy of the folder is its own models alone: it names no members it lacks.)
+    copy = copy_models(models, models.parent / "copy")
+    assert ENSEMBLE_MEMBERS not in json.loads((copy / "config.json").read_text())
+    sets, _ = choose_sets(d.by_object(), n_sets=8, set_size=32, seed=0)
+    res = evaluate_models(models, d.by_object(), sets, l_max=[0.1])
+    plain = [evaluate_models(f, d.by_object(), sets, l_max=[0.1])
+             for f in (copy, *(models / n for n in MEMBERS))]
+    for method in ("T", "T-A"):
+        x = np.mean([p["estimates"][method] for p in plain], axis=0).reshape(-1, 4)
+        x = x[np.all(np.isfinite(x), axis=-1)]
+        want = inertial_metrics(x, d.by_object()[0].x[0], 0.1)
+        got = res["objects"][name][method]
+        assert got == pytest.approx(want, rel=1e-9)
+    assert res["objects"][name]["PE"] == plain[0]["objects"][name]["PE"]
+    assert res["ensemble_members"] == [str(models / n) for n in MEMBERS]
+
+
+def test_members_must_be_there_and_agree_in_model_count(folders, tmp_path):
+    d, path, models = folders
+    with pytest.raises(FileNotFoundError, match="no model folder to average"):
+        attach_members(models, ["members/none"])
+    from jaxinertia.checkpoints import save_models  # noqa: PLC0415 - orbax at first use
+
+    b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.q_d)
+    save_models(tmp_path / "m", tiny_pair(seed=0), b, feature_config(), robot=ROBOT)
+    save_models(tmp_path / "m" / "three", tiny_pair(K=3, seed=1), b, feature_config(),
+                robot=ROBOT)
+    attach_members(tmp_path / "m", ["three"])
+    sets, _ = choose_sets(d.by_object(), n_sets=4, set_size=32, seed=0)
+    with pytest.raises(UsageError, match="as many model pairs each"):
+        evaluate_models(tmp_path / "m", d.by_object(), sets, l_max=[0.1])
