@@ -3,7 +3,7 @@ folders inside it (``ensemble_members``, written by :func:`attach_members`); the
 own models are the first member.
 
 Why: the held-out folds judge, beside every candidate, the mean of all of them
-(:func:`jaxinertia.app.folds._ensemble`), and where the recipe chooses it ``models_real``
+(:func:`judge_mean`), and where the recipe chooses it ``models_real``
 is that mean (docs/results.md, "Every candidate averaged"). For the network methods (T,
 T-A), per model pair k and set, the estimate ``x = [m, m p]`` is the mean of the members'
 (their model counts must agree): Table I pools the K pairs' sets as for one folder. Each
@@ -31,8 +31,8 @@ from jaxinertia.metrics import inertial_metrics
 from jaxinertia.samples import Samples
 from jaxinertia.uncertainty import SetUncertainty
 
-__all__ = ["ENSEMBLE_MEMBERS", "NETWORK_METHODS", "attach_members", "mean_estimates",
-           "mean_evaluation", "mean_uncertainty", "members_of"]
+__all__ = ["ENSEMBLE_MEMBERS", "NETWORK_METHODS", "attach_members", "judge_mean",
+           "mean_estimates", "mean_evaluation", "mean_uncertainty", "members_of"]
 
 #: The ``config.json`` key naming the further members (relative to the folder).
 ENSEMBLE_MEMBERS = "ensemble_members"
@@ -67,6 +67,31 @@ def mean_estimates(estimates: Sequence[np.ndarray], folders: Sequence) -> np.nda
 def _finite(x: np.ndarray) -> np.ndarray:
     x = np.asarray(x).reshape(-1, 4)
     return x[np.all(np.isfinite(x), axis=-1)]
+
+
+def judge_mean(estimates: dict, objects: Sequence[Samples], l_max: Sequence[float],
+               strengths: Sequence[float]) -> dict | None:
+    """The held-out folds' average of every candidate (issue 30: the recipe's near ties):
+    ``estimates`` maps (folder name, strength) to each folder's network estimates
+    ``{method: (O, K, B, 4)}`` on the held-out ``objects``; at each strength, per model pair
+    k and set, the mean over the folders, judged like one folder (Table I over the K pairs'
+    sets pooled, as a candidate's; the pairs are not averaged). No choice among the
+    candidates is made, so nothing is tuned on the files it is judged on. Returns
+    ``{"members": folder names, "by_strength": {str(s): {object: {method: metrics}}}}``;
+    None with fewer than two folders, or folders of unequal model counts."""
+    names = sorted({n for n, _ in estimates})
+    if len(names) < 2:
+        return None
+    by_strength = {}
+    for s in strengths:
+        members = [estimates[(n, s)] for n in names]
+        if len({np.shape(e["T-A"]) for e in members}) > 1:
+            return None
+        by_strength[str(s)] = {
+            obj.name: {m: inertial_metrics(_finite(np.mean([e[m][o] for e in members], axis=0)),
+                                           obj.x[0], l_max[o]) for m in NETWORK_METHODS}
+            for o, obj in enumerate(objects)}
+    return {"members": names, "by_strength": by_strength}
 
 
 def mean_evaluation(evaluations: Sequence[dict], objects: Sequence[Samples],

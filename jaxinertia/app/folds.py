@@ -39,6 +39,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from jaxinertia.app.ensemble import NETWORK_METHODS, judge_mean
 from jaxinertia.app.fold_groups import FoldGroups
 from jaxinertia.app.pipeline import (
     RealData,
@@ -55,7 +56,6 @@ from jaxinertia.app.simdata import simulate_files
 from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import evaluate
 from jaxinertia.fileio import write_json
-from jaxinertia.metrics import inertial_metrics
 from jaxinertia.session import ServoSession, servo_session
 from jaxinertia.sim.identify import ESConfig, identify
 from jaxinertia.sim.params import datasheet_sim_params, params_to_dict
@@ -176,7 +176,7 @@ class _Fold:
             res = evaluate(adapted, sets, pair=folder.pair, baselines=folder.baselines,
                            fc=folder.features, l_max=l_max)
             out["by_strength"][str(s)] = res["objects"]
-            self.estimates[(models.name, s)] = {m: res["estimates"][m] for m in ENSEMBLE_METHODS}
+            self.estimates[(models.name, s)] = {m: res["estimates"][m] for m in NETWORK_METHODS}
             if own is None or own.strength == s:
                 out.update(objects=res["objects"], torque=res["torque"],
                            session_ratio={o.name: r for o, r in zip(objects, ratios)})
@@ -273,41 +273,18 @@ def _run_fold(fold: _Fold) -> dict:
                 "current input", "sessions drawn")}}
 
 
-#: The methods the candidates' mean is judged by.
-ENSEMBLE_METHODS = ("T", "T-A")
 #: Judged folders that are no candidate of the recipe (:func:`jaxinertia.app.recipe.candidates`).
 _NOT_CANDIDATES = ("models_randomized",)
 
 
 def _ensemble(fold: _Fold) -> dict | None:
-    """Every candidate of the fold averaged (issue 30: the recipe's near ties): at each
-    session strength, per model pair k and set, the mean over the candidate folders of
-    their estimates ``x`` on the held-out objects, judged like one folder (Table I over the
-    K pairs' sets pooled, as the candidates are; the pairs are not averaged). No choice
-    among the candidates is made, so nothing is tuned on the files it is judged on; the
-    recipe may choose it (``models_real`` then makes every member on the real files). None
-    with fewer than two candidates, or candidates of unequal model counts."""
-    names = sorted({n for n, _ in fold.estimates if n not in _NOT_CANDIDATES})
-    objects = [fold.real.objects[i] for i in fold.held_index]
-    l_max = [fold.real.l_max[i] for i in fold.held_index]
-    if len(names) < 2:
-        return None
-    by_strength = {}
-    for s in fold.scale.session_strengths:
-        members = [fold.estimates[(n, s)] for n in names]
-        if len({e["T-A"].shape for e in members}) > 1:
-            return None
-        by_strength[str(s)] = {
-            obj.name: {m: inertial_metrics(_finite(np.mean([e[m][o] for e in members], axis=0)),
-                                           obj.x[0], l_max[o]) for m in ENSEMBLE_METHODS}
-            for o, obj in enumerate(objects)}
-    return {"members": names, "by_strength": by_strength}
-
-
-def _finite(x: np.ndarray) -> np.ndarray:
-    """The estimates (..., 4) as rows, without the sets whose solve failed."""
-    x = np.asarray(x).reshape(-1, 4)
-    return x[np.all(np.isfinite(x), axis=-1)]
+    """Every candidate of the fold averaged (:func:`jaxinertia.app.ensemble.judge_mean`)
+    on its held-out objects; the recipe may choose it (``models_real`` then makes every
+    member on the real files)."""
+    idx = fold.held_index
+    return judge_mean({k: v for k, v in fold.estimates.items() if k[0] not in _NOT_CANDIDATES},
+                      [fold.real.objects[i] for i in idx], [fold.real.l_max[i] for i in idx],
+                      fold.scale.session_strengths)
 
 
 def _stats(d: dict) -> dict:
