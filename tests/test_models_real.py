@@ -149,3 +149,48 @@ def test_an_average_of_every_candidate_makes_each_member_once(tmp_path, monkeypa
     assert config["ensemble_members"] == [f"members/{i}" for i in range(1, 6)]
     assert config["com_models"] == "com"
     assert res["samples"] is None  # the mass's first member is no fine-tuning
+
+
+def test_starts_trained_beforehand_are_not_trained_again(tmp_path, monkeypatch):
+    """``starts`` (reproduce trains them beside the folds on an accelerator): the kinds it
+    has are used as they are; only the others train."""
+    simulated, trained, copied, set_root = _fakes(monkeypatch, False)
+    set_root(tmp_path)
+    early = {(True, True): tmp_path / "models_physical_current_sessions"}
+    res = M.models_real(tmp_path, [tmp_path / f for f in TRAIN_FILES], REAL, SCALE,
+                        {**MASS, "com": {**COM, "candidate": "physical with the current "
+                                         "input, simulator only", "sessions_drawn": False}},
+                        0, False, None, starts=early)
+    assert simulated == []  # the drawn sessions came with the early start
+    assert [t[0] for t in trained] == ["models_physical_current",
+                                       "models_real_finetuned_current_sessions_250"]
+    assert trained[1][1] == "models_physical_current_sessions"
+    assert copied[1] == ("models_physical_current", "models_real_com", 1.0)
+    assert res["models"] == str(tmp_path / "models_real")
+
+
+def test_the_kinds_the_folds_start_from_are_trained_beside_the_simulated_stages(
+        tmp_path, monkeypatch):
+    """Every kind of physical model the folds' candidates start from (the full scale: three;
+    the quick scale: one); ``reproduce`` hands them to the simulated stages, which train
+    them beside their own once the simulated files are there."""
+    from jaxinertia.app import reproduce as P  # noqa: PLC0415 - the command's module
+
+    assert M.fold_kinds(P.FULL) == [(False, False), (True, False), (True, True)]
+    assert M.fold_kinds(P.QUICK) == [(False, False)]
+    assert M.fold_kinds(SimpleNamespace(fold_finetune_samples=())) == []
+    calls = []
+    monkeypatch.setattr(P, "simulate_files", lambda params, wanted, **kw: [
+        Path(w[0]) for w in wanted])
+    monkeypatch.setattr(P, "arm_sim_params", lambda arm: None)
+    monkeypatch.setattr(P, "sim_fit_session", lambda real: "session")
+    monkeypatch.setattr(P, "_stages_after_simulate", lambda *a: {"train_files": a[-2]})
+    monkeypatch.setattr(P, "train_starts", lambda out, files, scale, kinds, *a: (
+        calls.append(([f.name for f in files], kinds, a[-1])) or {k: out for k in kinds}))
+    arm = SimpleNamespace(name="open_manipulator_x")
+    for early in (None, [(True, True)]):
+        res = P._simulated_stages(tmp_path, P.FULL, arm, None, tmp_path, None, 0, False,
+                                  P._Stages(), early)
+        assert res["train_files"] == [tmp_path / "data" / f for f in TRAIN_FILES]
+        assert res["starts"] == (None if early is None else {(True, True): tmp_path})
+    assert calls == [(TRAIN_FILES, [(True, True)], "session")]

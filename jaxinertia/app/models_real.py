@@ -25,7 +25,8 @@ from jaxinertia.sim.randomize import session_prior
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
 from jaxinertia.training_group import TrainingGroup
 
-__all__ = ["DEFAULT_RECIPE", "models_real", "recipe_of", "sim_fit_session"]
+__all__ = ["DEFAULT_RECIPE", "fold_kinds", "models_real", "recipe_of", "sim_fit_session",
+           "train_starts"]
 
 #: The recipe for the models of a new real object when no held-out folds chose one: the
 #: physical model fine-tuned on every real file, sessions adapted.
@@ -59,9 +60,51 @@ def recipe_of(folds: dict | None, scale) -> dict:
             "chosen_by": "held-out folds, mass and COM judged apart"}
 
 
+def fold_kinds(scale) -> list[tuple[bool, bool]]:
+    """The kinds (current input, drawn sessions) of simulator-trained physical model that
+    the folds' candidates start from at ``scale`` (a :class:`jaxinertia.app.reproduce.Scale`):
+    what ``models_real`` may need, whatever the recipe."""
+    if not scale.fold_finetune_samples:
+        return []
+    kinds = [(False, False)]
+    if scale.fold_current_input:
+        kinds.append((True, False))
+        if scale.fold_session_draws > 0:
+            kinds.append((True, True))
+    return kinds
+
+
+def train_starts(out: Path, train_files: list[Path], scale, kinds, seed: int,
+                 progress: bool, session: ServoSession | None) -> dict[tuple, Path]:
+    """The simulator-trained physical models of ``kinds`` (current input, drawn sessions)
+    that ``models_real``'s candidates start from, trained on the run's simulated files
+    (drawn sessions: the random scenario simulated over them, once), at the folds' training
+    strength, in ``out/models_physical[_current[_sessions]]``; on an accelerator side by
+    side. Returns their folders by kind."""
+    kinds = sorted(set(kinds))
+    files = train_files
+    if any(drawn for _, drawn in kinds):  # the random scenario over drawn sessions, once
+        params = arm_sim_params()
+        files = simulate_files(params, [
+            (out / "data" / "train_random_sessions.npz", "random", scale.random_per_load,
+             seed)], spread=session_prior(params.robot.n_joints),
+            draws=scale.fold_session_draws or 4, progress=progress) + train_files[1:]
+    start_dir = {k: out / f"models_physical{_TAGS[k]}" for k in kinds}
+
+    def train_start(kind):
+        current, drawn = kind
+        cfg = scale.train.replace(seed=seed, torque_model="physical", current_input=current)
+        train(files if drawn else train_files, start_dir[kind], cfg, overwrite=True,
+              progress=progress, session=session)
+
+    _trainings({start_dir[k].name: partial(train_start, k) for k in kinds})
+    return start_dir
+
+
 def models_real(out: Path, train_files: list[Path], real: RealData, scale,
                  recipe: dict, seed: int, progress: bool,
-                 session: ServoSession | None) -> dict:
+                 session: ServoSession | None,
+                 starts: dict[tuple, Path] | None = None) -> dict:
     """``out/models_real``, the models for a new real object, made as ``recipe`` says (the
     held-out folds' choice; with the COM's recipe under ``com``, its models in
     ``models_real/com``, the COM's source, :mod:`jaxinertia.app.by_part`). Evaluated on
@@ -77,7 +120,8 @@ def models_real(out: Path, train_files: list[Path], real: RealData, scale,
     simulator-trained model is trained once per kind, as the folds name theirs
     (``models_physical[_current[_sessions]]``), shared by every candidate that starts from
     it, a fine-tuning once per kind and sample count (``models_real_finetuned<kind>_<n>``);
-    the folders are copied from there. The paper network from the simulator alone is the
+    the folders are copied from there (``starts``: those already trained by
+    :func:`train_starts`, by kind). The paper network from the simulator alone is the
     run's ``models``."""
     dst = out / "models_real"
     parts = {"mass": recipe, "com": recipe["com"]} if recipe.get("com") else {"mass": recipe}
@@ -88,23 +132,11 @@ def models_real(out: Path, train_files: list[Path], real: RealData, scale,
              for part, r in parts.items()}
     every = [u for us in units.values() for u in us]
     kinds = sorted({_kind(u) for u in every if not u["candidate"].startswith("paper")})
-    files = train_files
-    if any(drawn for _, drawn in kinds):  # the random scenario over drawn sessions, once
-        params = arm_sim_params()
-        files = simulate_files(params, [
-            (out / "data" / "train_random_sessions.npz", "random", scale.random_per_load,
-             seed)], spread=session_prior(params.robot.n_joints),
-            draws=scale.fold_session_draws or 4, progress=progress) + train_files[1:]
     # The simulator-trained models the candidates start from: one per kind, shared.
-    start_dir = {k: out / f"models_physical{_TAGS[k]}" for k in kinds}
-
-    def train_start(kind):
-        current, drawn = kind
-        cfg = scale.train.replace(seed=seed, torque_model="physical", current_input=current)
-        train(files if drawn else train_files, start_dir[kind], cfg, overwrite=True,
-              progress=progress, session=session)
-
-    _trainings({start_dir[k].name: partial(train_start, k) for k in kinds})
+    start_dir = {k: v for k, v in (starts or {}).items() if k in kinds}
+    start_dir.update(train_starts(out, train_files, scale, [k for k in kinds
+                                                            if k not in start_dir],
+                                  seed, progress, session))
     # The fine-tunings on every real file: one per kind and sample count, shared.
     tunings = sorted({(_kind(u), _samples(u, scale)) for u in every
                       if "fine-tuned" in u["candidate"]})
