@@ -169,6 +169,15 @@ class AttentionModel(nn.Module):
         return jax.nn.softmax(self.scores(features), axis=-1)
 
 
+def uniform_attention(variables: dict) -> dict:
+    """An attention model's variables (stacked or not) with its last layer (``score``)
+    zeroed: every joint of every sample then gets the weight 1/N whatever the features, so
+    the weighted least squares of T-A solves T's unweighted one."""
+    params = dict(variables["params"])
+    params["score"] = jax.tree.map(jnp.zeros_like, params["score"])
+    return {**variables, "params": params}
+
+
 def load_state_dict(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """Reads a state dict from ``.npz`` or a PyTorch ``.pt`` (without importing torch)."""
     path = Path(path)

@@ -116,3 +116,24 @@ def test_members_must_be_there_and_agree_in_model_count(folders, tmp_path):
     sets, _ = choose_sets(d.by_object(), n_sets=4, set_size=32, seed=0)
     with pytest.raises(UsageError, match="as many model pairs each"):
         evaluate_models(tmp_path / "m", d.by_object(), sets, l_max=[0.1])
+
+
+def test_a_folder_without_its_attention_answers_t_a_as_t(folders, capsys):
+    """``copy_models(..., uniform=True)`` (models_real where the folds judged a part better
+    without the attention): every joint of every sample weighted alike, so T-A's weighted
+    least squares solves T's, set by set; recorded, and said by ``estimate``."""
+    d, path, models = folders
+    flat = copy_models(models / "members/1", models.parent / "flat", uniform=True)
+    assert json.loads((flat / "config.json").read_text())["uniform_attention"] is True
+    sets, _ = choose_sets(d.by_object(), n_sets=8, set_size=32, seed=0)
+    res = evaluate_models(flat, d.by_object(), sets, l_max=[0.1])
+    np.testing.assert_allclose(res["estimates"]["T-A"], res["estimates"]["T"], rtol=1e-9,
+                               atol=1e-12)
+    (name,) = res["objects"]
+    w = np.asarray(res["objects"][name]["mean_attention_weight"])
+    np.testing.assert_allclose(w, 0.25, rtol=1e-6)
+    before = evaluate_models(models / "members/1", d.by_object(), sets, l_max=[0.1])
+    assert not np.allclose(before["estimates"]["T-A"], before["estimates"]["T"])
+    assert main(["estimate", "--models", str(flat), "--samples", str(path), "--set-size",
+                 "32", "--max-mass", "1000", "--max-com", "1000"]) == 0
+    assert "T-A answers as T" in capsys.readouterr().out

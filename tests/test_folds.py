@@ -145,7 +145,8 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
     # The recipe for a new object's models: chosen from the held-out numbers alone, among
     # every candidate both folds judged.
     recipe = res["recipe"]
-    assert recipe["folds"] == 2 and len(recipe["scores"]) == (3 + 1) * 2
+    # (3 candidates and their average, at 2 strengths, with the attention and without)
+    assert recipe["folds"] == 2 and len(recipe["scores"]) == (3 + 1) * 2 * 2
     assert recipe["score"] == min(c["score"] for c in recipe["scores"])
     # The candidates' mean is scored the same way and competes: its members are the
     # candidates the folds averaged, by the names the recipe gives them.
@@ -157,12 +158,15 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
     for c in recipe["scores"]:
         if c["candidate"] != R.ENSEMBLE:
             continue
-        s = str(c["session_strength"])
-        ratios = [res["folds"][fit]["ensemble"]["by_strength"][s][other]["T-A"][k]
+        # The average's score, with the attention (T-A) or without (T), over the released
+        # models' T-A.
+        s, ours = str(c["session_strength"]), "T-A" if c["attention"] else "T"
+        ratios = [res["folds"][fit]["ensemble"]["by_strength"][s][other][ours][k]
                   / res["folds"][fit]["released"][other]["T-A"][k]
                   for fit, other in (("cube", "white"), ("white", "cube"))
                   for k in ("mass_NMAE_pct", "com_NMAE_pct")]
         assert c["score"] == pytest.approx(np.mean(ratios), rel=1e-12)
+    assert {c["attention"] for c in recipe["scores"]} == {True, False}
     chosen = [recipe, recipe["by_part"]["mass"], recipe["by_part"]["com"]]
     for r in chosen:
         assert ("members" in r) == (r["candidate"] == R.ENSEMBLE)
@@ -170,6 +174,7 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
             assert [m["candidate"] for m in r["members"]] == [
                 R.candidate_of_folder(n) for n in res["folds"]["cube"]["ensemble"]["members"]]
             assert {m["session_strength"] for m in r["members"]} == {r["session_strength"]}
+            assert {m["attention"] for m in r["members"]} == {r["attention"]}
     text = format_folds(res)
     assert "Recipes ranked on the held-out sessions" in text
     assert "| mean of every candidate |" in text

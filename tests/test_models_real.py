@@ -41,8 +41,9 @@ def _fakes(monkeypatch, accelerator):
         Path(out).mkdir(parents=True)
         return {"samples": {"train": samples_per_object}}
 
-    def fake_copy(src, dst, *, session_strength):
-        copied.append((Path(src).name, str(Path(dst).relative_to(dst_root)), session_strength))
+    def fake_copy(src, dst, *, session_strength, uniform):
+        copied.append((Path(src).name, str(Path(dst).relative_to(dst_root)), session_strength)
+                      + (("uniform",) if uniform else ()))
         Path(dst).mkdir(parents=True)
         (Path(dst) / "config.json").write_text(json.dumps({"from": Path(src).name}))
 
@@ -120,8 +121,8 @@ def test_an_average_of_every_candidate_makes_each_member_once(tmp_path, monkeypa
              "physical with the current input, sessions drawn, simulator only",
              "physical with the current input, sessions drawn, servo part fine-tuned on 64 "
              "real samples"]
-    members = [R._recipe(n, 0.0) for n in names]
-    recipe = {**R._recipe(R.ENSEMBLE, 0.0, names), "com": COM}
+    members = [R._recipe(n, 0.0, attention=False) for n in names]
+    recipe = {**R._recipe(R.ENSEMBLE, 0.0, names, attention=False), "com": COM}
     assert recipe["members"] == members
     res = M.models_real(tmp_path, [tmp_path / f for f in TRAIN_FILES], REAL, SCALE,
                         recipe, 0, False, None)
@@ -137,13 +138,15 @@ def test_an_average_of_every_candidate_makes_each_member_once(tmp_path, monkeypa
             if group else None)
            for tag, n in (("", 64), ("_current", 1000), ("_current_sessions", 64))]
     assert sorted(trained[:3]) == sorted(starts) and sorted(trained[3:]) == sorted(fts)
+    # Every member of the mass without its attention, as the recipe says; the COM's with.
     assert copied == [
-        ("models", "models_real", 0.0),
-        ("models_physical", "models_real/members/1", 0.0),
-        ("models_real_finetuned_64", "models_real/members/2", 0.0),
-        ("models_real_finetuned_current_1000", "models_real/members/3", 0.0),
-        ("models_physical_current_sessions", "models_real/members/4", 0.0),
-        ("models_real_finetuned_current_sessions_64", "models_real/members/5", 0.0),
+        ("models", "models_real", 0.0, "uniform"),
+        ("models_physical", "models_real/members/1", 0.0, "uniform"),
+        ("models_real_finetuned_64", "models_real/members/2", 0.0, "uniform"),
+        ("models_real_finetuned_current_1000", "models_real/members/3", 0.0, "uniform"),
+        ("models_physical_current_sessions", "models_real/members/4", 0.0, "uniform"),
+        ("models_real_finetuned_current_sessions_64", "models_real/members/5", 0.0,
+         "uniform"),
         ("models_physical_current_sessions", "models_real_com", 1.0)]
     config = json.loads((tmp_path / "models_real" / "config.json").read_text())
     assert config["ensemble_members"] == [f"members/{i}" for i in range(1, 6)]

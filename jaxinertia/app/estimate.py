@@ -13,6 +13,7 @@ from jaxinertia.app.arm_options import samples_arm
 from jaxinertia.app.by_part import com_models_of, merge_answers
 from jaxinertia.app.ensemble import NETWORK_METHODS, mean_estimates, mean_uncertainty, members_of
 from jaxinertia.app.pipeline import (
+    UNIFORM_ATTENTION,
     adapt_objects,
     is_simulated,
     objects_at_rest,
@@ -224,6 +225,7 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
                 f"{max_com_se * 1e3:.1f} mm: sample more varied poses (jaxinertia plan-poses)")
     if members:
         out["ensemble_members"] = [str(m.path) for m in members]
+    out["uniform_attention"] = bool(folder.config.get(UNIFORM_ATTENTION))
     return out, folder.config
 
 

@@ -56,6 +56,9 @@ def cmd_estimate(args) -> int:
         else:
             print(f"{name}: session adaptation off (the models' strength 0, or "
                   "--session-strength 0)")
+        if res.get("uniform_attention"):
+            print(f"{name}: these models weight every joint alike (their attention off, as "
+                  "the held-out folds chose): T-A answers as T")
         if res.get("ensemble_members"):
             print(f"{name}: T and T-A the mean of these models and "
                   f"{len(res['ensemble_members'])} more inside them (each read in its own "

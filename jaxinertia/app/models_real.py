@@ -52,7 +52,8 @@ def recipe_of(folds: dict | None, scale) -> dict:
         return DEFAULT_RECIPE
     best, part = folds["recipe"], folds["recipe"]["by_part"]
     if not scale.recipe_by_part or part["score"] >= best["score"] or all(
-            part["mass"][k] == part["com"][k] for k in ("candidate", "session_strength")):
+            part["mass"].get(k) == part["com"].get(k)
+            for k in ("candidate", "session_strength", "attention")):
         return {**best, "chosen_by": "held-out folds"}
     return {**part["mass"], "com": part["com"], "score": part["score"],
             "single_model_recipe": {k: v for k, v in best.items() if k not in ("scores",
@@ -114,7 +115,9 @@ def models_real(out: Path, train_files: list[Path], real: RealData, scale,
     trained on the simulated files, and fine-tuned, at the folds' training strength
     (``scale.train``'s and :data:`FINETUNE_DEFAULTS`' ``session_strength``: with both real
     files, each read in the models' reference session), then written with the strength the
-    recipe chose, the strength it was judged at. Where the recipe is the folds' average of
+    recipe chose, the strength it was judged at, and without their attention where the
+    recipe says so (every joint weighted alike: T-A answers as T, the way the folds judged
+    it: :func:`jaxinertia.networks.uniform_attention`). Where the recipe is the folds' average of
     every candidate (:mod:`jaxinertia.app.ensemble`), each of its members is made so, and
     lands in ``models_real/members/<i>`` (the first in ``models_real`` itself). A
     simulator-trained model is trained once per kind, as the folds name theirs
@@ -158,12 +161,15 @@ def models_real(out: Path, train_files: list[Path], real: RealData, scale,
     # Each part's folder, read at its recipe's strength (an ensemble's members inside its
     # folder); the COM's inside the mass's.
     where = {"mass": dst, "com": out / "models_real_com"}
+    def copy(u, dst):  # read at the recipe's strength, with its attention or without
+        copy_models(source(u), dst, session_strength=float(u["session_strength"]),
+                    uniform=not u.get("attention", True))
+
     for part, us in units.items():
-        copy_models(source(us[0]), where[part], session_strength=float(us[0]["session_strength"]))
+        copy(us[0], where[part])
         names = [f"members/{i}" for i in range(1, len(us))]
         for name, u in zip(names, us[1:]):
-            copy_models(source(u), where[part] / name,
-                        session_strength=float(u["session_strength"]))
+            copy(u, where[part] / name)
         if names:
             attach_members(where[part], names)
     if "com" in parts:

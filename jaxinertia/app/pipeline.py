@@ -37,7 +37,7 @@ from jaxinertia.lbipe import (
     load_released_models,
     read_test_files,
 )
-from jaxinertia.networks import torque_model_kind
+from jaxinertia.networks import torque_model_kind, uniform_attention
 from jaxinertia.samples import SampleFile, Samples, load_samples, read_sample_file
 from jaxinertia.session import ServoSession, SessionReference, adapt, servo_session
 from jaxinertia.session_terms import with_session_terms
@@ -252,11 +252,20 @@ def released_benchmark(lbipe_dir: str | os.PathLike, *, seed: int = 0,
     return res
 
 
+#: The ``config.json`` key of a folder whose attention weights every joint alike.
+UNIFORM_ATTENTION = "uniform_attention"
+
+
 def copy_models(src: str | os.PathLike, dst: str | os.PathLike, *,
-                session_strength: float | None = None) -> Path:
+                session_strength: float | None = None, uniform: bool = False) -> Path:
     """A model folder written anew at ``dst`` (replacing it), with the session strength
-    changed when given; the weights, baselines and the rest of its record unchanged."""
+    changed when given; ``uniform``: with the attention models' last layer zeroed
+    (:func:`jaxinertia.networks.uniform_attention`: T-A then answers as T), recorded; the
+    weights, baselines and the rest of its record unchanged."""
     folder = load_models(src)
+    pair = folder.pair
+    if uniform:
+        pair = pair.replace(attention_vars=uniform_attention(pair.attention_vars))
     config = folder.config
     # A folder's COM models (app.by_part) and ensemble members (app.ensemble) live inside
     # it and are not copied: neither are the keys that name them.
@@ -267,7 +276,9 @@ def copy_models(src: str | os.PathLike, dst: str | os.PathLike, *,
         ref = session_reference(config, session_strength, simulated=simulated)
         extra[key] = None if ref is None else ref.to_dict()
     extra["copied_from"] = str(Path(src).resolve())
-    return save_models(dst, folder.pair, folder.baselines, folder.features,
+    if uniform:
+        extra[UNIFORM_ATTENTION] = True
+    return save_models(dst, pair, folder.baselines, folder.features,
                        robot=config.get("robot"), extra=extra, arm=config.get("arm"))
 
 

@@ -1,9 +1,10 @@
 """The recipe for the models of a new real object, chosen from the held-out folds alone
 (:func:`jaxinertia.app.folds.run_folds`): every candidate a fold trained (paper network or
 physical model; with the paper's inputs, the current input, drawn sessions; simulator only
-or fine-tuned on so many real samples) at every session strength, scored by its error on
-the held-out files over the released models' on the same sets; and the two parts, mass and
-COM, judged apart (:mod:`jaxinertia.app.by_part`)."""
+or fine-tuned on so many real samples; and their average) at every session strength, with
+its attention and without (T-A, T), scored by its error on the held-out files over the
+released models' on the same sets; and the two parts, mass and COM, judged apart
+(:mod:`jaxinertia.app.by_part`)."""
 
 from __future__ import annotations
 
@@ -11,8 +12,8 @@ from functools import partial
 
 import numpy as np
 
-__all__ = ["CURRENT", "ENSEMBLE", "SESSIONS", "candidate_of_folder", "candidates",
-           "choose_recipe"]
+__all__ = ["ATTENTION", "CURRENT", "ENSEMBLE", "SESSIONS", "candidate_of_folder",
+           "candidates", "choose_recipe"]
 
 
 def candidates(fold: dict) -> dict[str, dict]:
@@ -58,20 +59,27 @@ def candidate_of_folder(folder: str) -> str:
     raise ValueError(f"{folder!r} is no candidate folder of a fold")
 
 
+#: Ours judged with the attention (T-A) and without it (T: every joint weighted alike).
+ATTENTION = {"T-A": True, "T": False}
+
+
 def choose_recipe(folds: dict, method: str = "T-A") -> dict:
-    """The candidate and session strength with the lowest held-out error, from the folds
-    alone: per fold and held-out object, ``method``'s mass and COM NMAE each divided by the
-    released models' on the same sets, averaged over both and over every fold (a recipe
-    must hold on every session left out, not on one). Returns the choice and every score."""
-    scores: dict[tuple[str, str], list[float]] = {}
+    """The candidate, session strength and attention (on: T-A; off: T, every joint of every
+    sample weighted alike) with the lowest held-out error, from the folds alone: per fold
+    and held-out object, the mass and COM NMAE each divided by the released models' (by
+    ``method``, theirs with the attention they were trained with) on the same sets,
+    averaged over both and over every fold (a recipe must hold on every session left out,
+    not on one). Returns the choice and every score."""
+    scores: dict[tuple[str, str, bool], list[float]] = {}
     for f in folds.values():
         ensemble = {ENSEMBLE: f["ensemble"]["by_strength"]} if f.get("ensemble") else {}
         for name, by_strength in {**candidates(f), **ensemble}.items():
             for s, objects in by_strength.items():
                 for obj, e in objects.items():
                     ref = f["released"][obj][method]
-                    scores.setdefault((name, s), []).extend(
-                        [e[method][k] / ref[k] for k in ("mass_NMAE_pct", "com_NMAE_pct")])
+                    for ours, attention in ATTENTION.items():
+                        scores.setdefault((name, s, attention), []).extend(
+                            [e[ours][k] / ref[k] for k in ("mass_NMAE_pct", "com_NMAE_pct")])
     n_folds = len(folds)
     # Only recipes that every fold judged compete.
     table = {k: float(np.mean(v)) for k, v in scores.items()
@@ -81,27 +89,30 @@ def choose_recipe(folds: dict, method: str = "T-A") -> dict:
         table = {k: v for k, v in table.items() if k[0] != ENSEMBLE}
     recipe = partial(_recipe, members=[candidate_of_folder(n) for n in next(iter(members))]
                      if len(members) == 1 else None)
-    (name, strength), best = min(table.items(), key=lambda kv: kv[1])
-    return {**recipe(name, strength), "score": best, "method": method, "folds": n_folds,
-            "scores": [{"candidate": k[0], "session_strength": float(k[1]), "score": v}
-                       for k, v in sorted(table.items(), key=lambda kv: kv[1])],
+    (name, strength, attention), best = min(table.items(), key=lambda kv: kv[1])
+    return {**recipe(name, strength, attention=attention), "score": best, "method": method,
+            "folds": n_folds,
+            "scores": [{"candidate": k[0], "session_strength": float(k[1]), "attention": k[2],
+                        "score": v} for k, v in sorted(table.items(), key=lambda kv: kv[1])],
             "by_part": _by_part({k: v for k, v in scores.items() if k in table}, recipe)}
 
 
-def _recipe(name: str, strength, members: list[str] | None = None) -> dict:
-    """A candidate's name and strength as the recipe that ``reproduce`` follows; the
-    average of every candidate (:data:`ENSEMBLE`) with the recipe of each of its
-    ``members`` (candidate names) at the same strength."""
+def _recipe(name: str, strength, members: list[str] | None = None, *,
+            attention: bool = True) -> dict:
+    """A candidate's name, strength and attention as the recipe that ``reproduce`` follows;
+    the average of every candidate (:data:`ENSEMBLE`) with the recipe of each of its
+    ``members`` (candidate names) at the same strength and attention."""
     if name == ENSEMBLE:
         return {"candidate": name, "session_strength": float(strength),
                 "finetune_samples": None, "current_input": False, "sessions_drawn": False,
-                "members": [_recipe(m, strength) for m in members]}
+                "attention": attention,
+                "members": [_recipe(m, strength, attention=attention) for m in members]}
     finetune = None
     if "fine-tuned on" in name:
         finetune = int(name.split("fine-tuned on ")[1].split()[0])
     return {"candidate": name, "session_strength": float(strength),
             "finetune_samples": finetune, "current_input": name.startswith(CURRENT),
-            "sessions_drawn": SESSIONS in name}
+            "sessions_drawn": SESSIONS in name, "attention": attention}
 
 
 def _by_part(scores: dict[tuple[str, str], list[float]], recipe=_recipe) -> dict:
@@ -112,7 +123,7 @@ def _by_part(scores: dict[tuple[str, str], list[float]], recipe=_recipe) -> dict
     candidate's, its COM metrics the COM candidate's, on the same sets)."""
     part = {}
     for i, what in enumerate(("mass", "com")):
-        (name, s), v = min(((k, float(np.mean(r[i::2]))) for k, r in scores.items()),
-                           key=lambda kv: kv[1])
-        part[what] = {**recipe(name, s), "score": v}
+        (name, s, attention), v = min(((k, float(np.mean(r[i::2]))) for k, r in scores.items()),
+                                      key=lambda kv: kv[1])
+        part[what] = {**recipe(name, s, attention=attention), "score": v}
     return {**part, "score": 0.5 * (part["mass"]["score"] + part["com"]["score"])}

@@ -177,20 +177,28 @@ def format_folds(res: dict) -> str:
 
 def recipe_table(recipe: dict) -> str:
     """The candidates for a new object's models, ranked by their held-out score."""
-    rows = [[c["candidate"], "yes" if c["session_strength"] > 0 else "no", f"{c['score']:.3f}"]
+    rows = [[c["candidate"], f"{c['session_strength']:g}",
+             "T-A" if c.get("attention", True) else "T (off)", f"{c['score']:.3f}"]
             for c in recipe["scores"]]
     part = recipe.get("by_part")
     apart = ("" if not part else
              f". Judged apart, the mass is best from {part['mass']['candidate']} (session "
-             f"strength {part['mass']['session_strength']:g}, mass score "
-             f"{part['mass']['score']:.3f}) and the COM from {part['com']['candidate']} "
-             f"(strength {part['com']['session_strength']:g}, COM score "
-             f"{part['com']['score']:.3f}): {part['score']:.3f} for both")
-    return render(f"Recipes ranked on the held-out sessions ({recipe['method']} mass and COM "
-                  "NMAE over the released models', mean of every fold; lower is better). "
+             f"strength {part['mass']['session_strength']:g}, {_attention(part['mass'])}, "
+             f"mass score {part['mass']['score']:.3f}) and the COM from "
+             f"{part['com']['candidate']} (strength {part['com']['session_strength']:g}, "
+             f"{_attention(part['com'])}, COM score {part['com']['score']:.3f}): "
+             f"{part['score']:.3f} for both")
+    return render("Recipes ranked on the held-out sessions (mass and COM NMAE over the "
+                  f"released models' {recipe['method']}, mean of every fold; lower is better). "
                   f"Best single candidate: {recipe['candidate']}, session adaptation "
-                  f"{'on' if recipe['session_strength'] > 0 else 'off'}{apart}",
-                  ["candidate", "session adaptation", "score"], rows, n_left=2)
+                  f"{'on' if recipe['session_strength'] > 0 else 'off'}, "
+                  f"{_attention(recipe)}{apart}",
+                  ["candidate", "session strength", "attention", "score"], rows, n_left=1)
+
+
+def _attention(recipe: dict) -> str:
+    return ("attention on (T-A)" if recipe.get("attention", True) else
+            "attention off (T: every joint weighted alike)")
 
 
 def reproduce_report(results: dict, figs: dict, *, full: bool, seed: int, scale,
@@ -278,14 +286,17 @@ def _new_object_section(ft: dict | None) -> list[str]:
     com = recipe.get("com")
     com_text = ("" if not com else
                 f"; the COM of T and T-A from `{ft['models']}/com`: {com['candidate']}, "
-                f"session adaptation {'on' if com['session_strength'] > 0 else 'off'}")
+                f"session adaptation {'on' if com['session_strength'] > 0 else 'off'}, "
+                f"{_attention(com)}")
     if recipe.get("members"):
         used = (" (" + "; ".join(m["candidate"] for m in recipe["members"]) + "; each made "
                 f"as one candidate, the fine-tuned ones on every real file of {names}, the "
                 f"first in `{ft['models']}`, the others in `{ft['models']}/members/`)")
     return ["## Models for a new real object", "",
             f"`{ft['models']}`: {recipe['candidate']}{used}, session adaptation "
-            f"{'on' if recipe['session_strength'] > 0 else 'off'}{com_text}; the recipe was "
+            f"{'on' if recipe['session_strength'] > 0 else 'off'}, {_attention(recipe)} "
+            "(without it, the attention model's last layer is zeroed: T-A answers as T)"
+            f"{com_text}; the recipe was "
             "chosen by "
             f"{recipe.get('chosen_by', 'the held-out folds')} (table in the held-out section), "
             "and the models were made as the folds made what they judged (trained and "
