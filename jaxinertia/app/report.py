@@ -177,9 +177,8 @@ def format_folds(res: dict) -> str:
 
 def recipe_table(recipe: dict) -> str:
     """The candidates for a new object's models, ranked by their held-out score."""
-    rows = [[c["candidate"], f"{c['session_strength']:g}",
-             "T-A" if c.get("attention", True) else "T (off)", f"{c['score']:.3f}"]
-            for c in recipe["scores"]]
+    rows = [[c["candidate"], "on (T-A)" if c.get("attention", True) else "off (T)",
+             f"{c['session_strength']:g}", f"{c['score']:.3f}"] for c in recipe["scores"]]
     part = recipe.get("by_part")
     apart = ("" if not part else
              f". Judged apart, the mass is best from {part['mass']['candidate']} (session "
@@ -193,7 +192,7 @@ def recipe_table(recipe: dict) -> str:
                   f"Best single candidate: {recipe['candidate']}, session adaptation "
                   f"{'on' if recipe['session_strength'] > 0 else 'off'}, "
                   f"{_attention(recipe)}{apart}",
-                  ["candidate", "session strength", "attention", "score"], rows, n_left=1)
+                  ["candidate", "attention", "session strength", "score"], rows, n_left=2)
 
 
 def _attention(recipe: dict) -> str:
