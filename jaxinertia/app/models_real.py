@@ -131,7 +131,8 @@ def models_real(out: Path, train_files: list[Path], real: RealData, scale,
     # Each part is one folder, or the mean of several (the folds' average of every
     # candidate: app.ensemble): the folders to make, by name, each a single candidate.
     units = {part: [r] if not r.get("members") else
-             [{**m, "session_strength": r["session_strength"]} for m in r["members"]]
+             [{**m, "session_strength": r["session_strength"],
+               "attention": r.get("attention", True)} for m in r["members"]]
              for part, r in parts.items()}
     every = [u for us in units.values() for u in us]
     kinds = sorted({_kind(u) for u in every if not u["candidate"].startswith("paper")})
