@@ -119,8 +119,12 @@ def test_the_real_files_are_two_sessions(lbipe_dir):
     assert 4 * max(cube.current_gain_se[1], white.current_gain_se[1]) < 0.044 * cube.current_gain[1]
 
 
-def _objects(ta_mass, ta_com):
-    return {"o": {"T-A": {"mass_NMAE_pct": ta_mass, "com_NMAE_pct": ta_com}}}
+def _objects(ta_mass, ta_com, t=None):
+    """A held-out object's T-A metrics, and T's (``t``: (mass, com); default: twice T-A's,
+    so that the attention on wins)."""
+    t_mass, t_com = t or (2 * ta_mass, 2 * ta_com)
+    return {"o": {"T-A": {"mass_NMAE_pct": ta_mass, "com_NMAE_pct": ta_com},
+                  "T": {"mass_NMAE_pct": t_mass, "com_NMAE_pct": t_com}}}
 
 
 def test_the_recipe_is_the_lowest_mean_over_every_fold():
@@ -147,8 +151,9 @@ def test_the_recipe_is_the_lowest_mean_over_every_fold():
     want = np.mean([5 / 4, 13 / 10, 5 / 4, 12 / 10])
     assert r["score"] == pytest.approx(want)
     assert [c["score"] for c in r["scores"]] == sorted(c["score"] for c in r["scores"])
-    assert len(r["scores"]) == 4 and r["folds"] == 2
-    assert r["current_input"] is False
+    # (two candidates at two strengths, each with its attention and without)
+    assert len(r["scores"]) == 2 * 2 * 2 and r["folds"] == 2
+    assert r["current_input"] is False and r["attention"] is True
     # With the current input (FoldScale.current_input): its candidates compete by name, and
     # the choice says which inputs the models for a new object take.
     for f, ft in zip(folds.values(), (((4, 12), (6, 14)), ((4, 10), (6, 14)))):
@@ -160,7 +165,7 @@ def test_the_recipe_is_the_lowest_mean_over_every_fold():
     assert r["candidate"] == ("physical with the current input, servo part fine-tuned on "
                               "1000 real samples")
     assert r["current_input"] is True and r["finetune_samples"] == 1000
-    assert r["session_strength"] == 0.0 and len(r["scores"]) == 8
+    assert r["session_strength"] == 0.0 and len(r["scores"]) == 16
     assert r["sessions_drawn"] is False
     # ... and trained on drawn recording sessions (FoldScale.session_draws): named apart,
     # and the choice says so (reproduce then draws sessions for models_real's data).
@@ -171,7 +176,7 @@ def test_the_recipe_is_the_lowest_mean_over_every_fold():
     assert r["candidate"] == ("physical with the current input, sessions drawn, servo part "
                               "fine-tuned on 1000 real samples")
     assert r["sessions_drawn"] is True and r["current_input"] is True
-    assert r["finetune_samples"] == 1000 and len(r["scores"]) == 10
+    assert r["finetune_samples"] == 1000 and len(r["scores"]) == 20
     # Mass and COM judged apart (information only): each part's best and their mean. A
     # candidate with the best COM but a poor mass is not the recipe, but is the COM's best.
     for f in folds.values():
@@ -186,3 +191,14 @@ def test_the_recipe_is_the_lowest_mean_over_every_fold():
                                         "simulator only")
     assert part["com"]["score"] == pytest.approx(5 / 10)
     assert part["score"] == pytest.approx((3 / 4 + 5 / 10) / 2) and part["score"] < r["score"]
+    assert part["mass"]["attention"] is True and part["com"]["attention"] is True
+    # Without the attention (T), a candidate whose T is better than every T-A is chosen so,
+    # and says so; scored against the released models' T-A all the same.
+    for f in folds.values():
+        f["physical_current"]["by_strength"]["1.0"] = _objects(9, 30, t=(2, 9))
+    r = choose_recipe(folds)
+    assert r["candidate"] == "physical with the current input, simulator only"
+    assert r["attention"] is False and r["session_strength"] == 1.0
+    assert r["score"] == pytest.approx((2 / 4 + 9 / 10) / 2)
+    assert r["by_part"]["mass"]["attention"] is False
+    assert r["by_part"]["mass"]["score"] == pytest.approx(2 / 4)
