@@ -293,9 +293,10 @@ def _new_object_section(ft: dict | None) -> list[str]:
                 f"first in `{ft['models']}`, the others in `{ft['models']}/members/`)")
     return ["## Models for a new real object", "",
             f"`{ft['models']}`: {recipe['candidate']}{used}, session adaptation "
-            f"{'on' if recipe['session_strength'] > 0 else 'off'}, {_attention(recipe)} "
-            "(without it, the attention model's last layer is zeroed: T-A answers as T)"
-            f"{com_text}; the recipe was "
+            f"{'on' if recipe['session_strength'] > 0 else 'off'}, {_attention(recipe)}"
+            + ("" if recipe.get("attention", True) else
+               " (the attention models' last layer zeroed: T-A answers as T)")
+            + f"{com_text}; the recipe was "
             "chosen by "
             f"{recipe.get('chosen_by', 'the held-out folds')} (table in the held-out section), "
             "and the models were made as the folds made what they judged (trained and "
