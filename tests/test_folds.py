@@ -21,6 +21,7 @@ from jaxinertia.app import folds
 from jaxinertia.app import recipe as R
 from jaxinertia.app.cli import main
 from jaxinertia.app.folds import FoldScale, run_folds
+from jaxinertia.app.models_real import models_from_folds
 from jaxinertia.app.pipeline import evaluate_models, load_real, train
 from jaxinertia.app.programs import folds_side_by_side
 from jaxinertia.app.report import format_folds
@@ -181,6 +182,44 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
     assert "Calibrated and trained with cube only, judged on white" in text
     assert "white's real plan replayed in the simulator calibrated on cube" in text
     assert "fine-tuned (servo part) on 24 + 6 (validation) real samples of cube" in text
+    # The models for a new real object are the folds' own folders (models_from_folds):
+    # the mass from every candidate of every fold without the attention, the COM from one
+    # candidate of every fold with it; each member the fold's folder as it was judged.
+    names = sorted(R.candidates(res["folds"]["cube"]))
+    chosen = {**R._recipe(R.ENSEMBLE, 0.0, names, attention=False),
+              "com": R._recipe("physical, simulator only", 1.0)}
+    made = models_from_folds(tmp_path, res, real, chosen)
+    dst = tmp_path / "models_real"
+    folder_of = {R.candidate_of_folder(n): n for n in ens["members"]}
+    sources = {"mass": [f"folds/fit_{f}/{folder_of[n]}" for n in names
+                        for f in ("cube", "white")],
+               "com": ["folds/fit_cube/models_physical", "folds/fit_white/models_physical"]}
+    assert made["from_folds"] == sources
+    for part, where in (("mass", dst), ("com", dst / "com")):
+        members = [where] + [where / m for m in load_models(where).config.get(
+            "ensemble_members", [])]
+        assert len(members) == len(sources[part])
+        for folder, src in zip(members, sources[part]):
+            got, want = load_models(folder), load_models(tmp_path / src)
+            assert_tree_equal(got.pair.torque_vars, want.pair.torque_vars, what=str(folder))
+            assert got.config["session"]["strength"] == (0.0 if part == "mass" else 1.0)
+            assert got.config["session"]["current_gain"] == want.config["session"][
+                "current_gain"]  # each member keeps its own fold's session
+            assert got.config.get("uniform_attention", False) == (part == "mass")
+    # Its answer on a file is the mean of the fold folders' own, each read at the recipe's
+    # strength in its own session, the mass's without the attention (T-A answers as T).
+    i = [o.name for o in real.objects].index("white")
+    alone = [evaluate_models(tmp_path / src, [real.objects[i]], [real.sets[i]],
+                             l_max=[real.l_max[i]], session_strength=0.0
+                             )["estimates"]["T"][0] for src in sources["mass"]]
+    x = np.mean(alone, axis=0).reshape(-1, 4)
+    x = x[np.all(np.isfinite(x), axis=-1)]
+    want = inertial_metrics(x, real.objects[i].x[0], real.l_max[i])
+    got = made["objects"]["white"]["T-A"]
+    np.testing.assert_allclose(got["mass_NMAE_pct"], want["mass_NMAE_pct"], rtol=1e-9)
+    with pytest.raises(FileNotFoundError, match="no folder of the candidate"):
+        models_from_folds(tmp_path, res, real, R._recipe(
+            "physical, servo part fine-tuned on 999 real samples", 0.0))
 
 
 def test_fits_refuse_objects_the_folder_does_not_have(small_lbipe_dir, capsys):

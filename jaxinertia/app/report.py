@@ -287,10 +287,23 @@ def _new_object_section(ft: dict | None) -> list[str]:
                 f"; the COM of T and T-A from `{ft['models']}/com`: {com['candidate']}, "
                 f"session adaptation {'on' if com['session_strength'] > 0 else 'off'}, "
                 f"{_attention(com)}")
+    made = ("the models were made as the folds made what they judged (trained and "
+            "fine-tuned at the folds' training strength, then read at the strength chosen)")
     if recipe.get("members"):
         used = (" (" + "; ".join(m["candidate"] for m in recipe["members"]) + "; each made "
                 f"as one candidate, the fine-tuned ones on every real file of {names}, the "
                 f"first in `{ft['models']}`, the others in `{ft['models']}/members/`)")
+    if ft.get("from_folds"):  # the folds' own folders (models_real.models_from_folds)
+        n = {part: len(v) for part, v in ft["from_folds"].items()}
+        used = (f" ({'; '.join(m['candidate'] for m in recipe['members'])})"
+                if recipe.get("members") else "")
+        made = ("the models are the held-out folds' own, the very folders they judged: each "
+                "calibrated, trained and fine-tuned on one real file and judged on the "
+                f"others; the mass's {n['mass']} folders (every candidate named, from every "
+                f"fold) answer with their mean (the first in `{ft['models']}`, the others in "
+                f"`{ft['models']}/members/`)"
+                + (f", the COM's {n['com']} likewise in `{ft['models']}/com`"
+                   if "com" in n else ""))
     return ["## Models for a new real object", "",
             f"`{ft['models']}`: {recipe['candidate']}{used}, session adaptation "
             f"{'on' if recipe['session_strength'] > 0 else 'off'}, {_attention(recipe)}"
@@ -299,10 +312,10 @@ def _new_object_section(ft: dict | None) -> list[str]:
             + f"{com_text}; the recipe was "
             "chosen by "
             f"{recipe.get('chosen_by', 'the held-out folds')} (table in the held-out section), "
-            "and the models were made as the folds made what they judged (trained and "
-            "fine-tuned at the folds' training strength, then read at the strength chosen). "
+            f"and {made}. "
             "Use it (`jaxinertia estimate --models ...`) on objects none of the models saw; "
             "how well such models do on an object they did not see is what the held-out "
             "folds below measure.", "",
-            table1(ft["objects"], f"On {names}: **not held out** (the models saw these "
-                   "files)"), ""]
+            table1(ft["objects"], f"On {names}: **not held out** (" + (
+                "each file was seen by the members its own fold made" if ft.get("from_folds")
+                else "the models saw these files") + ")"), ""]

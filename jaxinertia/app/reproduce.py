@@ -17,7 +17,6 @@ import dataclasses
 import os
 import platform
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -27,11 +26,10 @@ import jax
 from jaxinertia.app import plots
 from jaxinertia.app.folds import FoldScale, run_folds
 from jaxinertia.app.models_real import (
-    fold_kinds,
+    models_from_folds,
     models_real,
     recipe_of,
     sim_fit_session,
-    train_starts,
 )
 from jaxinertia.app.pipeline import (
     RealData,
@@ -42,7 +40,7 @@ from jaxinertia.app.pipeline import (
     sim_to_real,
     train,
 )
-from jaxinertia.app.programs import side_by_side, side_by_side_workers
+from jaxinertia.app.programs import side_by_side
 from jaxinertia.app.report import reproduce_report
 from jaxinertia.app.simdata import cached, params_digest, simulate_files
 from jaxinertia.arm import Arm
@@ -223,8 +221,8 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
 
     The held-out folds need nothing of the simulated stages: on an accelerator they run
     beside them (:func:`jaxinertia.app.programs.side_by_side`; the stage times then
-    overlap), on a CPU after them. On an accelerator the models for a new real object's
-    simulator-trained starts train beside both."""
+    overlap), on a CPU after them. The models for a new real object are then the folds' own
+    (:func:`jaxinertia.app.models_real.models_from_folds`): nothing more is trained."""
     scale = scale or (FULL if full else QUICK)
     out = Path(out)
     stage = _Stages()
@@ -249,21 +247,18 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
                 session_draws=scale.fold_session_draws),
                 seed=seed, progress=progress, real=real)
 
-    # On an accelerator the simulator-trained models that models_real's candidates start
-    # from train beside the folds (every kind the folds judge: the recipe is not known
-    # yet), instead of after them; on a CPU, after the folds, only those the recipe needs.
-    new_object = real is not None and scale.real_finetune_samples > 0
-    early = (fold_kinds(scale) if new_object and scale.fold_calibration_iterations > 0
-             and side_by_side_workers() > 1 else None)
     sim, folds = side_by_side([
         partial(_simulated_stages, out, scale, arm, real, lbipe_dir, real_skipped, seed,
-                progress, stage, early), held_out])
+                progress, stage), held_out])
     real_ft = None
-    if new_object:
+    if real is not None and scale.real_finetune_samples > 0:
         recipe = recipe_of(folds, scale)
         with stage("models for a new real object"):
-            real_ft = models_real(out, sim["train_files"], real, scale, recipe, seed,
-                                   progress, sim["session"], starts=sim["starts"])
+            # The folds' own models where they ran (what they judged, each on one real
+            # file); else the default recipe on the shipped calibration and every file.
+            real_ft = (models_from_folds(out, folds, real, recipe) if folds else
+                       models_real(out, sim["train_files"], real, scale, recipe, seed,
+                                   progress, sim["session"]))
     info, ev, coverage, cres, s2r = (sim[k] for k in ("info", "evaluation", "coverage",
                                                        "continuous", "sim-to-real"))
     results = {
@@ -289,12 +284,9 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
 
 def _simulated_stages(out: Path, scale: Scale, arm: Arm, real: RealData | None,
                       lbipe_dir: Path, real_skipped: str | None, seed: int, progress: bool,
-                      stage: _Stages, early_starts: list | None = None) -> dict:
+                      stage: _Stages) -> dict:
     """The stages on the simulator's data (simulate, train, evaluate, uncertainty, the
-    switching-load run) and sim-to-real: their records by name. ``early_starts``: the
-    kinds of simulator-trained physical model that ``models_real`` may start from
-    (:func:`jaxinertia.app.models_real.train_starts`), trained beside these stages as soon
-    as the simulated files are there (under ``starts``)."""
+    switching-load run) and sim-to-real: their records by name."""
     data_dir = out / "data"
     params = arm_sim_params(arm)
     with stage("simulate"):
@@ -304,14 +296,8 @@ def _simulated_stages(out: Path, scale: Scale, arm: Arm, real: RealData | None,
             wanted.append((data_dir / "train_planning.npz", "planning", None, seed))
         test_file, *train_files = simulate_files(params, wanted, progress=progress, arm=arm)
     session = sim_fit_session(real)
-    after = partial(_stages_after_simulate, out, scale, arm, real, lbipe_dir, real_skipped,
-                    seed, progress, stage, params, test_file, train_files, session)
-    if not early_starts:
-        return {**after(), "starts": None}
-    with ThreadPoolExecutor(max_workers=1) as beside:
-        starts = beside.submit(train_starts, out, train_files, scale, early_starts, seed,
-                               progress, session)
-        return {**after(), "starts": starts.result()}
+    return _stages_after_simulate(out, scale, arm, real, lbipe_dir, real_skipped, seed,
+                                  progress, stage, params, test_file, train_files, session)
 
 
 def _stages_after_simulate(out, scale, arm, real, lbipe_dir, real_skipped, seed, progress,
