@@ -296,14 +296,6 @@ def _simulated_stages(out: Path, scale: Scale, arm: Arm, real: RealData | None,
             wanted.append((data_dir / "train_planning.npz", "planning", None, seed))
         test_file, *train_files = simulate_files(params, wanted, progress=progress, arm=arm)
     session = sim_fit_session(real)
-    return _stages_after_simulate(out, scale, arm, real, lbipe_dir, real_skipped, seed,
-                                  progress, stage, params, test_file, train_files, session)
-
-
-def _stages_after_simulate(out, scale, arm, real, lbipe_dir, real_skipped, seed, progress,
-                           stage, params, test_file, train_files, session) -> dict:
-    """:func:`_simulated_stages` once the training and test files are simulated."""
-    data_dir = out / "data"
     with stage("simulate continuous"):
         cont_file = _continuous(params, data_dir / "continuous.npz", scale, seed, arm)
     with stage("train"):
