@@ -47,6 +47,19 @@ def _metrics(x: np.ndarray, obj, l_max: float) -> tuple[float, float, float]:
     return m["mass_NMAE_pct"], m["com_NMAE_pct"], bias
 
 
+def folder_evaluations(fold_dir: Path, objects, sets, l_max, strengths=STRENGTHS):
+    """Every model folder of a fold on ``objects`` at each session strength: yields
+    ``(folder name, strength, evaluate's result)``."""
+    for models in sorted(fold_dir.glob("models*")):
+        if not (models / "config.json").is_file():
+            continue
+        folder = load_models(models)
+        for s in strengths:
+            adapted, _ = adapt_objects(objects, session_reference(folder.config, s))
+            yield models.name, s, evaluate(adapted, sets, pair=folder.pair, baselines=None,
+                                           fc=folder.features, l_max=l_max)
+
+
 def judge_fold(fold_dir: Path, real, held: list[str]) -> dict:
     """Per (folder, strength, method, held object): the estimates (K, B, 4)."""
     idx = [[o.name for o in real.objects].index(n) for n in held]
@@ -54,17 +67,10 @@ def judge_fold(fold_dir: Path, real, held: list[str]) -> dict:
     sets = [real.sets[i] for i in idx]
     l_max = [real.l_max[i] for i in idx]
     out = {}
-    for models in sorted(fold_dir.glob("models*")):
-        if not (models / "config.json").is_file():
-            continue
-        folder = load_models(models)
-        for s in STRENGTHS:
-            adapted, _ = adapt_objects(objects, session_reference(folder.config, s))
-            res = evaluate(adapted, sets, pair=folder.pair, baselines=None,
-                           fc=folder.features, l_max=l_max)
-            for m in METHODS:
-                for o, obj in enumerate(objects):
-                    out[(models.name, s, m, obj.name)] = np.asarray(res["estimates"][m][o])
+    for name, s, res in folder_evaluations(fold_dir, objects, sets, l_max):
+        for m in METHODS:
+            for o, obj in enumerate(objects):
+                out[(name, s, m, obj.name)] = np.asarray(res["estimates"][m][o])
     return {"estimates": out, "objects": objects, "l_max": l_max}
 
 

@@ -28,27 +28,14 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from candidate_ensemble import STRENGTHS, _metrics, folder_evaluations  # noqa: E402
 
-from jaxinertia.app.pipeline import adapt_objects, load_real, session_reference  # noqa: E402
-from jaxinertia.checkpoints import load_models  # noqa: E402
-from jaxinertia.evaluation import evaluate  # noqa: E402
+from jaxinertia.app.pipeline import load_real  # noqa: E402
 from jaxinertia.identification import solve_sets  # noqa: E402
-from jaxinertia.metrics import inertial_metrics  # noqa: E402
-
-STRENGTHS = (0.0, 1.0)
 
 #: WLS of every model pair's sets with per-joint weights w (K, N).
 _solve = jax.jit(jax.vmap(lambda A, y, w, sets: solve_sets(
     A, y, jnp.broadcast_to(w, y.shape), sets).x, in_axes=(None, 0, 0, None)))
-
-
-def _metrics(x: np.ndarray, obj, l_max: float) -> tuple[float, float, float]:
-    """Mass and COM NMAE [%] of estimates ``x`` (..., 4) and the mass bias [%]."""
-    x = x.reshape(-1, 4)
-    x = x[np.all(np.isfinite(x), axis=-1)]
-    m = inertial_metrics(x, obj.x[0], l_max)
-    bias = 100 * float(np.mean(x[:, 0] - obj.x[0, 0]) / obj.x[0, 0])
-    return m["mass_NMAE_pct"], m["com_NMAE_pct"], bias
 
 
 def judge_fold(fold_dir: Path, real, fit_on: str, held: str) -> dict:
@@ -59,26 +46,19 @@ def judge_fold(fold_dir: Path, real, fit_on: str, held: str) -> dict:
     sets = [real.sets[i_fit], real.sets[i_held]]
     l_max = [real.l_max[i_fit], real.l_max[i_held]]
     out, weights = {}, {}
-    for models in sorted(fold_dir.glob("models*")):
-        if not (models / "config.json").is_file():
-            continue
-        folder = load_models(models)
-        for s in STRENGTHS:
-            adapted, _ = adapt_objects(objects, session_reference(folder.config, s))
-            res = evaluate(adapted, sets, pair=folder.pair, baselines=None,
-                           fc=folder.features, l_max=l_max)
-            tau_hat = np.asarray(res["model_estimates"].tau_hat)  # (O, K, S, N)
-            known, unknown = adapted
-            err = tau_hat[0, :, : known.n_samples] - known.tau[None]  # (K, S, N)
-            var = np.mean(err**2, axis=1)  # (K, N)
-            w = (1.0 / var) / np.mean(1.0 / var, axis=-1, keepdims=True)
-            y = tau_hat[1, :, : unknown.n_samples] - unknown.tau_g[None]
-            x_w = _solve(jnp.asarray(unknown.A), jnp.asarray(y), jnp.asarray(w),
-                         jnp.asarray(sets[1]))
-            out[(models.name, s)] = {"T": np.asarray(res["estimates"]["T"][1]),
-                                     "T-A": np.asarray(res["estimates"]["T-A"][1]),
-                                     "T-W": np.asarray(x_w)}
-            weights[(models.name, s)] = w.mean(axis=0)
+    for name, s, res in folder_evaluations(fold_dir, objects, sets, l_max):
+        tau_hat = np.asarray(res["model_estimates"].tau_hat)  # (O, K, S, N)
+        known, unknown = objects
+        err = tau_hat[0, :, : known.n_samples] - known.tau[None]  # (K, S, N)
+        var = np.mean(err**2, axis=1)  # (K, N)
+        w = (1.0 / var) / np.mean(1.0 / var, axis=-1, keepdims=True)
+        y = tau_hat[1, :, : unknown.n_samples] - unknown.tau_g[None]
+        x_w = _solve(jnp.asarray(unknown.A), jnp.asarray(y), jnp.asarray(w),
+                     jnp.asarray(sets[1]))
+        out[(name, s)] = {"T": np.asarray(res["estimates"]["T"][1]),
+                          "T-A": np.asarray(res["estimates"]["T-A"][1]),
+                          "T-W": np.asarray(x_w)}
+        weights[(name, s)] = w.mean(axis=0)
     return {"estimates": out, "weights": weights, "object": objects[1], "l_max": l_max[1]}
 
 
