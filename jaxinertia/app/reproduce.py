@@ -78,10 +78,11 @@ class Scale:
     #: Per fold, fine-tunings of its simulator-trained models on that many real samples of
     #: the object it was calibrated on (judged on the other object).
     fold_finetune_samples: tuple[int, ...] = (1000,)
-    #: The models for a new real object: the physical torque model trained on the run's
-    #: simulated data, its servo part fine-tuned on this many samples of *every* real
-    #: object in the lbipe folder (0: left out). Its numbers on those objects are not
-    #: held out; the folds' fine-tuned rows are the honest estimate of such models.
+    #: The models for a new real object (0: left out): where the folds ran, their own
+    #: folders (``models_real.models_from_folds``); else the physical torque model trained
+    #: on the run's simulated data, its servo part fine-tuned on this many samples of
+    #: *every* real object in the lbipe folder. Their numbers on those objects are not
+    #: held out; the folds' rows are the honest estimate of such models.
     real_finetune_samples: int = 1000
     #: The folds also judge the physical model with the servo's current as an input
     #: (``FoldScale.current_input``; the quick scale leaves it out for ``make demo``'s time).
