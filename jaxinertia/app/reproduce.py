@@ -297,11 +297,15 @@ def _simulated_stages(out: Path, scale: Scale, arm: Arm, real: RealData | None,
             wanted.append((data_dir / "train_planning.npz", "planning", None, seed))
         test_file, *train_files = simulate_files(params, wanted, progress=progress, arm=arm)
     session = sim_fit_session(real)
-    with stage("simulate continuous"):
-        cont_file = _continuous(params, data_dir / "continuous.npz", scale, seed, arm)
     with stage("train"):
+        # Before the switching-load run's simulation: beside the folds (an accelerator),
+        # this training then runs while theirs have not started (their calibrations and
+        # simulations leave the device mostly idle), not as one more program per epoch
+        # beside their trainings.
         info = train(train_files, out / "models", scale.train.replace(seed=seed), overwrite=True,
                      progress=progress, session=session, arm=arm.name)
+    with stage("simulate continuous"):
+        cont_file = _continuous(params, data_dir / "continuous.npz", scale, seed, arm)
     with stage("evaluate"):
         ev = evaluate_samples(out / "models", test_file, n_sets=scale.n_sets, seed=seed,
                               arm=arm.name)
