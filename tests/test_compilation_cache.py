@@ -65,3 +65,40 @@ def test_a_capped_cache_stays_writable_beside_an_uncapped_entry(tmp_path, repair
     assert len(entries) == 2, entries
     for name in entries:  # every entry has its access time now
         assert (folder / name.replace("-cache", "-atime")).is_file(), name
+
+
+@pytest.mark.parametrize("command", ["estimate", "train"])
+def test_the_commands_run_on_new_files_keep_their_small_programs(tmp_path, command):
+    """``estimate`` (and ``evaluate``) keep every compiled program, however quick: a second
+    run on another file finds its many small programs; other commands keep JAX's threshold
+    (a second of compilation), and a threshold the user set is kept as set."""
+    folder = tmp_path / "xla"
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("JAXINERTIA_CACHE_DIR", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS")}
+    code = textwrap.dedent(f"""
+        import os, jax
+        from jaxinertia.app import cli
+        cli._compilation_cache({command!r})
+        print(jax.config.jax_persistent_cache_min_compile_time_secs)
+        jax.jit(lambda x: x * 3.0 - 2.0)(2.0).block_until_ready()
+        """)
+
+    def run(**extra):
+        if folder.exists():
+            for p in folder.iterdir():
+                p.unlink()
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             timeout=300, check=True,
+                             env={**env, "JAX_PLATFORMS": "cpu",
+                                  "JAXINERTIA_CACHE_DIR": str(folder), **extra})
+        entries = list(folder.glob("*-cache")) if folder.exists() else []
+        return float(out.stdout.split()[-1]), len(entries)
+
+    threshold, entries = run()
+    if command == "estimate":
+        assert (threshold, entries) == (0.0, 1)
+    else:
+        assert threshold >= 1.0 and entries == 0
+    # The user's own setting wins.
+    threshold, entries = run(JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="30")
+    assert (threshold, entries) == (30.0, 0)

@@ -94,7 +94,13 @@ def _command_of(argv: list[str]) -> str:
     return next((a for a in argv if not a.startswith("-")), "")
 
 
-def _compilation_cache() -> None:
+#: Commands whose compiled programs are kept however quick they were to compile
+#: (:func:`jaxinertia.compilation_cache.enable`'s ``keep_small``): those a user runs again
+#: and again on new files, made of many small programs.
+KEEP_SMALL_PROGRAMS = frozenset({"estimate", "evaluate", "lbipe-benchmark"})
+
+
+def _compilation_cache(command: str = "") -> None:
     """Compiled programs persist between runs (the simulator's stream and the training
     steps take seconds to compile): in ``~/.cache/jaxinertia/xla``, or
     ``JAXINERTIA_CACHE_DIR``; ``JAXINERTIA_CACHE_DIR=off`` turns it off. Set by the
@@ -104,7 +110,8 @@ def _compilation_cache() -> None:
     if where.lower() != "off":
         from jaxinertia import compilation_cache  # JAX: only when a command runs
 
-        compilation_cache.enable(where)  # LRU beyond compilation_cache.MAX_BYTES
+        # LRU beyond compilation_cache.MAX_BYTES
+        compilation_cache.enable(where, keep_small=command in KEEP_SMALL_PROGRAMS)
 
 
 def _quiet_closed_loops(unraisable) -> None:
@@ -130,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
 
     progress.configure()  # each bar looks at its own stream
     try:
-        _compilation_cache()
+        _compilation_cache(args.command)
         with command_locks():
             return int(args.func(args) or 0)
     except JaxinertiaError as e:
