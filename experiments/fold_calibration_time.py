@@ -1,9 +1,12 @@
 """Where a held-out fold's calibration spends its time on this machine (issue 30 item 4).
 
-Runs :func:`jaxinertia.app.folds._fit_simulator` (link gravity, the servo/friction fixed
+Runs :func:`jaxinertia.app.folds._fit_simulators` (link gravity, the servo/friction fixed
 point with its offsets, the held-out replay) for one fold alone, then for every fold side
-by side in threads (as ``reproduce`` runs them), timing each part: every replay of a real
-plan (:func:`jaxinertia.sim.real_fit.simulate_real_plan`) and the link-gravity fit.
+by side in threads (as ``reproduce`` ran them before session 26, and still does on a CPU),
+then for every fold together (each replay one program for all folds, as ``reproduce``
+runs them on an accelerator), timing each part: every replay of real plans
+(:func:`jaxinertia.sim.real_fit.simulate_real_plan`, or ``simulate_real_plans`` for all
+folds at once) and the link-gravity fit.
 
     python experiments/fold_calibration_time.py --lbipe-dir DIR [--scale quick|full]
 """
@@ -52,7 +55,7 @@ def main() -> None:
     real = load_real(args.lbipe_dir)
     names = [o.name for o in real.objects]
     # real_fit's functions as the folds module calls them (imported names).
-    for name in ("simulate_real_plan", "fit_link_gravity"):
+    for name in ("simulate_real_plan", "simulate_real_plans", "fit_link_gravity"):
         _timed(real_fit, name)
         setattr(folds, name, getattr(real_fit, name))
     fscale = folds.FoldScale(calibration_iterations=scale.fold_calibration_iterations,
@@ -60,15 +63,19 @@ def main() -> None:
                              train=scale.train)
     print(f"device: {jax.devices()[0].device_kind}")
     with TemporaryDirectory() as tmp:
-        def one(fit_on: str, tag: str) -> str:
-            _local.log = []
+        def fold_of(fit_on: str, tag: str):
             fold = folds._Fold(Path(tmp) / tag / f"fit_{fit_on}", fit_on,
                                [n for n in names if n != fit_on], real, fscale, 0, False)
             fold.dir.mkdir(parents=True)
+            return fold
+
+        def one(fit_on: str | list, tag: str, together: bool = False) -> str:
+            _local.log = []
+            todo = [fold_of(n, tag) for n in (fit_on if together else [fit_on])]
             t = time.perf_counter()
-            folds._fit_simulator(fold)
+            folds._fit_simulators(todo, together=together)
             total = time.perf_counter() - t
-            sims = [s for n, s in _local.log if n == "simulate_real_plan"]
+            sims = [s for n, s in _local.log if n.startswith("simulate_real_plan")]
             grav = sum(s for n, s in _local.log if n == "fit_link_gravity")
             return (f"{tag} fit on {fit_on}: {total:.1f} s; link gravity {grav:.2f} s; "
                     f"{len(sims)} replays {sum(sims):.1f} s: {np.round(sims, 2).tolist()}")
@@ -86,6 +93,8 @@ def main() -> None:
         print(f"side by side: {time.perf_counter() - t:.1f} s")
         for n in names:
             print(out[n])
+        print(one(names, "together, first (compiling)", together=True), flush=True)
+        print(one(names, "together, again", together=True), flush=True)
 
 
 if __name__ == "__main__":

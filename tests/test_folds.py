@@ -326,7 +326,8 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
                       session_draws=2)
     # A fold whose simulation fails (here: the drawn sessions' simulator lacks its arm)
     # trains nothing, and its error is raised: no member waits for ever.
-    monkeypatch.setattr(folds, "_fit_simulator", lambda fold: (None, {}))
+    monkeypatch.setattr(folds, "_fit_simulators",
+                        lambda todo, together=False: [(None, {}) for _ in todo])
     with pytest.raises(AttributeError, match="robot"):
         run_folds(tmp_path / "failed", small_lbipe_dir, scale, progress=False,
                   log=lambda m: None)
@@ -334,7 +335,8 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     # A branch that fails before its training (the drawn sessions' candidate) leaves its
     # members: the other trainings finish, the error is raised, and nothing waits for ever.
     arm = SimpleNamespace(robot=SimpleNamespace(n_joints=4))
-    monkeypatch.setattr(folds, "_fit_simulator", lambda fold: (arm, {}))
+    monkeypatch.setattr(folds, "_fit_simulators",
+                        lambda todo, together=False: [(arm, {}) for _ in todo])
     made.clear()
     fails.add("models_physical_current_sessions")
     with pytest.raises(RuntimeError, match="physical_current_sessions failed"):

@@ -8,6 +8,7 @@ with the acceptance bands of issue 3.
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -17,9 +18,11 @@ from jaxinertia.sim.params import default_sim_params, session_params
 from jaxinertia.sim.real_fit import (
     baseline_statistics,
     fit_servo_friction,
+    fit_servo_friction_many,
     real_files,
     real_plan,
     simulate_real_plan,
+    simulate_real_plans,
 )
 from jaxinertia.sim.run import simulate_scenario
 
@@ -121,3 +124,46 @@ def test_each_recording_session_gets_its_own_servo(small_lbipe_dir, stream_progr
                                np.asarray(shared.servo.p_gain) * terms[0]["electrical"])
     with pytest.raises(UsageError, match="recording sessions"):
         session_params(shared, fit, "mug")
+
+
+def test_several_simulators_replay_in_one_program(small_lbipe_dir, stream_programs):
+    """``simulate_real_plans``: each request (simulators, real plans, a key) gets the
+    samples it gets alone (ticks, rest and settle times exactly; the statics' torques up to
+    the last bits), every simulation in one program (a simulator per file: a simulation
+    per file)."""
+    data = real_files(small_lbipe_dir)
+    base = default_sim_params()
+    other = base.replace(torque_offset=jnp.asarray([0.01, -0.02, 0.0, 0.005]))
+    # Two simulations in all, as in the test below: its programs compile once.
+    requests = [(base, real_plan(base.robot, data[:1]), jax.random.key(1)),
+                ([other], real_plan(other.robot, data[1:]), jax.random.key(2))]
+    together = simulate_real_plans(requests, programs=stream_programs)
+    for (params, plans, key), got in zip(requests, together):
+        alone = simulate_real_plan(params, plans, key, programs=stream_programs)
+        assert set(got) == set(alone)
+        for k in ("q", "at_rest", "settle_time", "current_tau", "q_d", "direction"):
+            np.testing.assert_array_equal(got[k], alone[k], err_msg=k)
+        for k in ("tau", "tau_g", "A"):
+            np.testing.assert_allclose(got[k], alone[k], rtol=1e-12, atol=1e-14, err_msg=k)
+    # The two simulators differ: so do their samples (the check above can fail).
+    assert not np.array_equal(together[0]["q"], together[1]["q"])
+
+
+def test_fits_in_lockstep_are_each_fit_alone(small_lbipe_dir, stream_programs):
+    """``fit_servo_friction_many`` (the held-out folds' calibrations on an accelerator):
+    each fit ends where it ends alone, its simulations made together with the others'."""
+    data = real_files(small_lbipe_dir)
+    start = default_sim_params()
+    kw = dict(iterations=1, log=lambda m: None, programs=stream_programs)
+    fits = [(start, data[:1]), (start, data[1:])]
+    many = fit_servo_friction_many(fits, **kw)
+    for (params, d), (got, info) in zip(fits, many):
+        want, want_info = fit_servo_friction(params, d, **kw)
+        assert len(info["history"]) == len(want_info["history"]) == 2
+        for part in ("servo", "friction"):
+            for a, b in zip(jax.tree.leaves(getattr(got, part)),
+                            jax.tree.leaves(getattr(want, part))):
+                np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9)
+    # The two fits are fitted to their own files: they end apart.
+    assert not np.allclose(np.asarray(many[0][0].servo.p_gain),
+                           np.asarray(many[1][0].servo.p_gain), rtol=1e-6)

@@ -64,8 +64,10 @@ from jaxinertia.sim.real_fit import (
     baseline_statistics,
     fit_link_gravity,
     fit_servo_friction,
+    fit_servo_friction_many,
     real_plan,
     simulate_real_plan,
+    simulate_real_plans,
 )
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
 
@@ -204,21 +206,35 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
     todo = [_Fold(Path(out) / f"fit_{fit_on}", fit_on, [n for n in names if n != fit_on],
                   real, scale, seed, progress, groups) for fit_on in names]
 
-    def run(fold: _Fold) -> dict:
-        log(f"-- fold: calibrate on {fold.fit_on}, judge on {', '.join(fold.held)}")
-        return {**_run_fold(fold), "released": {n: {m: released[n][m] for m in ("T", "T-A")}
-                                                for n in fold.held}}
+    # Side by side (an accelerator), the folds' calibrations run first, together: each of
+    # their replays one program for every fold (on a CPU each fold calibrates in its own
+    # thread, on its own core).
+    calibrated: list = [None] * len(todo)
+    if groups is not None:
+        for fold in todo:
+            log(f"-- fold: calibrate on {fold.fit_on}, judge on {', '.join(fold.held)}")
+        t = time.perf_counter()
+        fitted = _fit_simulators(todo, together=True)
+        calibrated = [(*c, time.perf_counter() - t) for c in fitted]
+
+    def run(fold: _Fold, calibration) -> dict:
+        if calibration is None:
+            log(f"-- fold: calibrate on {fold.fit_on}, judge on {', '.join(fold.held)}")
+        return {**_run_fold(fold, calibration),
+                "released": {n: {m: released[n][m] for m in ("T", "T-A")} for n in fold.held}}
 
     # The folds share nothing but the real data they read: side by side (on an
     # accelerator their trainings grouped into few programs; on a CPU one fold per core).
-    calls = [fold.branch(partial(run, fold)) for fold in todo]
+    calls = [fold.branch(partial(run, fold, c)) for fold, c in zip(todo, calibrated)]
     workers = todo[0].workers(len(calls)) or folds_side_by_side(len(calls))
     folds = dict(zip(names, side_by_side(calls, workers)))
     return {"folds": folds, "sets": dict(zip(names, real.sources)),
             "recipe": choose_recipe(folds), "side_by_side": workers}
 
 
-def _run_fold(fold: _Fold) -> dict:
+def _run_fold(fold: _Fold, calibration: tuple | None = None) -> dict:
+    """One fold's stages; ``calibration``: its simulator already fitted (with
+    :func:`_fit_simulators`' result and the seconds it took), else fitted here."""
     wall: dict[str, float] = {}
 
     def timed(name, fn, *args):
@@ -228,7 +244,10 @@ def _run_fold(fold: _Fold) -> dict:
         finally:
             wall[name] = time.perf_counter() - t
 
-    params, replay = timed("calibrate", _fit_simulator, fold)
+    if calibration is None:
+        params, replay = timed("calibrate", lambda: _fit_simulators([fold])[0])
+    else:
+        params, replay, wall["calibrate"] = calibration
     wanted = [(fold.dir / "data" / "train_random.npz", "random", fold.scale.random_per_load,
                fold.seed)]
     if fold.scale.planning:
@@ -292,48 +311,63 @@ def _stats(d: dict) -> dict:
     return {k: st[k].tolist() for k in ("k", "c", "pe_mae")}
 
 
-def _fit_simulator(fold: _Fold):
-    """The simulator fitted to ``fit_on`` alone (then identified, when asked), written
-    to ``calibration.json``; the held-out objects' real plans replayed in it."""
-    scale, seed = fold.scale, fold.seed
-    params = datasheet_sim_params()
-    fit = [fold.record(fold.fit_on)]  # the only real samples the fold's fits look at
-    robot, gravity = fit_link_gravity(params.robot, fit)
-    params, info = fit_servo_friction(
-        params.replace(robot=robot), fit, iterations=scale.calibration_iterations,
-        seed=seed, fit_offset=True, log=lambda m: None, progress=False,
-        programs=stream_programs())
-    plans = real_plan(params.robot, [fold.record(n) for n in fold.held])
-    real_held = _stats({k: np.concatenate([getattr(d, k) for _, _, d in plans])
-                        for k in ("q_d", "q", "direction", "tau", "current_tau")})
+def _fit_simulators(folds: list[_Fold], *, together: bool = False) -> list[tuple]:
+    """Each fold's simulator fitted to its ``fit_on`` alone (then identified, when asked),
+    written to its ``calibration.json``, and its held-out objects' real plans replayed in
+    it: ``[(params, {"replay", "identified"})]``. ``together``: every fold's replays in one
+    program each (:func:`jaxinertia.sim.real_fit.fit_servo_friction_many`; an accelerator,
+    where the folds' replays side by side in threads would wait behind each other's)."""
+    scale, seed = folds[0].scale, folds[0].seed
+    starts = []
+    for fold in folds:
+        params = datasheet_sim_params()
+        fit = [fold.record(fold.fit_on)]  # the only real samples the fold's fits look at
+        robot, gravity = fit_link_gravity(params.robot, fit)
+        starts.append((params.replace(robot=robot), fit, gravity))
+    kw = dict(iterations=scale.calibration_iterations, seed=seed, fit_offset=True,
+              log=lambda m: None, programs=stream_programs())
+    if together and len(folds) > 1:
+        fitted = fit_servo_friction_many([(p, fit) for p, fit, _ in starts], **kw)
+    else:
+        fitted = [fit_servo_friction(p, fit, progress=False, **kw) for p, fit, _ in starts]
+    params = [p for p, _ in fitted]
+    held = [real_plan(p.robot, [fold.record(n) for n in fold.held])
+            for fold, p in zip(folds, params)]
+    real_held = [_stats({k: np.concatenate([getattr(d, k) for _, _, d in plans])
+                         for k in ("q_d", "q", "direction", "tau", "current_tau")})
+                 for plans in held]
 
-    def replay(p):  # the held-out objects' real plans replayed in p
-        sim = simulate_real_plan(p, plans, jax.random.key(seed + 7),
-                                 programs=stream_programs())
-        return _stats({k: v[sim["at_rest"]] for k, v in sim.items()})
+    def replays(ps) -> list[dict]:  # the held-out objects' real plans replayed in each
+        requests = [(p, plans, jax.random.key(seed + 7)) for p, plans in zip(ps, held)]
+        sims = (simulate_real_plans(requests, programs=stream_programs()) if together else
+                [simulate_real_plan(*r, programs=stream_programs()) for r in requests])
+        return [_stats({k: v[sim["at_rest"]] for k, v in sim.items()}) for sim in sims]
 
-    identified = None
+    identified = [None] * len(folds)
     if scale.identify_generations > 0:
-        replay_calibrated = replay(params)
-        _, obj_fit, d_fit = real_plan(params.robot, fit)[0]
-        if 0 < scale.identify_samples < d_fit.n_samples:
-            d_fit = d_fit.take(np.sort(np.random.default_rng(seed).choice(
-                d_fit.n_samples, scale.identify_samples, replace=False)))
-        t_id = time.perf_counter()
-        params, ident = identify(params, obj_fit, d_fit, config=ESConfig(
-            population=scale.identify_population, generations=scale.identify_generations,
-            seed=seed), log=lambda m: None)
-        identified = {**ident, "wall_time_s": time.perf_counter() - t_id,
-                      "replay_calibrated": replay_calibrated}
-    write_json(fold.dir / "calibration.json", {
-        "robot": "open_manipulator_x", "fit_on": fold.fit_on,
-        "link_gravity": gravity, "servo_friction": params_to_dict(params),
-        "fit": {"iterations": scale.calibration_iterations, "real_objects": [fold.fit_on],
-                "real": info["real"], "final_sim": info["history"][-1]["sim"]},
-        "identified": None if identified is None else {
-            k: identified[k] for k in ("theta", "parameters", "history")}})
-    return params, {"replay": {"real": real_held, "sim": replay(params)},
-                    "identified": identified}
+        calibrated = replays(params)
+        for i in range(len(folds)):
+            _, obj_fit, d_fit = real_plan(params[i].robot, starts[i][1])[0]
+            if 0 < scale.identify_samples < d_fit.n_samples:
+                d_fit = d_fit.take(np.sort(np.random.default_rng(seed).choice(
+                    d_fit.n_samples, scale.identify_samples, replace=False)))
+            t_id = time.perf_counter()
+            params[i], ident = identify(params[i], obj_fit, d_fit, config=ESConfig(
+                population=scale.identify_population,
+                generations=scale.identify_generations, seed=seed), log=lambda m: None)
+            identified[i] = {**ident, "wall_time_s": time.perf_counter() - t_id,
+                             "replay_calibrated": calibrated[i]}
+    for fold, p, (_, info), (_, _, gravity), ident in zip(folds, params, fitted, starts,
+                                                          identified):
+        write_json(fold.dir / "calibration.json", {
+            "robot": "open_manipulator_x", "fit_on": fold.fit_on,
+            "link_gravity": gravity, "servo_friction": params_to_dict(p),
+            "fit": {"iterations": scale.calibration_iterations, "real_objects": [fold.fit_on],
+                    "real": info["real"], "final_sim": info["history"][-1]["sim"]},
+            "identified": None if ident is None else {
+                k: ident[k] for k in ("theta", "parameters", "history")}})
+    return [(p, {"replay": {"real": r, "sim": sim}, "identified": ident})
+            for p, r, sim, ident in zip(params, real_held, replays(params), identified)]
 
 
 def _randomized(fold: _Fold, params, files: list[Path]) -> dict:

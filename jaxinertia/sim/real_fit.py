@@ -29,9 +29,9 @@ from jaxinertia.objects import HeldObject
 from jaxinertia.robot import Robot
 from jaxinertia.samples import Samples
 from jaxinertia.sim.randomize import SessionSpread
-from jaxinertia.sim.run import run_plans
+from jaxinertia.sim.run import run_jobs, run_plans
 from jaxinertia.sim.simulator import SimParams
-from jaxinertia.sim.stream import StreamPrograms
+from jaxinertia.sim.stream import StreamPrograms, stream_lanes
 from jaxinertia.statics import (
     fit_tag_pose,
     identify_gravity_base_parameters,
@@ -39,8 +39,8 @@ from jaxinertia.statics import (
 )
 
 __all__ = ["OFFSET_ITERATIONS", "baseline_statistics", "fit_servo_friction",
-           "fit_link_gravity", "real_files", "real_plan", "select", "session_terms",
-           "simulate_real_plan"]
+           "fit_servo_friction_many", "fit_link_gravity", "real_files", "real_plan", "select",
+           "session_terms", "simulate_real_plan", "simulate_real_plans"]
 
 
 def real_files(lbipe_dir: str | os.PathLike,
@@ -131,6 +131,23 @@ def real_plan(robot: Robot, data: Sequence[Samples]) -> list[tuple[str, HeldObje
     return plans
 
 
+def _jobs(params: SimParams | Sequence[SimParams], plans, key) -> list[tuple]:
+    """The simulations of :func:`simulate_real_plan` as ``[(params, requests, names)]``: one
+    job for every file (one simulator), or one per file (one simulator each)."""
+    requests = [(obj, d.q_d, d.direction, jax.random.fold_in(key, i))
+                for i, (_, obj, d) in enumerate(plans)]
+    names = [name for name, _, _ in plans]
+    if isinstance(params, SimParams):
+        return [(params, requests, names)]
+    if len(params) != len(plans):
+        raise ValueError(f"{len(params)} simulators for {len(plans)} real files")
+    return [(p, [r], [n]) for p, r, n in zip(params, requests, names)]
+
+
+def _stacked(parts: list[dict]) -> dict[str, np.ndarray]:
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
 def simulate_real_plan(params: SimParams | Sequence[SimParams], plans, key, *,
                        programs: StreamPrograms | None = None,
                        progress: bool = False) -> dict[str, np.ndarray]:
@@ -139,18 +156,33 @@ def simulate_real_plan(params: SimParams | Sequence[SimParams], plans, key, *,
     session, :func:`fit_servo_friction`); the random numbers of file ``i`` are
     ``fold_in(key, i)`` either way. ``programs``: the caller's compiled stream programs
     (None: this call's own)."""
-    requests = [(obj, d.q_d, d.direction, jax.random.fold_in(key, i))
-                for i, (_, obj, d) in enumerate(plans)]
-    names = [name for name, _, _ in plans]
-    if isinstance(params, SimParams):
-        parts = run_plans(params, requests, descs=names, desc="real plans",
-                          programs=programs, progress=progress)
-    else:
-        if len(params) != len(plans):
-            raise ValueError(f"{len(params)} simulators for {len(plans)} real files")
-        parts = [run_plans(p, [r], descs=[n], desc="real plans", programs=programs,
-                           progress=progress)[0] for p, r, n in zip(params, requests, names)]
-    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    parts = []
+    for p, requests, names in _jobs(params, plans, key):
+        parts += run_plans(p, requests, descs=names, desc="real plans", programs=programs,
+                           progress=progress)
+    return _stacked(parts)
+
+
+def simulate_real_plans(requests: Sequence[tuple], *, programs: StreamPrograms | None = None
+                        ) -> list[dict[str, np.ndarray]]:
+    """:func:`simulate_real_plan` for several ``(params, plans, key)`` at once, every
+    simulation of every request in one program (:func:`jaxinertia.sim.run.run_jobs`; jobs
+    of other shapes in a program of their own): the same samples as one request at a time,
+    up to the last bits of the statics."""
+    jobs = [(r, job) for r, (params, plans, key) in enumerate(requests)
+            for job in _jobs(params, plans, key)]
+    by_shape: dict[tuple, list[int]] = {}
+    for i, (_, (_, reqs, _)) in enumerate(jobs):
+        n = sum(len(q_d) for _, q_d, _, _ in reqs)  # as stream_jobs pads them
+        lanes = stream_lanes(n)
+        by_shape.setdefault((lanes, max(lanes, 1 << (n - 1).bit_length()), -(-len(reqs) // 4)),
+                            []).append(i)
+    done: dict[int, list[dict]] = {}
+    for members in by_shape.values():
+        for i, res in zip(members, run_jobs([jobs[i][1] for i in members], programs=programs)):
+            done[i] = res
+    return [_stacked([part for i, (r, _) in enumerate(jobs) if r == k for part in done[i]])
+            for k in range(len(requests))]
 
 
 #: Offset-only iterations after the servo/friction fit (``fit_offset``).
@@ -230,6 +262,59 @@ def fit_servo_friction(params, data: Sequence[Samples], *, iterations: int = 6,
                 params, data, iterations=iterations, seed=seed, kinetic_ratio=kinetic_ratio,
                 fit_offset=fit_offset, sessions=sessions, log=log, progress=progress,
                 programs=own)
+    fit = _fixed_point(params, data, iterations=iterations, seed=seed,
+                       kinetic_ratio=kinetic_ratio, fit_offset=fit_offset, sessions=sessions,
+                       log=log)
+    return _drive([fit], programs, progress=progress)[0]
+
+
+def fit_servo_friction_many(fits: Sequence[tuple[SimParams, Sequence[Samples]]], *,
+                            iterations: int = 6, seed: int = 0, kinetic_ratio: float = 0.6,
+                            fit_offset: bool = False, sessions: bool = False, log=print,
+                            programs: StreamPrograms | None = None) -> list[tuple]:
+    """:func:`fit_servo_friction` of several independent fits ``[(params, data)]`` (the
+    held-out folds, each on its own real file) in lockstep: each iteration simulates every
+    fit's real plan in one program (:func:`simulate_real_plans`), instead of one fit's
+    small programs waiting behind another's. Each fit's result is what it would be alone,
+    up to the last bits of the simulated torques' statics. Returns ``[(params, history)]``."""
+    if programs is None:
+        with StreamPrograms() as own:
+            return fit_servo_friction_many(
+                fits, iterations=iterations, seed=seed, kinetic_ratio=kinetic_ratio,
+                fit_offset=fit_offset, sessions=sessions, log=log, programs=own)
+    return _drive([_fixed_point(p, d, iterations=iterations, seed=seed,
+                                kinetic_ratio=kinetic_ratio, fit_offset=fit_offset,
+                                sessions=sessions, log=log) for p, d in fits],
+                  programs, together=True)
+
+
+def _drive(fits: list, programs: StreamPrograms, *, progress: bool = False,
+           together: bool = False) -> list:
+    """Runs fixed points (:func:`_fixed_point` generators) to their ends, simulating what
+    each asks for: one at a time, or (``together``) every pending fit's in one program."""
+    out: list = [None] * len(fits)
+    pending = {i: next(f) for i, f in enumerate(fits)}  # each simulates at least once
+    while pending:
+        keys = list(pending)
+        if together:
+            sims = simulate_real_plans([pending[i] for i in keys], programs=programs)
+        else:
+            sims = [simulate_real_plan(*pending[i], programs=programs, progress=progress)
+                    for i in keys]
+        for i, sim in zip(keys, sims):
+            try:
+                pending[i] = fits[i].send(sim)
+            except StopIteration as end:
+                out[i] = end.value
+                del pending[i]
+    return out
+
+
+def _fixed_point(params, data: Sequence[Samples], *, iterations: int, seed: int,
+                 kinetic_ratio: float, fit_offset: bool, sessions: bool, log):
+    """:func:`fit_servo_friction`'s iterations as a generator: it yields each simulation it
+    needs, ``(params, plans, key)`` as :func:`simulate_real_plan` takes them, is sent the
+    simulated fields, and returns ``(params, history)``."""
     plans = real_plan(params.robot, data)
     fields = ("q_d", "q", "direction", "tau", "current_tau")
     real = baseline_statistics(*(np.concatenate([getattr(d, k) for _, _, d in plans])
@@ -252,8 +337,8 @@ def fit_servo_friction(params, data: Sequence[Samples], *, iterations: int = 6,
     n_offset = OFFSET_ITERATIONS if fit_offset else 0
     for it in range(iterations + n_offset + 1):
         # The same random numbers every iteration: the updates see parameter changes only.
-        sim = simulate_real_plan([params.replace(servo=sv) for sv in servos] if per_session
-                                 else params, plans, key, programs=programs, progress=progress)
+        sim = yield ([params.replace(servo=sv) for sv in servos] if per_session else params,
+                     plans, key)
         ok = sim["at_rest"]
         st = baseline_statistics(*(sim[k][ok] for k in fields))
         st_s = ([baseline_statistics(*(sim[k][ok & (owner == i)] for k in fields))

@@ -23,9 +23,15 @@ from jaxinertia.open_manipulator_x import ARM as OMX_ARM
 from jaxinertia.plans import Goals, planning_plan, random_plan
 from jaxinertia.sim.params import params_to_dict
 from jaxinertia.sim.simulator import SimParams
-from jaxinertia.sim.stream import LanePlan, StreamPrograms, stream_lanes, stream_plans
+from jaxinertia.sim.stream import (
+    LanePlan,
+    StreamPrograms,
+    stream_jobs,
+    stream_lanes,
+    stream_plans,
+)
 
-__all__ = ["as_float64", "native_fields", "run_plan", "run_plans", "ScenarioRequest",
+__all__ = ["as_float64", "native_fields", "run_jobs", "run_plan", "run_plans", "ScenarioRequest",
            "simulate_scenario", "simulate_scenarios"]
 
 
@@ -62,6 +68,26 @@ def run_plans(params: SimParams, plans: list, *, lanes: int | None = None,
         res = res._asdict()
         _check_diverged(res, plan.q_d, name, params)
         out.append(res)
+    return out
+
+
+def run_jobs(jobs: list, *, programs: StreamPrograms | None = None
+             ) -> list[list[dict[str, np.ndarray]]]:
+    """Several simulators' plans as one program (:func:`jaxinertia.sim.stream.stream_jobs`):
+    ``jobs`` is ``[(params, plans, descs)]`` with ``plans`` as :func:`run_plans` takes them;
+    returns each job's results per plan, checked as :func:`run_plans` checks them."""
+    checked = [(params, [LanePlan(obj, *_check_plan(params, q_d, d, name), key)
+                         for (obj, q_d, d, key), name in zip(plans, descs)], descs)
+               for params, plans, descs in jobs]
+    results = stream_jobs([(params, plans) for params, plans, _ in checked],
+                          programs=programs)
+    out = []
+    for (params, plans, descs), job in zip(checked, results):
+        out.append([])
+        for plan, res, name in zip(plans, job, descs):
+            res = res._asdict()
+            _check_diverged(res, plan.q_d, name, params)
+            out[-1].append(res)
     return out
 
 

@@ -41,7 +41,7 @@ from jaxinertia.sim.sampling import Record
 from jaxinertia.sim.simulator import SimParams
 
 __all__ = ["Compiler", "LanePlan", "StreamPrograms", "batch_last_default", "default_lanes",
-           "default_tail_lanes", "stream_lanes", "stream_plans"]
+           "default_tail_lanes", "stream_jobs", "stream_lanes", "stream_plans"]
 
 _log = logging.getLogger(__name__)
 
@@ -81,6 +81,16 @@ _refill_jit = jax.jit(lane_program.refill, donate_argnums=(2,))
 _steps_jit = jax.jit(lane_program.steps, static_argnames=("n", "batch_last"),
                      donate_argnums=(1,))
 _finish = jax.jit(lane_program.finish)
+
+
+def _steps_many(params, lanes, *, n: int, batch_last: bool):
+    return jax.vmap(partial(lane_program.steps, n=n, batch_last=batch_last))(params, lanes)
+
+
+# The same programs over several independent streams (:func:`stream_jobs`), vmapped.
+_refill_many_jit = jax.jit(jax.vmap(lane_program.refill), donate_argnums=(2,))
+_steps_many_jit = jax.jit(_steps_many, static_argnames=("n", "batch_last"), donate_argnums=(1,))
+_finish_many = jax.jit(jax.vmap(lane_program.finish))
 _prepare = jax.jit(lane_program.prepare, static_argnames=("sizes", "lanes"))
 _compact = jax.jit(lane_program.compact, static_argnames=("size",))
 
@@ -273,6 +283,19 @@ class StreamPrograms:
             programs["tail"] = (compact, refill, steps)
         return programs
 
+    def many(self, params: SimParams, table, carry, refill_every: int,
+             batch_last: bool) -> tuple[Future, Future, Future]:
+        """Futures of the programs of :func:`stream_jobs` for the (abstract, stacked over the
+        streams) ``params``, ``table`` and ``carry``: refill, steps and finish, each the
+        stream's own ``vmap``-ped over the streams."""
+        sig = _signature((params, table, carry))
+        return (self._program(("refill_many", sig), _refill_many_jit, params, table, carry),
+                self._program(("steps_many", _signature((params, carry.lanes)), refill_every,
+                               batch_last), _steps_many_jit, params, carry.lanes,
+                              n=refill_every, batch_last=batch_last, untimed=batch_last),
+                self._program(("finish_many", _signature((params, table, carry.out))),
+                              _finish_many, params, table, carry.out, untimed=True))
+
     def result(self, futures) -> tuple:
         """The compiled programs of ``futures``, waited for; a failed compilation is
         forgotten (that program alone) and its error raised."""
@@ -406,3 +429,60 @@ def stream_plans(params: SimParams, plans: list[LanePlan], *, lanes: int | None 
     bounds = np.cumsum((0,) + sizes)
     return [jax.tree.map(lambda a, lo=lo, hi=hi: a[lo:hi], out)
             for lo, hi in zip(bounds[:-1], bounds[1:])]
+
+
+def stream_jobs(jobs, *, lanes: int | None = None, batch_last: bool | None = None,
+                refill_every: int = 32, blocks_per_call: int = 16,
+                programs: StreamPrograms | None = None) -> list[list[Record]]:
+    """Several independent streams as one program: ``jobs`` is ``[(params, plans)]``, each
+    a simulator and its plans (as :func:`stream_plans` takes them); returns each job's
+    records per plan, as :func:`stream_plans` would (the same keys; the same samples up to
+    the last bits of the simulator's state).
+
+    Every stream's lane program is ``vmap``-ped over the jobs: one refill and one steps
+    program a block for all of them. For latency-bound streams, each no more than a round
+    of lanes (a held-out fold's calibration replays a 1,000-sample real file a dozen
+    times): alone, one such replay took 0.41 s on an H100; two folds' replays side by side
+    in threads, each waiting behind the other's small programs, 1.2 s each
+    (docs/benchmarks.md, session 26). The jobs must have the same shapes (sample table
+    padded alike, as many objects, the same static settings); no tail program.
+    """
+    if programs is None:
+        with StreamPrograms() as own:
+            return stream_jobs(jobs, lanes=lanes, batch_last=batch_last,
+                               refill_every=refill_every, blocks_per_call=blocks_per_call,
+                               programs=own)
+    if not jobs:
+        return []
+    lanes = int(lanes or max(stream_lanes(sum(len(p.q_d) for p in plans)) for _, plans in jobs))
+    batch_last = batch_last_default() if batch_last is None else bool(batch_last)
+    prepared = []
+    for params, plans in jobs:
+        params = _one_signature(params)
+        args, sizes = _assemble(params, plans, lanes)
+        prepared.append((params, *_prepare(*args, sizes=sizes, lanes=lanes), sizes))
+    signatures = {_signature(p[:3]) for p in prepared}
+    if len(signatures) > 1:
+        raise ValueError("stream_jobs: the jobs differ in shape (plan sizes padded to "
+                         "different tables, object counts or static settings)")
+
+    def stacked(i):
+        return jax.tree.map(lambda *a: jnp.stack(a), *(p[i] for p in prepared))
+
+    params, table, carry = stacked(0), stacked(1), stacked(2)
+    refill, steps, finish = programs.result(programs.many(params, table, carry, refill_every,
+                                                          batch_last))
+    total = sum(sum(p[3]) for p in prepared)
+    done = 0
+    while done < total:
+        for _ in range(blocks_per_call):  # dispatched asynchronously
+            carry = refill(params, table, carry)
+            carry = carry.replace(lanes=steps(params, carry.lanes))
+        done = int(jnp.sum(carry.done))
+    out = jax.tree.map(np.asarray, finish(params, table, carry.out))
+    results = []
+    for j, (*_, sizes) in enumerate(prepared):
+        bounds = np.cumsum((0,) + sizes)
+        results.append([jax.tree.map(lambda a, lo=lo, hi=hi, j=j: a[j, lo:hi], out)
+                        for lo, hi in zip(bounds[:-1], bounds[1:])])
+    return results
