@@ -74,7 +74,7 @@ def _install() -> None:
         stats[name]["wall_s"] += time.perf_counter() - t
 
     R._Stages.__call__ = stage
-    for attr, name in (("_fit_simulators", "calibrate"), ("simulate_files", "simulate"),
+    for attr, name in (("fit_simulators", "calibrate"), ("simulate_files", "simulate"),
                        ("train", "train"), ("_finetuned", "finetune")):
         _labelled(F, attr, name)
     _labelled(F._Fold, "judge", "judge")

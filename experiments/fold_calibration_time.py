@@ -1,6 +1,6 @@
 """Where a held-out fold's calibration spends its time on this machine (issue 30 item 4).
 
-Runs :func:`jaxinertia.app.folds._fit_simulators` (link gravity, the servo/friction fixed
+Runs :func:`jaxinertia.app.fold_calibration.fit_simulators` (link gravity, the servo/friction fixed
 point with its offsets, the held-out replay) for one fold alone, then for every fold side
 by side in threads (as ``reproduce`` ran them before session 26, and still does on a CPU),
 then for every fold together (each replay one program for all folds, as ``reproduce``
@@ -25,6 +25,7 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
+import jaxinertia.app.fold_calibration as fold_calibration  # noqa: E402
 import jaxinertia.app.folds as folds  # noqa: E402
 import jaxinertia.sim.real_fit as real_fit  # noqa: E402
 from jaxinertia.app.pipeline import load_real  # noqa: E402
@@ -54,10 +55,10 @@ def main() -> None:
     scale = FULL if args.scale == "full" else QUICK
     real = load_real(args.lbipe_dir)
     names = [o.name for o in real.objects]
-    # real_fit's functions as the folds module calls them (imported names).
+    # real_fit's functions as the fold calibration calls them (imported names).
     for name in ("simulate_real_plan", "simulate_real_plans", "fit_link_gravity"):
         _timed(real_fit, name)
-        setattr(folds, name, getattr(real_fit, name))
+        setattr(fold_calibration, name, getattr(real_fit, name))
     fscale = folds.FoldScale(calibration_iterations=scale.fold_calibration_iterations,
                              random_per_load=scale.random_per_load, planning=scale.planning,
                              train=scale.train)
@@ -73,7 +74,7 @@ def main() -> None:
             _local.log = []
             todo = [fold_of(n, tag) for n in (fit_on if together else [fit_on])]
             t = time.perf_counter()
-            folds._fit_simulators(todo, together=together)
+            fold_calibration.fit_simulators(todo, together=together)
             total = time.perf_counter() - t
             sims = [s for n, s in _local.log if n.startswith("simulate_real_plan")]
             grav = sum(s for n, s in _local.log if n == "fit_link_gravity")

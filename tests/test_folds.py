@@ -17,7 +17,7 @@ from support.layouts import N_REAL
 from support.synthetic import synthetic_samples
 
 from jaxinertia import samples
-from jaxinertia.app import folds
+from jaxinertia.app import fold_calibration, folds
 from jaxinertia.app import recipe as R
 from jaxinertia.app.cli import main
 from jaxinertia.app.folds import FoldScale, run_folds
@@ -50,7 +50,7 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
         return spy
 
     for name in ("fit_link_gravity", "fit_servo_friction", "real_plan"):
-        monkeypatch.setattr(folds, name, spying(getattr(folds, name)))
+        monkeypatch.setattr(fold_calibration, name, spying(getattr(fold_calibration, name)))
     read_npz = samples.read_npz
 
     def counted(path, **kw):  # every sample file of the command goes through here
@@ -326,7 +326,7 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
                       session_draws=2)
     # A fold whose simulation fails (here: the drawn sessions' simulator lacks its arm)
     # trains nothing, and its error is raised: no member waits for ever.
-    monkeypatch.setattr(folds, "_fit_simulators",
+    monkeypatch.setattr(folds, "fit_simulators",
                         lambda todo, together=False: [(None, {}) for _ in todo])
     with pytest.raises(AttributeError, match="robot"):
         run_folds(tmp_path / "failed", small_lbipe_dir, scale, progress=False,
@@ -335,7 +335,7 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     # A branch that fails before its training (the drawn sessions' candidate) leaves its
     # members: the other trainings finish, the error is raised, and nothing waits for ever.
     arm = SimpleNamespace(robot=SimpleNamespace(n_joints=4))
-    monkeypatch.setattr(folds, "_fit_simulators",
+    monkeypatch.setattr(folds, "fit_simulators",
                         lambda todo, together=False: [(arm, {}) for _ in todo])
     made.clear()
     fails.add("models_physical_current_sessions")

@@ -6,7 +6,8 @@ One fold per real file ``fit_on``:
 
 1. calibrate the simulator from the datasheet start (never the shipped calibration, which
    saw every real file) on ``fit_on``'s real samples only: link gravity from its ``tau_g``,
-   then servo, friction and the constant joint torques (:mod:`jaxinertia.sim.real_fit`);
+   then servo, friction and the constant joint torques (:mod:`jaxinertia.app.fold_calibration`,
+   :mod:`jaxinertia.sim.real_fit`; on an accelerator every fold's replays in one program);
 2. replay every other object's real plan (goals, directions, the object) in that simulator
    and compare its baseline statistics with the real ones (per-joint PE gain and
    intercept): does the load dependence come out of the physics?
@@ -36,10 +37,8 @@ from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 
-import jax
-import numpy as np
-
 from jaxinertia.app.ensemble import NETWORK_METHODS, judge_mean
+from jaxinertia.app.fold_calibration import fit_simulators
 from jaxinertia.app.fold_groups import FoldGroups
 from jaxinertia.app.pipeline import (
     RealData,
@@ -50,25 +49,13 @@ from jaxinertia.app.pipeline import (
     session_reference,
     train,
 )
-from jaxinertia.app.programs import folds_side_by_side, side_by_side, stream_programs
+from jaxinertia.app.programs import folds_side_by_side, side_by_side
 from jaxinertia.app.recipe import choose_recipe
 from jaxinertia.app.simdata import simulate_files
 from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import evaluate
-from jaxinertia.fileio import write_json
 from jaxinertia.session import ServoSession, servo_session
-from jaxinertia.sim.identify import ESConfig, identify
-from jaxinertia.sim.params import datasheet_sim_params, params_to_dict
 from jaxinertia.sim.randomize import session_prior, spread_from_samples
-from jaxinertia.sim.real_fit import (
-    baseline_statistics,
-    fit_link_gravity,
-    fit_servo_friction,
-    fit_servo_friction_many,
-    real_plan,
-    simulate_real_plan,
-    simulate_real_plans,
-)
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
 
 __all__ = ["FoldScale", "SESSION_STRENGTHS", "choose_recipe", "run_folds"]
@@ -214,7 +201,7 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
         for fold in todo:
             log(f"-- fold: calibrate on {fold.fit_on}, judge on {', '.join(fold.held)}")
         t = time.perf_counter()
-        fitted = _fit_simulators(todo, together=True)
+        fitted = fit_simulators(todo, together=True)
         calibrated = [(*c, time.perf_counter() - t) for c in fitted]
 
     def run(fold: _Fold, calibration) -> dict:
@@ -233,8 +220,9 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
 
 
 def _run_fold(fold: _Fold, calibration: tuple | None = None) -> dict:
-    """One fold's stages; ``calibration``: its simulator already fitted (with
-    :func:`_fit_simulators`' result and the seconds it took), else fitted here."""
+    """One fold's stages; ``calibration``: its simulator already fitted (an item of
+    :func:`~jaxinertia.app.fold_calibration.fit_simulators`' result and the seconds it
+    took), else fitted here."""
     wall: dict[str, float] = {}
 
     def timed(name, fn, *args):
@@ -245,7 +233,7 @@ def _run_fold(fold: _Fold, calibration: tuple | None = None) -> dict:
             wall[name] = time.perf_counter() - t
 
     if calibration is None:
-        params, replay = timed("calibrate", lambda: _fit_simulators([fold])[0])
+        params, replay = timed("calibrate", lambda: fit_simulators([fold])[0])
     else:
         params, replay, wall["calibrate"] = calibration
     wanted = [(fold.dir / "data" / "train_random.npz", "random", fold.scale.random_per_load,
@@ -304,70 +292,6 @@ def _ensemble(fold: _Fold) -> dict | None:
     return judge_mean({k: v for k, v in fold.estimates.items() if k[0] not in _NOT_CANDIDATES},
                       [fold.real.objects[i] for i in idx], [fold.real.l_max[i] for i in idx],
                       fold.scale.session_strengths)
-
-
-def _stats(d: dict) -> dict:
-    st = baseline_statistics(d["q_d"], d["q"], d["direction"], d["tau"], d["current_tau"])
-    return {k: st[k].tolist() for k in ("k", "c", "pe_mae")}
-
-
-def _fit_simulators(folds: list[_Fold], *, together: bool = False) -> list[tuple]:
-    """Each fold's simulator fitted to its ``fit_on`` alone (then identified, when asked),
-    written to its ``calibration.json``, and its held-out objects' real plans replayed in
-    it: ``[(params, {"replay", "identified"})]``. ``together``: every fold's replays in one
-    program each (:func:`jaxinertia.sim.real_fit.fit_servo_friction_many`; an accelerator,
-    where the folds' replays side by side in threads would wait behind each other's)."""
-    scale, seed = folds[0].scale, folds[0].seed
-    starts = []
-    for fold in folds:
-        params = datasheet_sim_params()
-        fit = [fold.record(fold.fit_on)]  # the only real samples the fold's fits look at
-        robot, gravity = fit_link_gravity(params.robot, fit)
-        starts.append((params.replace(robot=robot), fit, gravity))
-    kw = dict(iterations=scale.calibration_iterations, seed=seed, fit_offset=True,
-              log=lambda m: None, programs=stream_programs())
-    if together and len(folds) > 1:
-        fitted = fit_servo_friction_many([(p, fit) for p, fit, _ in starts], **kw)
-    else:
-        fitted = [fit_servo_friction(p, fit, progress=False, **kw) for p, fit, _ in starts]
-    params = [p for p, _ in fitted]
-    held = [real_plan(p.robot, [fold.record(n) for n in fold.held])
-            for fold, p in zip(folds, params)]
-    real_held = [_stats({k: np.concatenate([getattr(d, k) for _, _, d in plans])
-                         for k in ("q_d", "q", "direction", "tau", "current_tau")})
-                 for plans in held]
-
-    def replays(ps) -> list[dict]:  # the held-out objects' real plans replayed in each
-        requests = [(p, plans, jax.random.key(seed + 7)) for p, plans in zip(ps, held)]
-        sims = (simulate_real_plans(requests, programs=stream_programs()) if together else
-                [simulate_real_plan(*r, programs=stream_programs()) for r in requests])
-        return [_stats({k: v[sim["at_rest"]] for k, v in sim.items()}) for sim in sims]
-
-    identified = [None] * len(folds)
-    if scale.identify_generations > 0:
-        calibrated = replays(params)
-        for i in range(len(folds)):
-            _, obj_fit, d_fit = real_plan(params[i].robot, starts[i][1])[0]
-            if 0 < scale.identify_samples < d_fit.n_samples:
-                d_fit = d_fit.take(np.sort(np.random.default_rng(seed).choice(
-                    d_fit.n_samples, scale.identify_samples, replace=False)))
-            t_id = time.perf_counter()
-            params[i], ident = identify(params[i], obj_fit, d_fit, config=ESConfig(
-                population=scale.identify_population,
-                generations=scale.identify_generations, seed=seed), log=lambda m: None)
-            identified[i] = {**ident, "wall_time_s": time.perf_counter() - t_id,
-                             "replay_calibrated": calibrated[i]}
-    for fold, p, (_, info), (_, _, gravity), ident in zip(folds, params, fitted, starts,
-                                                          identified):
-        write_json(fold.dir / "calibration.json", {
-            "robot": "open_manipulator_x", "fit_on": fold.fit_on,
-            "link_gravity": gravity, "servo_friction": params_to_dict(p),
-            "fit": {"iterations": scale.calibration_iterations, "real_objects": [fold.fit_on],
-                    "real": info["real"], "final_sim": info["history"][-1]["sim"]},
-            "identified": None if ident is None else {
-                k: ident[k] for k in ("theta", "parameters", "history")}})
-    return [(p, {"replay": {"real": r, "sim": sim}, "identified": ident})
-            for p, r, sim, ident in zip(params, real_held, replays(params), identified)]
 
 
 def _randomized(fold: _Fold, params, files: list[Path]) -> dict:
