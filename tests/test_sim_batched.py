@@ -166,3 +166,27 @@ def test_the_steps_trace_and_compile_once_for_new_data_of_the_same_shapes():
     assert traced["vmap"] >= 1 and traced["batch-last"] >= 1, traced  # the counter counts
     assert _TRACES == traced, (traced, _TRACES)
     assert [f._cache_size() for f in programs] == sizes
+
+
+def test_the_cpu_barrier_holds_under_vmap():
+    """On the CPU the batch-last step keeps its values materialised through conditionals
+    (``batched._barrier``). Under ``vmap`` (several streams as one program,
+    ``sim.stream.stream_jobs``) they must stay conditionals, not become selects of both
+    branches (which XLA then fuses through: the step ran 9x slower); and the vmapped step
+    is the step of each stream."""
+    params = default_sim_params()
+    state, goal = _random_states(jax.random.key(5))
+    state, goal = state_batch_last(state), goal.T
+
+    def conditionals(fn, *args):
+        return jax.jit(fn).lower(*args).compile().as_text().count("conditional(")
+
+    plain = conditionals(lambda s, g: step_batched(params, s, g), state, goal)
+    two = jax.tree_util.tree_map(lambda a: jnp.stack([a, a + 0.01]), state)
+    vmapped = jax.vmap(lambda s, g: step_batched(params, s, g))
+    assert plain > 0 and conditionals(vmapped, two, jnp.stack([goal, goal])) == plain
+    got = jax.jit(vmapped)(two, jnp.stack([goal, goal]))
+    for i in range(2):
+        alone = step_batched(params, jax.tree_util.tree_map(lambda a, i=i: a[i], two), goal)
+        for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(alone)):
+            np.testing.assert_allclose(np.asarray(a)[i], np.asarray(b), rtol=1e-12, atol=1e-15)
