@@ -335,8 +335,13 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     # A branch that fails before its training (the drawn sessions' candidate) leaves its
     # members: the other trainings finish, the error is raised, and nothing waits for ever.
     arm = SimpleNamespace(robot=SimpleNamespace(n_joints=4))
-    monkeypatch.setattr(folds, "fit_simulators",
-                        lambda todo, together=False: [(arm, {}) for _ in todo])
+    calibrations = []  # (folds, together) of each call
+
+    def calibrated(todo, together=False):
+        calibrations.append(([f.fit_on for f in todo], together))
+        return [(arm, {}) for _ in todo]
+
+    monkeypatch.setattr(folds, "fit_simulators", calibrated)
     made.clear()
     fails.add("models_physical_current_sessions")
     with pytest.raises(RuntimeError, match="physical_current_sessions failed"):
@@ -348,7 +353,10 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     made.clear()
     calls.clear()
     fails.clear()
+    calibrations.clear()
     run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False, log=lambda m: None)
+    # Side by side, the folds' calibrations run first, together (one call for both folds).
+    assert calibrations == [(["cube", "white"], True)]
     want = {("scratch", f"{n}/{b}", f) for n in ("cube", "white") for b, f in (
         ("paper", "models"), ("physical", "models_physical"),
         ("physical_current", "models_physical_current"),
