@@ -22,10 +22,8 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
+from stream_lanes import cube_plan  # noqa: E402  (experiments/, this script's folder)
 
-from jaxinertia.app.pipeline import load_real  # noqa: E402
-from jaxinertia.sim.params import arm_sim_params  # noqa: E402
-from jaxinertia.sim.real_fit import real_plan  # noqa: E402
 from jaxinertia.sim.run import run_plans  # noqa: E402
 from jaxinertia.sim.stream import StreamPrograms  # noqa: E402
 
@@ -56,10 +54,7 @@ def main() -> None:
     ap.add_argument("--lanes", type=int, default=None)
     ap.add_argument("--dump", default=None, help="write the compiled stepping program here")
     args = ap.parse_args()
-    params = arm_sim_params()
-    obj = load_real(args.lbipe_dir).objects[0]
-    (name, held, d), = real_plan(params.robot, [obj])
-    request = [(held, d.q_d, d.direction, jax.random.key(0))]
+    params, name, d, request = cube_plan(args.lbipe_dir)
     print(f"device: {jax.devices()[0].device_kind}; XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
     with StreamPrograms() as programs:
         times = []

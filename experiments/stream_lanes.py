@@ -24,15 +24,21 @@ from jaxinertia.sim.run import run_plans  # noqa: E402
 from jaxinertia.sim.stream import StreamPrograms, default_lanes, stream_lanes  # noqa: E402
 
 
+def cube_plan(lbipe_dir: str):
+    """The shipped simulator and the first real file's plan as one ``run_plans`` request:
+    ``(params, name, samples, request)``."""
+    params = arm_sim_params()
+    obj = load_real(lbipe_dir).objects[0]
+    (name, held, d), = real_plan(params.robot, [obj])
+    return params, name, d, [(held, d.q_d, d.direction, jax.random.key(0))]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--lbipe-dir", required=True)
     ap.add_argument("--rounds", type=int, default=5)
     args = ap.parse_args()
-    params = arm_sim_params()
-    obj = load_real(args.lbipe_dir).objects[0]
-    (name, held, d), = real_plan(params.robot, [obj])
-    request = [(held, d.q_d, d.direction, jax.random.key(0))]
+    params, name, d, request = cube_plan(args.lbipe_dir)
     print(f"device: {jax.devices()[0].device_kind}; {name}'s plan, {d.n_samples} samples")
     out, base = {}, None
     with StreamPrograms() as programs:
