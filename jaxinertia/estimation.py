@@ -6,7 +6,7 @@ float32 (as trained); identification runs in the dtype of ``A`` (float64 by defa
 
 from __future__ import annotations
 
-from functools import partial
+from functools import cache, partial
 from typing import NamedTuple
 
 import flax.linen as nn
@@ -21,7 +21,8 @@ from jaxinertia.identification import (
     solve_normal,
 )
 
-__all__ = ["Estimates", "ModelPair", "estimate_sets", "predict_torques", "predict_weights"]
+__all__ = ["Estimates", "ModelPair", "estimate_sets", "predict_torques",
+           "predict_torques_stacked", "predict_weights", "run_once_jit"]
 
 
 @struct.dataclass
@@ -42,6 +43,38 @@ class ModelPair:
 def predict_torques(model: nn.Module, variables: dict, features, tau_scale) -> jnp.ndarray:
     """Joint torques [N m] (..., N) from features (..., N, 4) for one parameter set."""
     return model.apply(variables, features) * jnp.asarray(tau_scale, features.dtype)
+
+
+def run_once_jit(fn, **jit_kwargs):
+    """``jax.jit(fn)`` for a program that runs once where it is called (an initialisation, the
+    predictions over a validation split), built at its first call: on a GPU compiled without
+    XLA's autotuner, which times candidate kernels on the device for seconds of compile
+    that one run never pays back (in ``reproduce --full`` such programs, compiled with it,
+    waited on the folds' critical path: docs/benchmarks.md, "Session 27"). A CPU has no
+    autotuner: the plain jit."""
+    built = cache(lambda gpu: jax.jit(fn, **jit_kwargs, compiler_options=(
+        {"xla_gpu_autotune_level": 0} if gpu else None)))
+
+    def call(*args, **kwargs):
+        return built(jax.default_backend() == "gpu")(*args, **kwargs)
+
+    return call
+
+
+def _predict_stacked(model: nn.Module, variables: dict, features, tau_scale) -> jnp.ndarray:
+    return jax.vmap(lambda v: predict_torques(model, v, features, tau_scale))(variables)
+
+
+_predict_stacked_jit = run_once_jit(_predict_stacked, static_argnums=0)
+
+
+def predict_torques_stacked(model: nn.Module, variables: dict, features,
+                            tau_scale) -> jnp.ndarray:
+    """Joint torques [N m] (K, ..., N) of K stacked parameter sets (leading axis K) from
+    features (..., N, 4): one program per model and shape (the features an argument, not a
+    constant: found again in the persistent cache by later runs)."""
+    return _predict_stacked_jit(model, variables, features,
+                                jnp.asarray(tau_scale, features.dtype))
 
 
 def predict_weights(model: nn.Module, variables: dict, features) -> jnp.ndarray:

@@ -41,6 +41,7 @@ import optax
 from flax import struct
 
 from jaxinertia.errors import UsageError
+from jaxinertia.estimation import predict_torques_stacked, run_once_jit
 from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.identification import solve_normal
 from jaxinertia.linalg import gram_statistics
@@ -85,11 +86,14 @@ def _features(fc: FeatureConfig, d: Samples) -> jnp.ndarray:
                      jnp.asarray(d.current_tau)).astype(jnp.float32)
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _init_stacked(model, keys, example):
-    # One program per architecture and shape (eager, every layer's initialiser compiled
-    # op by op: dozens of small programs per training).
+def _init_stacked_fn(model, keys, example):
     return jax.vmap(lambda k: model.init(k, example))(keys)
+
+
+# One program per architecture and shape (eager, every layer's initialiser compiled op by
+# op: dozens of small programs per training); run once per training, so on a GPU compiled
+# without the autotuner (``estimation.run_once_jit``).
+_init_stacked = run_once_jit(_init_stacked_fn, static_argnums=0)
 
 
 def _start(model, key, K: int, example, init):
@@ -410,15 +414,8 @@ class TrainedAttention(NamedTuple):
 
 def torque_predictions(model, variables, fc: FeatureConfig, data: Samples) -> jnp.ndarray:
     """(K, S, N) torques [N m] of K stacked torque models."""
-    return _torque_predictions(model, variables, _features(fc, data),
-                               jnp.asarray(fc.tau_scale, jnp.float32))
-
-
-@functools.partial(jax.jit, static_argnames="model")
-def _torque_predictions(model, variables, X, scale):
-    # The features are an argument (not a constant of the program): one compilation per
-    # model and shape, found again in the persistent cache by later runs.
-    return jax.vmap(lambda v: model.apply(v, X) * scale)(variables)
+    return predict_torques_stacked(model, variables, _features(fc, data),
+                                   jnp.asarray(fc.tau_scale, jnp.float32))
 
 
 def train_attention_models(

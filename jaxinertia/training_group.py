@@ -188,8 +188,17 @@ def _update_of_group(epoch):
                    compiler_options=dict(epoch.compiler_options) or None)
 
 
+@jax.jit
 def _stack(trees):
+    # One program per group's structure and shapes (eager, each leaf's stack was a program
+    # of its own: 130 of them in a full run, compiled on the folds' critical path).
     return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *trees)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _unstack(tree, G: int) -> list:
+    # Likewise one program for the G states of a group (eager, a slice per leaf and member).
+    return [jax.tree_util.tree_map(lambda a, g=g: a[g], tree) for g in range(G)]
 
 
 def _run_stacked(trainings: list[_Training]) -> list:
@@ -237,5 +246,5 @@ def _run_stacked(trainings: list[_Training]) -> list:
             bar.update()
     if G == 1:
         return [failed[0] or (state, np.asarray(history[0]))]
-    return [failed[g] or (jax.tree_util.tree_map(lambda a, g=g: a[g], state),
-                          np.asarray(history[g])) for g in range(G)]
+    states = _unstack(state, G)
+    return [failed[g] or (states[g], np.asarray(history[g])) for g in range(G)]

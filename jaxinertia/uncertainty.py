@@ -47,7 +47,7 @@ import numpy as np
 
 from jaxinertia.baselines import Baselines
 from jaxinertia.errors import UsageError
-from jaxinertia.estimation import ModelPair, estimate_sets, predict_torques
+from jaxinertia.estimation import ModelPair, estimate_sets, predict_torques_stacked
 from jaxinertia.evaluation import baseline_methods, baseline_torques, stack
 from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.identification import (
@@ -327,8 +327,8 @@ def validation_torque_error(pair: ModelPair, fc: FeatureConfig, val: Samples) ->
     feats = jnp.asarray(featurize(fc, jnp.asarray(val.q, f64), val.q_d, val.direction,
                                   val.current_tau),
                         jnp.float32)
-    tau_hat = jax.vmap(lambda tv: predict_torques(pair.torque_model, tv, feats, pair.tau_scale))(
-        pair.torque_vars)
+    tau_hat = predict_torques_stacked(pair.torque_model, pair.torque_vars, feats,
+                                      pair.tau_scale)
     err = np.asarray(tau_hat, np.float64) - np.asarray(val.tau, np.float64)[None]
     return np.sqrt(np.mean(err**2, axis=(0, 1)))
 
