@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -30,6 +31,7 @@ from jaxinertia.uncertainty import (
     mass_com_covariance,
     set_uncertainty,
     standard_errors,
+    validation_torque_error,
     z_of,
 )
 
@@ -212,6 +214,27 @@ def test_set_uncertainty_compiles_once():
         a, b = call(6), call(7)
     assert seen.compiles["set_uncertainty"] == 1, seen
     assert not np.allclose(a.cov, b.cov)
+
+
+def test_validation_error_is_one_program_per_shape_and_equals_the_models_predictions():
+    """After every training and fine-tuning: one jitted program for the K models' torques
+    (op by op, an eager vmap compiled every product and sum anew for each new sample count:
+    a full GPU run's fine-tunings waited on them, docs/benchmarks.md "Session 27")."""
+    pair, fc = tiny_pair(K=3), feature_config()
+    val = synthetic_samples(np.random.default_rng(8), n=37, n_obj=2)
+    with compile_counter("_predict_stacked", "dot_general") as seen:
+        err = validation_torque_error(pair, fc, val)
+    assert seen.compiles == {"_predict_stacked": 1}, seen
+    # The same numbers as each model's own prediction, pooled as the docstring says.
+    from jaxinertia.estimation import predict_torques  # noqa: PLC0415
+    from jaxinertia.features import featurize  # noqa: PLC0415
+    feats = jnp.asarray(featurize(fc, jnp.asarray(val.q), val.q_d, val.direction,
+                                  val.current_tau), jnp.float32)
+    tau_hat = np.stack([np.asarray(predict_torques(
+        pair.torque_model, jax.tree_util.tree_map(lambda a, i=i: a[i], pair.torque_vars),
+        feats, pair.tau_scale), np.float64) for i in range(3)])
+    want = np.sqrt(np.mean((tau_hat - val.tau[None]) ** 2, axis=(0, 1)))
+    np.testing.assert_allclose(err, want, rtol=1e-5)
 
 
 # ---- estimate: intervals, covariance, and the identifiability gate ----------------------
