@@ -23,7 +23,6 @@ from jaxinertia.app.folds import FoldScale, run_folds
 from jaxinertia.app.pipeline import load_real
 from jaxinertia.app.reproduce import FULL, QUICK
 
-
 #: XLA's compile time in this process (every thread), and the number of programs compiled.
 _compiled = [0.0, 0]
 
