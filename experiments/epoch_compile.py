@@ -36,9 +36,11 @@ def _stack(parts):
     return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *parts)
 
 
-def _torque(rng, S: int, trainable: str):
+def _torque(rng, S: int, trainable: str, **epoch_kw):
+    """G trainings of the physical torque model on random inputs of S samples (``epoch_kw``:
+    ``training._torque_epoch``'s options)."""
     model = PhysicalTorqueModel(n_joints=4)
-    ep = training._torque_epoch(model, 3e-4, trainable, min(256, S))
+    ep = training._torque_epoch(model, 3e-4, trainable, min(256, S), **epoch_kw)
 
     def one(g):
         X = jnp.asarray(rng.normal(size=(S, 4, 4)), jnp.float32)
@@ -66,30 +68,42 @@ def main() -> None:
              "attention (1000 sets, float64)": _attention(rng)}
     for name, (ep, parts) in kinds.items():
         for g in (1, G):  # one training alone (as the simulated stages train), a group
-            if g == 1:
-                (state, data, val), keys, fn = parts[0], jax.random.key(0), ep.update_fn
-            else:
-                state, data, val = (_stack(x) for x in zip(*parts))
-                keys, fn = jax.random.split(jax.random.key(0), G), jax.vmap(ep.update_fn)
+            fn, args_g = group_inputs(ep, parts, g)
             base = None
             for label, options in (("autotuned", None),
                                    ("no autotuning", {"xla_gpu_autotune_level": 0} if gpu
                                     else None)):
-                update = jax.jit(fn, compiler_options=options)
-                t = time.perf_counter()
-                compiled = update.lower(state, keys, data, val).compile()
-                c = time.perf_counter() - t
-                st, loss, _ = compiled(state, keys, data, val)
-                np.asarray(loss)
-                t = time.perf_counter()
-                for _ in range(args.epochs):
-                    st, loss, _ = compiled(st, keys, data, val)
-                    np.asarray(loss)
-                e = (time.perf_counter() - t) / args.epochs
+                c, e = compile_and_time(fn, options, args_g, args.epochs)
                 base = base or (c, e)
                 print(f"{name}, G = {g}, {label}: compile {c:.2f} s ({c / base[0]:.2f} x), "
                       f"epoch {e * 1e3:.1f} ms ({e / base[1]:.2f} x)", flush=True)
 
+
+def group_inputs(ep, parts, g: int):
+    """The epoch function and its arguments (state, keys, data, validation data) for one
+    training alone (``g`` = 1, the first of ``parts``) or the G of ``parts`` vmapped."""
+    if g == 1:
+        state, data, val = parts[0]
+        return ep.update_fn, (state, jax.random.key(0), data, val)
+    state, data, val = (_stack(x) for x in zip(*parts))
+    return jax.vmap(ep.update_fn), (state, jax.random.split(jax.random.key(0), G), data, val)
+
+
+def compile_and_time(fn, options, args, epochs: int) -> tuple[float, float]:
+    """Seconds to compile ``fn`` with the compiler ``options`` for ``args``, and seconds per
+    epoch over ``epochs`` epochs after a first one."""
+    update = jax.jit(fn, compiler_options=options)
+    t = time.perf_counter()
+    compiled = update.lower(*args).compile()
+    c = time.perf_counter() - t
+    st, keys, data, val = args
+    st, loss, _ = compiled(st, keys, data, val)
+    np.asarray(loss)
+    t = time.perf_counter()
+    for _ in range(epochs):
+        st, loss, _ = compiled(st, keys, data, val)
+        np.asarray(loss)
+    return c, (time.perf_counter() - t) / epochs
 
 if __name__ == "__main__":
     main()

@@ -1,9 +1,10 @@
 """The one evaluator: the paper's Tables I-III for any models on any known objects.
 
 ``evaluate(objects, sets, pair=..., baselines=...)`` evaluates O objects x K model pairs x B
-sets of M samples: the torque and attention models in one jitted call
-(:func:`jaxinertia.estimation.estimate_sets`), the baselines (Sensor, PE: identity weights)
-in one more (:func:`jaxinertia.identification.identity_solves`). The same
+sets of M samples: per object, the torque and attention models of every pair on every set
+in one jitted call (:func:`jaxinertia.estimation.estimate_sets`), the baselines (Sensor, PE:
+identity weights) in one more (:func:`jaxinertia.identification.identity_solves`); one
+program of each for any number of objects. The same
 code serves the released models on the real files, trained models on simulated or real
 objects, the estimate of an unknown object and the switching-load run; each object is a
 :class:`jaxinertia.samples.Samples` of one object. Sets are chosen by :func:`choose_sets`.
@@ -111,8 +112,9 @@ def _pad(a: np.ndarray, n: int) -> np.ndarray:
 
 
 def stack(objects: Sequence[Samples], sets: Sequence[np.ndarray],
-          fc: FeatureConfig | None) -> Stacked:
-    """Pads every object's arrays to the largest sample count (features only with ``fc``)."""
+          fc: FeatureConfig | None, n_samples: int | None = None) -> Stacked:
+    """Pads every object's arrays to the largest sample count, or to ``n_samples`` (at
+    least that; features only with ``fc``)."""
     if len({np.shape(s) for s in sets}) != 1:
         raise UsageError(f"sample sets differ in shape across objects: "
                          f"{[np.shape(s) for s in sets]}")
@@ -120,7 +122,7 @@ def stack(objects: Sequence[Samples], sets: Sequence[np.ndarray],
         if np.max(s) >= obj.n_samples or np.min(s) < 0:
             raise UsageError(f"{obj.name}: a set indexes sample {np.max(s)} of "
                              f"{obj.n_samples}")
-    n = max(obj.n_samples for obj in objects)
+    n = max([obj.n_samples for obj in objects] + [n_samples or 0])
     f64 = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
     # Features in float64 then float32, the precision the networks were trained with.
     feats = None if fc is None else jnp.asarray(np.stack([
@@ -163,6 +165,15 @@ def _finite(x: np.ndarray) -> np.ndarray:
     return x[np.all(np.isfinite(x), axis=-1)]
 
 
+def _concat(parts: list):
+    """Results of one object each (leading axis 1) as one of every object, on the host
+    (a device concatenation would compile a program per shape)."""
+    if len(parts) == 1:
+        return parts[0]
+    return jax.tree_util.tree_map(lambda *a: np.concatenate([np.asarray(x) for x in a]),
+                                  *parts)
+
+
 def _diagnostics(res: WLSResult, o: int) -> dict:
     # Indexed on the host: indexing the device arrays compiles a slice per shape.
     cond = np.asarray(res.condition)[o]
@@ -190,9 +201,15 @@ def evaluate(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
     if len(set(names)) != len(names):  # results are keyed by name: one would be lost
         raise UsageError(f"objects {names} repeat a name: each object needs its own")
     l_max = list(l_max) if l_max is not None else l_max_of(objects)
-    batch = stack(objects, sets, fc)
-    # The sets (O, B, M) split along B over every local device (jaxinertia.sharding).
-    batch = batch._replace(sets=shard(batch.sets, axis=1))
+    n = max(obj.n_samples for obj in objects)
+    # Object by object, each padded to the largest sample count: one program of each kind
+    # (models, baselines) for any number of objects, so that the evaluations of one object
+    # (a held-out fold's file) and of several (models_real on every real file, the
+    # simulated test objects) share their compiled programs; each call still solves every
+    # model pair and set of its object at once.
+    batches = [stack([obj], [s], fc, n_samples=n) for obj, s in zip(objects, sets)]
+    # The sets (1, B, M) split along B over every local device (jaxinertia.sharding).
+    batches = [b._replace(sets=shard(b.sets, axis=1)) for b in batches]
     solves: dict[str, WLSResult] = {}
     tau_hat: dict[str, list[np.ndarray]] = {}
     usable, unavailable = baseline_methods(objects)
@@ -200,11 +217,11 @@ def evaluate(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
         per_obj = [baseline_torques(baselines, o) for o in objects]
         for m in usable:
             tau_hat[m] = [p[m] for p in per_obj]
-            y = jnp.asarray(np.stack([_pad(t, batch.A.shape[1]) for t in tau_hat[m]]))
-            solves[m] = identity_solves(batch.A, y, batch.tau_g, batch.sets)
+            solves[m] = _concat([identity_solves(b.A, jnp.asarray(_pad(t, n)[None]), b.tau_g,
+                                                 b.sets) for b, t in zip(batches, tau_hat[m])])
     est: Estimates | None = None
     if pair is not None:
-        est = estimate_sets(pair, batch.features, batch.A, batch.tau_g, batch.sets)
+        est = _concat([estimate_sets(pair, b.features, b.A, b.tau_g, b.sets) for b in batches])
         solves["T"], solves["T-A"] = est.T, est.TA
         tau_hat["T"] = [np.asarray(est.tau_hat[o, :, : obj.n_samples])
                         for o, obj in enumerate(objects)]

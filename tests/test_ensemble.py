@@ -125,6 +125,16 @@ def test_a_folder_without_its_attention_answers_t_a_as_t(folders, capsys):
     d, path, models = folders
     flat = copy_models(models / "members/1", models.parent / "flat", uniform=True)
     assert json.loads((flat / "config.json").read_text())["uniform_attention"] is True
+    # The weights' files are copied as they are (the record says to zero the attention's
+    # last layer when loading): the checkpoint byte for byte the source's.
+    files = sorted(p.relative_to(flat / "checkpoint") for p in
+                   (flat / "checkpoint").rglob("*") if p.is_file())
+    assert files and files == sorted(p.relative_to(models / "members/1/checkpoint") for p in
+                                     (models / "members/1/checkpoint").rglob("*")
+                                     if p.is_file())
+    for f in files:
+        assert (flat / "checkpoint" / f).read_bytes() == (
+            models / "members/1/checkpoint" / f).read_bytes(), f
     sets, _ = choose_sets(d.by_object(), n_sets=8, set_size=32, seed=0)
     res = evaluate_models(flat, d.by_object(), sets, l_max=[0.1])
     np.testing.assert_allclose(res["estimates"]["T-A"], res["estimates"]["T"], rtol=1e-9,
@@ -137,3 +147,31 @@ def test_a_folder_without_its_attention_answers_t_a_as_t(folders, capsys):
     assert main(["estimate", "--models", str(flat), "--samples", str(path), "--set-size",
                  "32", "--max-mass", "1000", "--max-com", "1000"]) == 0
     assert "T-A answers as T" in capsys.readouterr().out
+
+
+def test_several_objects_are_evaluated_by_the_one_object_programs(folders):
+    """``evaluate`` goes object by object (each padded to the largest sample count): the
+    evaluation of two objects compiles nothing that the evaluations of one each did not
+    (``models_real`` on every real file after the folds judged each folder on one), and
+    gives their numbers."""
+    from support.compiles import compile_counter  # noqa: PLC0415
+
+    from jaxinertia.checkpoints import load_models  # noqa: PLC0415
+    from jaxinertia.evaluation import evaluate  # noqa: PLC0415
+
+    d, _, models = folders
+    one = d.by_object()[0]
+    two = [one, one.take(np.arange(80)).replace(names=("other",))]
+    folder = load_models(models / "members/2")
+    sets, _ = choose_sets(two, n_sets=6, set_size=32, seed=0)
+    kw = dict(pair=folder.pair, baselines=folder.baselines, fc=folder.features)
+    alone = [evaluate([o], [s], l_max=[0.1], **kw) for o, s in zip(two[:1], sets[:1])]
+    with compile_counter("estimate_sets", "identity_solves") as seen:
+        both = evaluate(two, sets, l_max=[0.1, 0.1], **kw)
+    assert sum(seen.compiles.values()) == 0, seen.compiles
+    for m in ("Sensor", "PE", "T", "T-A"):
+        np.testing.assert_array_equal(both["estimates"][m][:1], alone[0]["estimates"][m])
+        assert both["objects"][one.name][m] == alone[0]["objects"][one.name][m]
+    other = evaluate(two[1:], sets[1:], l_max=[0.1], **kw)
+    np.testing.assert_allclose(both["estimates"]["T"][1:], other["estimates"]["T"],
+                               rtol=1e-12)

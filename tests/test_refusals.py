@@ -309,6 +309,25 @@ def test_model_folder_checksums_are_verified(models, tmp_path, capsys, damage, w
     _one_line(capsys, *words)
 
 
+def test_a_corrupt_folder_is_not_copied(models, tmp_path):
+    """``copy_models`` (models_real from the folds' folders) copies the checkpoint's files as
+    they are: it verifies them first, and a damaged source is load_models' error, with
+    nothing written."""
+    from jaxinertia.app.pipeline import copy_models  # noqa: PLC0415
+
+    m = _copy(models, tmp_path / "m")
+    shard = sorted(p for p in (m / "checkpoint").rglob("*") if p.is_file()
+                   and "/d/" in p.as_posix())[0]
+    raw = bytearray(shard.read_bytes())
+    raw[len(raw) // 2] ^= 0x10
+    shard.write_bytes(bytes(raw))
+    with pytest.raises(ModelFolderError, match="checksum mismatch"):
+        copy_models(m, tmp_path / "copy")
+    assert not (tmp_path / "copy").exists()
+    good = copy_models(models, tmp_path / "good", session_strength=0.5)
+    assert load_models(good).config["copied_from"] == str(models.resolve())
+
+
 def test_a_folder_without_checksums_loads_with_a_note(models, tmp_path, capsys):
     m = _copy(models, tmp_path / "old")
     c = json.loads((m / "config.json").read_text())

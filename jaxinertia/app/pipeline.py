@@ -23,7 +23,13 @@ from jaxinertia.app.arm_options import LBIPE_ARM, samples_arm
 from jaxinertia.app.by_part import COM_MODELS, com_models_of, merge_evaluations
 from jaxinertia.app.ensemble import ENSEMBLE_MEMBERS, mean_evaluation, members_of
 from jaxinertia.baselines import fit_baselines
-from jaxinertia.checkpoints import load_models, save_models
+from jaxinertia.checkpoints import (
+    UNIFORM_ATTENTION,
+    copy_folder,
+    load_models,
+    read_config,
+    save_models,
+)
 from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.estimation import ModelPair
 from jaxinertia.evaluation import choose_sets, evaluate, l_max_of
@@ -37,7 +43,7 @@ from jaxinertia.lbipe import (
     load_released_models,
     read_test_files,
 )
-from jaxinertia.networks import torque_model_kind, uniform_attention
+from jaxinertia.networks import torque_model_kind
 from jaxinertia.samples import SampleFile, Samples, load_samples, read_sample_file
 from jaxinertia.session import ServoSession, SessionReference, adapt, servo_session
 from jaxinertia.session_terms import with_session_terms
@@ -51,7 +57,8 @@ from jaxinertia.training import (
 )
 from jaxinertia.uncertainty import validation_torque_error
 
-__all__ = ["RealData", "adapt_objects", "copy_models", "evaluate_models", "objects_at_rest",
+__all__ = ["UNIFORM_ATTENTION", "RealData", "adapt_objects", "copy_models", "evaluate_models",
+           "objects_at_rest",
            "evaluate_samples", "is_simulated", "load_real", "released_benchmark",
            "session_reference",
            "sim_to_real", "train"]
@@ -252,34 +259,24 @@ def released_benchmark(lbipe_dir: str | os.PathLike, *, seed: int = 0,
     return res
 
 
-#: The ``config.json`` key of a folder whose attention weights every joint alike.
-UNIFORM_ATTENTION = "uniform_attention"
-
-
 def copy_models(src: str | os.PathLike, dst: str | os.PathLike, *,
                 session_strength: float | None = None, uniform: bool = False) -> Path:
     """A model folder written anew at ``dst`` (replacing it), with the session strength
-    changed when given; ``uniform``: with the attention models' last layer zeroed
-    (:func:`jaxinertia.networks.uniform_attention`: T-A then answers as T), recorded; the
-    weights, baselines and the rest of its record unchanged."""
-    folder = load_models(src)
-    pair = folder.pair
-    if uniform:
-        pair = pair.replace(attention_vars=uniform_attention(pair.attention_vars))
-    config = folder.config
+    changed when given; ``uniform``: answering without its attention (the attention models'
+    last layer zeroed when loaded, :data:`~jaxinertia.checkpoints.UNIFORM_ATTENTION`: T-A
+    then answers as T), recorded; the weights (their files copied as they are), baselines
+    and the rest of its record unchanged."""
+    config = read_config(src)
     # A folder's COM models (app.by_part) and ensemble members (app.ensemble) live inside
     # it and are not copied: neither are the keys that name them.
-    standard = ("format", "format_version", "robot", "arm", "n_models", "torque_model",
-                "attention_model", "features", "baselines", COM_MODELS, ENSEMBLE_MEMBERS)
-    extra = {k: v for k, v in config.items() if k not in standard}
+    config = {k: v for k, v in config.items() if k not in (COM_MODELS, ENSEMBLE_MEMBERS)}
     for key, simulated in (("session", False), ("simulator_session", True)):
         ref = session_reference(config, session_strength, simulated=simulated)
-        extra[key] = None if ref is None else ref.to_dict()
-    extra["copied_from"] = str(Path(src).resolve())
+        config[key] = None if ref is None else ref.to_dict()
+    config["copied_from"] = str(Path(src).resolve())
     if uniform:
-        extra[UNIFORM_ATTENTION] = True
-    return save_models(dst, pair, folder.baselines, folder.features,
-                       robot=config.get("robot"), extra=extra, arm=config.get("arm"))
+        config[UNIFORM_ATTENTION] = True
+    return copy_folder(src, dst, config)
 
 
 def session_reference(config: dict, strength: float | None = None, *,

@@ -24,7 +24,10 @@ def main(out: str) -> None:
     objects = synthetic_samples(rng, n=120, n_obj=2).by_object()
     sets = [np.random.default_rng(o).integers(0, 60, (8, 16)) for o in range(2)]
     res = evaluate(objects, sets, pair=tiny_pair(K=2), fc=feature_config(), l_max=[0.1, 0.1])
-    est = res["model_estimates"]
+    est = res["model_estimates"]  # two objects: gathered on the host, object by object
+    # Each object's call is one program over every device: its own results span them.
+    one = evaluate(objects[:1], sets[:1], pair=tiny_pair(K=2), fc=feature_config(),
+                   l_max=[0.1])["model_estimates"]
     train = synthetic_samples(np.random.default_rng(1), n=96, n_obj=2)
     val = synthetic_samples(np.random.default_rng(2), n=32, n_obj=2)
     cfg = TrainConfig(n_models=2, torque_epochs=2, torque_batch=16)
@@ -35,7 +38,7 @@ def main(out: str) -> None:
              history=trained.history,
              weights=np.concatenate([np.ravel(np.asarray(a)) for a in leaves]),
              devices=len(jax.local_devices()),
-             eval_devices=len(est.TA.x.sharding.device_set),
+             eval_devices=len(one.TA.x.sharding.device_set),
              train_devices=min(len(a.sharding.device_set) for a in leaves))
 
 
