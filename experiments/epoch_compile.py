@@ -50,22 +50,28 @@ def _torque(rng, S: int, trainable: str, **epoch_kw):
     return ep, [one(g) for g in range(G)]
 
 
-def _attention(rng):
+def _attention(rng, **epoch_kw):
     model = AttentionModel(n_joints=4)
-    ep = training._attention_epoch(model, 1e-4, "all", 32, 1.0, 0.3)
+    ep = training._attention_epoch(model, 1e-4, "all", 32, 1.0, 0.3, **epoch_kw)
     return ep, [training_inputs(rng, ep, model, g, jnp.float64) for g in range(G)]
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--epochs", type=int, default=20)
+    ap.add_argument("--as-trained", action="store_true",
+                    help="the epochs as the command line builds them on this backend "
+                         "(training.accelerated_epochs: on a GPU the stacked joints and the "
+                         "flat Adam)")
     args = ap.parse_args()
     gpu = jax.default_backend() == "gpu"
     print(f"device: {jax.devices()[0].device_kind}, K = {K} models per training")
     rng = np.random.default_rng(0)
-    kinds = {"physical torque, from scratch (40k samples)": _torque(rng, 40000, "all"),
-             "physical torque, servo fine-tuning (900 samples)": _torque(rng, 900, "servo"),
-             "attention (1000 sets, float64)": _attention(rng)}
+    acc = training.accelerated_epochs() if args.as_trained else {}
+    kinds = {"physical torque, from scratch (40k samples)": _torque(rng, 40000, "all", **acc),
+             "physical torque, servo fine-tuning (900 samples)": _torque(rng, 900, "servo",
+                                                                         **acc),
+             "attention (1000 sets, float64)": _attention(rng, **acc)}
     for name, (ep, parts) in kinds.items():
         for g in (1, G):  # one training alone (as the simulated stages train), a group
             fn, args_g = group_inputs(ep, parts, g)
