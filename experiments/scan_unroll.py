@@ -46,16 +46,17 @@ def unrolled(u: int):
         jax.lax.scan = scan
 
 
-def _torque(rng, S: int, trainable: str):
+def _torque(rng, S: int, trainable: str, epochs: int):
+    batch = min(256, S)
     return epoch_compile._torque(
         rng, S, trainable, **training.accelerated_epochs(),
-        compiler_options=training.epoch_compiler_options())
+        compiler_options=training.epoch_compiler_options(epochs * (S // batch)))
 
 
 def _attention(rng):
     model = AttentionModel(n_joints=4)
     ep = training._attention_epoch(model, 1e-4, "all", 32, 1.0, 0.3,
-                                   training.epoch_compiler_options(),
+                                   training.epoch_compiler_options(30 * 1000 // 32),
                                    **training.accelerated_epochs())
     return ep, [training_inputs(rng, ep, model, g, jnp.float64) for g in range(G)]
 
@@ -71,9 +72,9 @@ def main() -> None:
         with unrolled(u):
             rng = np.random.default_rng(0)
             kinds = {"physical torque from scratch (74k samples)":
-                     _torque(rng, 74000, "all"),
+                     _torque(rng, 74000, "all", 300),
                      "physical torque, servo fine-tuning (900 samples)":
-                     _torque(rng, 900, "servo"),
+                     _torque(rng, 900, "servo", 200),
                      "attention (1000 sets, float64)": _attention(rng)}
             for name, (ep, parts) in kinds.items():
                 for g in (1, G):

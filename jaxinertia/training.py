@@ -181,22 +181,31 @@ class Epoch(NamedTuple):
     compiler_options: tuple = ()
 
 
-def epoch_compiler_options(backend: str | None = None) -> tuple:
-    """The compiler options of the trainings' epoch programs on ``backend`` (default:
-    JAX's), ``((name, value), ...)``: on a GPU, without XLA's autotuner.
+#: A training of fewer minibatch steps than this (epochs x minibatches per epoch: a
+#: fine-tuning's 200 epochs of a few minibatches) compiles its epoch without XLA's GPU
+#: autotuner (:func:`epoch_compiler_options`).
+AUTOTUNE_MIN_STEPS = 2_000
+
+
+def epoch_compiler_options(steps: int, backend: str | None = None) -> tuple:
+    """The compiler options of the epoch programs of a training of ``steps`` minibatch
+    steps on ``backend`` (default: JAX's), ``((name, value), ...)``: on a GPU, without XLA's
+    autotuner below :data:`AUTOTUNE_MIN_STEPS`.
 
     The autotuner compiles and times candidate kernels for the matrix products on the
-    device: seconds of compile per program, and many more in a run whose other trainings
-    keep the GPU busy (``reproduce --full``: an epoch program of the folds compiled for 25 s
-    there). It buys the epochs as a GPU builds them (:func:`accelerated_epochs`) nothing:
-    ``python experiments/epoch_compile.py --as-trained`` on one H100 (session 28), ms an
-    epoch autotuned / not, one training and a group of four: the physical torque model from
-    scratch 11.9 / 11.6 and 15.3 / 15.1, its fine-tuning 2.2 / 1.9 and 1.7 / 1.8, the
-    attention 10.2 / 10.0 and 16.7 / 18.0; compile 0.35-0.55 x without it. (Session 21
-    measured 1.8 x slower epochs without it, for the per-joint products that session 22's
-    stacked joints replaced; until session 28 only trainings of fewer than 2,000 minibatch
-    steps, the fine-tunings, went without it.) A CPU has no autotuner: nothing to set."""
-    if (backend or jax.default_backend()) != "gpu":
+    device: seconds of compile per program, more while other programs run on the GPU. A
+    fine-tuning runs for about a second of device time: in ``reproduce --full`` on one H100
+    the folds' grouped fine-tunings compiled for 12 s each autotuned, 1.3 s without. A long
+    training pays it back: without the autotuner the torque models from scratch ran 1.8 x
+    slower there (300 epochs in 20 s against 11 s) and the attention's 30 epochs took 12 s
+    against 7 s, although random inputs of the same shapes ran at the same speed either way
+    (``experiments/epoch_compile.py``; docs/benchmarks.md, "Where a GPU fold's time goes").
+    Session 28: alone, the epochs as a GPU now builds them (:func:`accelerated_epochs`) ran
+    as fast without it (``epoch_compile.py --as-trained``), but in ``reproduce --full``, every
+    epoch compiled without it, the grouped torque trainings ran 10-20 % slower and the folds
+    ended 6-17 s later (two runs each way): the threshold stays. A CPU has no autotuner:
+    nothing to set."""
+    if steps >= AUTOTUNE_MIN_STEPS or (backend or jax.default_backend()) != "gpu":
         return ()
     return (("xla_gpu_autotune_level", 0),)
 
@@ -315,7 +324,7 @@ def train_torque_models(
     k_init, k_epochs = jax.random.split(key)
     batch = min(cfg.torque_batch, len(X))
     epoch = _torque_epoch(model, cfg.torque_lr, trainable, batch,
-                          epoch_compiler_options(),
+                          epoch_compiler_options(cfg.torque_epochs * (len(X) // batch)),
                           **accelerated_epochs())
     state = epoch.init(_start(model, k_init, cfg.n_models, X[:1], init), jnp.float32,
                        None if init is None else ((Xv, Yv), None))
@@ -454,7 +463,9 @@ def train_attention_models(
     (feats, A, y, x_obj), (vf, vA, vy, vx) = arrays(train), arrays(val)
     batch = min(cfg.attention_batch, sets.shape[0])
     epoch = _attention_epoch(model, cfg.attention_lr, trainable, batch, cfg.w_mass,
-                             cfg.w_com, epoch_compiler_options(), **accelerated_epochs())
+                             cfg.w_com, epoch_compiler_options(
+                                 cfg.attention_epochs * (sets.shape[0] // batch)),
+                             **accelerated_epochs())
     data, val_data = ((feats, A, x_obj, sets), y), ((vf, vA, vx, vsets), vy)
     state = epoch.init(_start(model, k_init, K, feats[:1], init), dtype,
                        None if init is None else val_data)

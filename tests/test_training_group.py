@@ -159,22 +159,25 @@ def test_a_member_that_leaves_or_fails_holds_no_one_up():
             pass
 
 
-def test_the_epochs_compile_without_the_gpu_autotuner(monkeypatch):
-    """Every training compiles its epoch without XLA's GPU autotuner, alone and in a group
-    (the epochs as a GPU builds them run as fast without it: training.epoch_compiler_options);
-    on a CPU with XLA's defaults."""
+def test_short_trainings_compile_their_epochs_without_the_gpu_autotuner(monkeypatch):
+    """A training of few minibatch steps (a fine-tuning) compiles its epoch without XLA's
+    GPU autotuner, alone and in a group (its compile time would not be paid back); a long
+    one, and any on a CPU, with XLA's defaults."""
     options = training.epoch_compiler_options
-    assert options(backend="gpu") == (("xla_gpu_autotune_level", 0),)
-    assert options(backend="cpu") == ()
+    assert options(training.AUTOTUNE_MIN_STEPS - 1, backend="gpu") == (
+        ("xla_gpu_autotune_level", 0),)
+    assert options(training.AUTOTUNE_MIN_STEPS, backend="gpu") == ()
+    assert options(1, backend="cpu") == ()
     want = {name: _torque(_job(seed)) for name, seed in (("a", 1), ("b", 2))}
     # The options reach the epoch's programs alone and in a group: a misspelt one fails
     # to compile there (the CPU's compiler checks every option's name, the GPU's too).
-    asked = []
+    steps = []
     monkeypatch.setattr(training, "epoch_compiler_options",
-                        lambda: asked.append(1) or (("xla_no_such_option", 0),))
+                        lambda n: steps.append(n) or (("xla_no_such_option", 0),))
     with pytest.raises(Exception, match="No such compile option"):
         _torque(_job(1))
-    assert asked == [1]
+    train_n = _job(1)[2].n_samples
+    assert steps == [CFG.torque_epochs * (train_n // min(CFG.torque_batch, train_n))]
 
     def grouped():
         group = TrainingGroup(["a", "b"])
@@ -188,7 +191,7 @@ def test_the_epochs_compile_without_the_gpu_autotuner(monkeypatch):
         grouped()
     # The GPU's option on a CPU: ignored, the numbers without it bit for bit.
     monkeypatch.setattr(training, "epoch_compiler_options",
-                        lambda: (("xla_gpu_autotune_level", 0),))
+                        lambda n: (("xla_gpu_autotune_level", 0),))
     assert_tree_equal(_torque(_job(1)).variables, want["a"].variables, what="alone")
     for got, name in zip(grouped(), "ab"):
         _assert_torque_close(got, want[name], name)
