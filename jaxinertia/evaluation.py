@@ -111,10 +111,8 @@ def _pad(a: np.ndarray, n: int) -> np.ndarray:
     return np.concatenate([a, np.repeat(a[-1:], n - a.shape[0], axis=0)], axis=0)
 
 
-def stack(objects: Sequence[Samples], sets: Sequence[np.ndarray],
-          fc: FeatureConfig | None, n_samples: int | None = None) -> Stacked:
-    """Pads every object's arrays to the largest sample count, or to ``n_samples`` (at
-    least that; features only with ``fc``)."""
+def _check_sets(objects: Sequence[Samples], sets: Sequence[np.ndarray]) -> None:
+    """Every object's sets of one shape (B, M), each indexing only its object's samples."""
     if len({np.shape(s) for s in sets}) != 1:
         raise UsageError(f"sample sets differ in shape across objects: "
                          f"{[np.shape(s) for s in sets]}")
@@ -122,6 +120,13 @@ def stack(objects: Sequence[Samples], sets: Sequence[np.ndarray],
         if np.max(s) >= obj.n_samples or np.min(s) < 0:
             raise UsageError(f"{obj.name}: a set indexes sample {np.max(s)} of "
                              f"{obj.n_samples}")
+
+
+def stack(objects: Sequence[Samples], sets: Sequence[np.ndarray],
+          fc: FeatureConfig | None, n_samples: int | None = None) -> Stacked:
+    """Pads every object's arrays to the largest sample count, or to ``n_samples`` (at
+    least that; features only with ``fc``)."""
+    _check_sets(objects, sets)
     n = max([obj.n_samples for obj in objects] + [n_samples or 0])
     f64 = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
     # Features in float64 then float32, the precision the networks were trained with.
@@ -201,6 +206,7 @@ def evaluate(objects: Sequence[Samples], sets: Sequence[np.ndarray], *,
     if len(set(names)) != len(names):  # results are keyed by name: one would be lost
         raise UsageError(f"objects {names} repeat a name: each object needs its own")
     l_max = list(l_max) if l_max is not None else l_max_of(objects)
+    _check_sets(objects, sets)  # the objects' results are stacked: one shape of sets
     n = max(obj.n_samples for obj in objects)
     # Object by object, each padded to the largest sample count: one program of each kind
     # (models, baselines) for any number of objects, so that the evaluations of one object

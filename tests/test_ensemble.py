@@ -175,3 +175,6 @@ def test_several_objects_are_evaluated_by_the_one_object_programs(folders):
     other = evaluate(two[1:], sets[1:], l_max=[0.1], **kw)
     np.testing.assert_allclose(both["estimates"]["T"][1:], other["estimates"]["T"],
                                rtol=1e-12)
+    # Their results are stacked: objects with sets of another shape are refused, one line.
+    with pytest.raises(UsageError, match="differ in shape across objects"):
+        evaluate(two, [sets[0], sets[1][:3]], l_max=[0.1, 0.1], **kw)
