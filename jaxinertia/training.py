@@ -323,13 +323,15 @@ def train_torque_models(
     Yv = jnp.asarray(val.tau, jnp.float32) / scale
     k_init, k_epochs = jax.random.split(key)
     batch = min(cfg.torque_batch, len(X))
+    steps = len(X) // batch
     epoch = _torque_epoch(model, cfg.torque_lr, trainable, batch,
-                          epoch_compiler_options(cfg.torque_epochs * (len(X) // batch)),
+                          epoch_compiler_options(cfg.torque_epochs * steps),
                           **accelerated_epochs())
     state = epoch.init(_start(model, k_init, cfg.n_models, X[:1], init), jnp.float32,
                        None if init is None else ((Xv, Yv), None))
     state, hist = run_epochs(epoch, state, ((X, Y), None), ((Xv, Yv), None), cfg.torque_epochs,
-                              k_epochs, "torque model", progress, on_epoch)
+                              k_epochs, "torque model", progress, on_epoch,
+                              steps_per_epoch=steps)
     return TrainedTorque(model, state.best_params, hist, np.asarray(state.best_epoch))
 
 
@@ -462,13 +464,13 @@ def train_attention_models(
 
     (feats, A, y, x_obj), (vf, vA, vy, vx) = arrays(train), arrays(val)
     batch = min(cfg.attention_batch, sets.shape[0])
+    steps = sets.shape[0] // batch
     epoch = _attention_epoch(model, cfg.attention_lr, trainable, batch, cfg.w_mass,
-                             cfg.w_com, epoch_compiler_options(
-                                 cfg.attention_epochs * (sets.shape[0] // batch)),
+                             cfg.w_com, epoch_compiler_options(cfg.attention_epochs * steps),
                              **accelerated_epochs())
     data, val_data = ((feats, A, x_obj, sets), y), ((vf, vA, vx, vsets), vy)
     state = epoch.init(_start(model, k_init, K, feats[:1], init), dtype,
                        None if init is None else val_data)
     state, hist = run_epochs(epoch, state, data, val_data, cfg.attention_epochs, k_epochs,
-                             "attention model", progress, on_epoch)
+                             "attention model", progress, on_epoch, steps_per_epoch=steps)
     return TrainedAttention(model, state.best_params, hist, np.asarray(state.best_epoch))

@@ -61,23 +61,55 @@ class _Training:
     desc: str
     progress: bool
     on_epoch: Callable | None
+    per_call: int = 1  # epochs per program call (:func:`epochs_per_call`)
 
     def signature(self) -> tuple:
         """Trainings with equal signatures run as one program."""
         trees = (self.state, self.data, self.val_data)
-        return (self.epoch, self.n_epochs, jax.tree_util.tree_structure(trees),
+        return (self.epoch, self.n_epochs, self.per_call, jax.tree_util.tree_structure(trees),
                 tuple((tuple(np.shape(a)), str(a.dtype))
                       for a in jax.tree_util.tree_leaves(trees)))
 
 
+#: A call of a training's program runs about this many minibatch steps at most
+#: (:func:`epochs_per_call`).
+STEPS_PER_CALL = 512
+
+#: ... and at most this fraction of its epochs, so that a progress bar moves.
+MOST_EPOCHS_PER_CALL = 1 / 8
+
+
+def epochs_per_call(n_epochs: int, steps_per_epoch: int) -> int:
+    """How many epochs of a training of ``n_epochs`` epochs of ``steps_per_epoch`` minibatch
+    steps one program call runs: the most that divides ``n_epochs`` within
+    :data:`STEPS_PER_CALL` steps and :data:`MOST_EPOCHS_PER_CALL` of the epochs; 1 for a
+    training of long epochs (every training from scratch at the paper's scale).
+
+    Why: each call is a few dispatches and a wait for its losses on the host. A
+    fine-tuning's epoch (200 of them, a few minibatches each) is 2 ms of GPU; its host loop,
+    beside the other trainings' and judges' threads, managed 12-25 epochs a second
+    (docs/benchmarks.md, "Session 29")."""
+    if steps_per_epoch <= 0 or n_epochs <= 1:
+        return 1
+    most = max(1, min(STEPS_PER_CALL // steps_per_epoch,
+                      int(n_epochs * MOST_EPOCHS_PER_CALL)))
+    return max(c for c in range(1, most + 1) if n_epochs % c == 0)
+
+
 def run_epochs(epoch, state, data, val_data, n_epochs: int, key, desc: str, progress: bool,
-               on_epoch: Callable | None = None) -> tuple[Any, np.ndarray]:
+               on_epoch: Callable | None = None, *, steps_per_epoch: int = 0
+               ) -> tuple[Any, np.ndarray]:
     """Runs ``epoch.update`` ``n_epochs`` times with a progress bar, calling
     ``on_epoch(e, (train_loss, val_loss))`` after each if given; returns the state and the
     (n_epochs, 2, K) history of training and validation losses. In a thread that is a
-    member of a :class:`TrainingGroup`, the group runs it (with the others of its shapes)."""
+    member of a :class:`TrainingGroup`, the group runs it (with the others of its shapes).
+
+    ``steps_per_epoch`` (the minibatches of an epoch, 0: unknown) sets how many epochs one
+    program call runs (:func:`epochs_per_call`): several as a ``lax.scan`` over the epochs,
+    epoch ``e``'s key ``fold_in(key, e)`` either way, so the keys, and so the minibatches,
+    are those of one call per epoch."""
     training = _Training(epoch, state, data, val_data, int(n_epochs), key, desc, progress,
-                         on_epoch)
+                         on_epoch, epochs_per_call(int(n_epochs), int(steps_per_epoch)))
     member = getattr(_local, "member", None)
     if member is None:
         return _raise_or_return(_run_together([training])[0])
@@ -188,6 +220,25 @@ def _update_of_group(epoch):
                    compiler_options=dict(epoch.compiler_options) or None)
 
 
+@functools.lru_cache(maxsize=32)
+def _epochs_of(epoch, grouped: bool, n: int):
+    """``n`` epochs of ``epoch`` (of a group's members: ``grouped``) as one program:
+    ``(state, keys, e0, data, val_data) -> (state, (train_loss, val_loss))``, the losses with
+    a leading axis of the ``n`` epochs ``e0, ..., e0 + n - 1``; ``keys`` the trainings'
+    keys (stacked when ``grouped``), folded with the epoch inside."""
+    update = jax.vmap(epoch.update_fn) if grouped else epoch.update_fn
+    fold_in = jax.vmap(jax.random.fold_in, (0, None)) if grouped else jax.random.fold_in
+
+    def run(state, keys, e0, data, val_data):
+        def one(state, e):
+            state, train_loss, val_loss = update(state, fold_in(keys, e), data, val_data)
+            return state, (train_loss, val_loss)
+
+        return jax.lax.scan(one, state, e0 + jnp.arange(n, dtype=jnp.int32))
+
+    return jax.jit(run, compiler_options=dict(epoch.compiler_options) or None)
+
+
 @jax.jit
 def _stack(trees):
     # One program per group's structure and shapes (eager, each leaf's stack was a program
@@ -218,33 +269,51 @@ def _run_stacked(trainings: list[_Training]) -> list:
     history: list[list] = [[] for _ in trainings]
     failed: list[BaseException | None] = [None] * G
     desc = first.desc if G == 1 else f"{first.desc} (x{G}, one program)"
+    n = first.per_call
+    if n > 1:
+        several = _epochs_of(first.epoch, G > 1, n)
+        keys = first.key if G == 1 else jnp.stack([t.key for t in trainings])
     with tqdm(total=first.n_epochs, desc=desc, unit="epoch",
               disable=not any(t.progress for t in trainings)) as bar:
-        for e in range(first.n_epochs):
-            keys = [jax.random.fold_in(t.key, e) for t in trainings]
-            state, train_loss, val_loss = update(state, keys[0] if G == 1 else jnp.stack(keys),
-                                                 data, val_data)
+        for e0 in range(0, first.n_epochs, n):
+            if n > 1:
+                state, (train_loss, val_loss) = several(state, keys, jnp.int32(e0), data,
+                                                        val_data)
+            else:
+                keys = [jax.random.fold_in(t.key, e0) for t in trainings]
+                state, train_loss, val_loss = update(
+                    state, keys[0] if G == 1 else jnp.stack(keys), data, val_data)
+                train_loss, val_loss = train_loss[None], val_loss[None]
+            # (n, G, K) losses of this call's epochs
             losses = np.asarray(train_loss), np.asarray(val_loss)
             if G == 1:
-                losses = losses[0][None], losses[1][None]
-            for g, t in enumerate(trainings):
-                if failed[g] is not None:
-                    continue
-                history[g].append((losses[0][g], losses[1][g]))
-                bad = ~(np.isfinite(losses[0][g]) & np.isfinite(losses[1][g]))
-                if bad.any():
-                    failed[g] = TrainingError(
-                        f"{t.desc}: the loss went non-finite at epoch {e} (model(s) "
-                        f"{np.flatnonzero(bad).tolist()}); lower the learning rate or check "
-                        "the training data")
-                    continue
-                if t.on_epoch is not None:
-                    t.on_epoch(e, history[g][-1])
+                losses = losses[0][:, None], losses[1][:, None]
+            for i in range(losses[0].shape[0]):
+                _record(trainings, e0 + i, (losses[0][i], losses[1][i]), history, failed)
             if G == 1 and failed[0] is not None:
                 break
-            bar.set_postfix(val=f"{float(np.min(losses[1])):.3g}")
-            bar.update()
+            bar.set_postfix(val=f"{float(np.min(losses[1][-1])):.3g}", refresh=False)
+            bar.update(losses[0].shape[0])
     if G == 1:
         return [failed[0] or (state, np.asarray(history[0]))]
     states = _unstack(state, G)
     return [failed[g] or (states[g], np.asarray(history[g])) for g in range(G)]
+
+
+def _record(trainings: list[_Training], e: int, losses: tuple, history: list[list],
+            failed: list) -> None:
+    """Epoch ``e``'s (G, K) training and validation losses into each training's history;
+    a training whose loss went non-finite fails (and records no more)."""
+    for g, t in enumerate(trainings):
+        if failed[g] is not None:
+            continue
+        history[g].append((losses[0][g], losses[1][g]))
+        bad = ~(np.isfinite(losses[0][g]) & np.isfinite(losses[1][g]))
+        if bad.any():
+            failed[g] = TrainingError(
+                f"{t.desc}: the loss went non-finite at epoch {e} (model(s) "
+                f"{np.flatnonzero(bad).tolist()}); lower the learning rate or check "
+                "the training data")
+            continue
+        if t.on_epoch is not None:
+            t.on_epoch(e, history[g][-1])

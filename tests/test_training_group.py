@@ -235,3 +235,51 @@ def test_a_gpus_epochs_train_the_same_models_up_to_rounding(monkeypatch):
     for model in (PhysicalTorqueModel(stacked_joints=True), AttentionModel(stacked_joints=True)):
         assert checkpoints._arch(model) == checkpoints._arch(model.clone(stacked_joints=False))
 
+
+
+def test_several_epochs_per_call_train_the_same_models_as_one_per_call(monkeypatch):
+    """A training of short epochs (a fine-tuning's) runs several epochs per program call, a
+    ``lax.scan`` over them with each epoch's key folded inside: alone and in a group, the
+    same models, losses and best epochs as one epoch per call, bit for bit on a CPU (the
+    same epoch, the same keys); a loss gone non-finite names its epoch either way."""
+    per_call = training_group.epochs_per_call
+    assert per_call(200, 1) == 25  # a fine-tuning on 64 samples: 8 calls
+    assert per_call(200, 14) == 25  # on 1000
+    assert per_call(300, 289) == 1  # the paper's torque training from scratch
+    assert per_call(30, 281) == 1  # its attention
+    assert per_call(60, 100) == 5  # at most 512 steps a call, dividing the epochs
+    assert per_call(7, 1) == per_call(1, 1) == per_call(200, 0) == 1
+    cfg = CFG.replace(torque_epochs=16)  # N samples: one step an epoch, 2 epochs a call
+
+    def torque(seed, nan=False):
+        c, fc, tr, va, key = _job(seed, nan=nan)
+        return train_torque_models(cfg.replace(seed=seed), fc, tr, va,
+                                   jax.random.split(key)[0], progress=False)
+
+    def grouped():
+        group = TrainingGroup(["a", "b"])
+
+        def member(name, seed):
+            with group.member(name):
+                return torque(seed)
+        return side_by_side([lambda: member("a", 1), lambda: member("b", 2)], workers=2)
+
+    calls = []
+    several = training_group._epochs_of
+    monkeypatch.setattr(training_group, "_epochs_of",
+                        lambda *a: calls.append(a[1:]) or several(*a))
+    got = {"alone": [torque(1)], "group": grouped()}
+    assert calls == [(False, 2), (True, 2)]
+    with pytest.raises(TrainingError, match="non-finite at epoch 0"):
+        torque(6, nan=True)
+    monkeypatch.setattr(training_group, "STEPS_PER_CALL", 0)  # one epoch a call
+    want = {"alone": [torque(1)], "group": grouped()}
+    assert len(calls) == 3  # the non-finite training's; none since
+    for how in want:
+        for g, w in zip(got[how], want[how]):
+            assert g.history.shape == (16, 2, CFG.n_models)
+            assert_tree_equal(g.variables, w.variables, what=f"{how}: parameters")
+            np.testing.assert_array_equal(g.history, w.history, err_msg=f"{how}: history")
+            np.testing.assert_array_equal(g.best_epoch, w.best_epoch)
+    with pytest.raises(TrainingError, match="non-finite at epoch 0"):
+        torque(6, nan=True)
