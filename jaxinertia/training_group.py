@@ -275,6 +275,20 @@ def _run_stacked(trainings: list[_Training]) -> list:
         keys = first.key if G == 1 else jnp.stack([t.key for t in trainings])
     with tqdm(total=first.n_epochs, desc=desc, unit="epoch",
               disable=not any(t.progress for t in trainings)) as bar:
+
+        def read(e0, train_loss, val_loss) -> None:
+            """A call's (n, G, K) losses on the host: its epochs recorded, the bar moved."""
+            losses = np.asarray(train_loss), np.asarray(val_loss)
+            if G == 1:
+                losses = losses[0][:, None], losses[1][:, None]
+            for i in range(losses[0].shape[0]):
+                _record(trainings, e0 + i, (losses[0][i], losses[1][i]), history, failed)
+            bar.set_postfix(val=f"{float(np.min(losses[1][-1])):.3g}", refresh=False)
+            bar.update(losses[0].shape[0])
+
+        # The host reads a call's losses after dispatching the next call: the device always
+        # has the next epochs queued while the host waits, records and draws.
+        pending = None
         for e0 in range(0, first.n_epochs, n):
             if n > 1:
                 state, (train_loss, val_loss) = several(state, keys, jnp.int32(e0), data,
@@ -284,16 +298,14 @@ def _run_stacked(trainings: list[_Training]) -> list:
                 state, train_loss, val_loss = update(
                     state, keys[0] if G == 1 else jnp.stack(keys), data, val_data)
                 train_loss, val_loss = train_loss[None], val_loss[None]
-            # (n, G, K) losses of this call's epochs
-            losses = np.asarray(train_loss), np.asarray(val_loss)
-            if G == 1:
-                losses = losses[0][:, None], losses[1][:, None]
-            for i in range(losses[0].shape[0]):
-                _record(trainings, e0 + i, (losses[0][i], losses[1][i]), history, failed)
+            if pending is not None:
+                read(*pending)
+            pending = (e0, train_loss, val_loss)
             if G == 1 and failed[0] is not None:
+                pending = None  # alone and failed: the rest is not recorded
                 break
-            bar.set_postfix(val=f"{float(np.min(losses[1][-1])):.3g}", refresh=False)
-            bar.update(losses[0].shape[0])
+        if pending is not None:
+            read(*pending)
     if G == 1:
         return [failed[0] or (state, np.asarray(history[0]))]
     states = _unstack(state, G)
