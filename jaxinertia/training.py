@@ -53,7 +53,7 @@ from jaxinertia.networks import (
     parameter_shapes,
 )
 from jaxinertia.samples import Samples
-from jaxinertia.training_group import run_epochs
+from jaxinertia.training_group import run_epochs, shared_cache
 from jaxinertia.training_setup import (
     FINETUNE_DEFAULTS,
     TrainConfig,
@@ -338,7 +338,7 @@ def train_torque_models(
 # The epochs are kept per architecture and setting (models are hashable Flax modules): a
 # later training of the same kind and shapes (the second fold, another fine-tuning) runs
 # the jitted epoch it already traced, instead of tracing and lowering it again.
-@functools.lru_cache(maxsize=32)
+@shared_cache
 def _torque_epoch(model, lr: float, trainable: str, batch: int,
                   compiler_options: tuple = (), stacked: bool = False,
                   flat: bool = False) -> Epoch:
@@ -359,7 +359,7 @@ def _torque_epoch(model, lr: float, trainable: str, batch: int,
                       compiler_options=compiler_options)
 
 
-@functools.lru_cache(maxsize=32)
+@shared_cache
 def _attention_epoch(model, lr: float, trainable: str, batch: int, w_mass: float,
                      w_com: float, compiler_options: tuple = (), stacked: bool = False,
                      flat: bool = False) -> Epoch:

@@ -43,7 +43,7 @@ from tqdm.auto import tqdm
 from jaxinertia.errors import TrainingError
 from jaxinertia.sharding import shard
 
-__all__ = ["TrainingGroup", "run_epochs"]
+__all__ = ["TrainingGroup", "run_epochs", "shared_cache"]
 
 _local = threading.local()
 
@@ -214,13 +214,34 @@ def _run_together(trainings: list[_Training]) -> list:
     return out
 
 
-@functools.lru_cache(maxsize=32)
+def shared_cache(fn):
+    """``functools.lru_cache`` (32 entries) whose misses are filled under a lock, for the
+    epochs (``training._torque_epoch``, ``_attention_epoch``) and their group programs.
+    Trainings share a program only if they run the same epoch object, and a plain
+    ``lru_cache`` lets threads that miss at once each build their own (it calls the
+    function outside its lock): then a group's members can split by timing, the one way
+    found in which they could (most likely why, in a full run on an H100 in session 29,
+    one of the folds' groups of four fine-tunings ran as three and one). Building an
+    epoch or a ``jax.jit`` traces nothing: the lock is held briefly."""
+    cached = functools.lru_cache(maxsize=32)(fn)
+    lock = threading.Lock()
+
+    @functools.wraps(fn)
+    def get(*args, **kwargs):
+        with lock:
+            return cached(*args, **kwargs)
+
+    get.cache_clear, get.cache_info = cached.cache_clear, cached.cache_info
+    return get
+
+
+@shared_cache
 def _update_of_group(epoch):
     return jax.jit(jax.vmap(epoch.update_fn),
                    compiler_options=dict(epoch.compiler_options) or None)
 
 
-@functools.lru_cache(maxsize=32)
+@shared_cache
 def _epochs_of(epoch, grouped: bool, n: int):
     """``n`` epochs of ``epoch`` (of a group's members: ``grouped``) as one program:
     ``(state, keys, e0, data, val_data) -> (state, (train_loss, val_loss))``, the losses with

@@ -4,6 +4,7 @@ up to float rounding, and no member waits for one that has left."""
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import jax
 import jax.numpy as jnp
@@ -283,3 +284,25 @@ def test_several_epochs_per_call_train_the_same_models_as_one_per_call(monkeypat
             np.testing.assert_array_equal(g.best_epoch, w.best_epoch)
     with pytest.raises(TrainingError, match="non-finite at epoch 0"):
         torque(6, nan=True)
+
+
+def test_threads_building_the_same_epoch_at_once_get_one_program(monkeypatch):
+    """A group runs trainings together only if their epochs are the same object; threads
+    (the folds' branches) that ask for the same epoch at once must all get it, however
+    their building interleaves (here made slow: a plain ``lru_cache`` let each build its
+    own, and a group of four then ran as three and one)."""
+    make = training.make_epoch
+
+    def slow(*args, **kwargs):
+        time.sleep(0.05)
+        return make(*args, **kwargs)
+
+    monkeypatch.setattr(training, "make_epoch", slow)
+    model = PhysicalTorqueModel(n_joints=4)
+    args = (model, 1.25e-4, "servo", 57)  # a setting no other test builds
+    epochs = side_by_side([lambda: training._torque_epoch(*args)] * 4, workers=4)
+    assert all(e is epochs[0] for e in epochs)
+    assert training._torque_epoch(*args) is epochs[0]
+    attention = (AttentionModel(n_joints=4), 1.25e-4, "all", 7, 1.0, 0.3)
+    epochs = side_by_side([lambda: training._attention_epoch(*attention)] * 4, workers=4)
+    assert all(e is epochs[0] for e in epochs)
