@@ -107,7 +107,9 @@ def run_epochs(epoch, state, data, val_data, n_epochs: int, key, desc: str, prog
     ``steps_per_epoch`` (the minibatches of an epoch, 0: unknown) sets how many epochs one
     program call runs (:func:`epochs_per_call`): several as a ``lax.scan`` over the epochs,
     epoch ``e``'s key ``fold_in(key, e)`` either way, so the keys, and so the minibatches,
-    are those of one call per epoch."""
+    are those of one call per epoch. ``on_epoch`` sees a call's epochs when the host has
+    read its losses (several at once when a call runs several; timings from it are per
+    call, and every training of 15 epochs or fewer runs one a call)."""
     training = _Training(epoch, state, data, val_data, int(n_epochs), key, desc, progress,
                          on_epoch, epochs_per_call(int(n_epochs), int(steps_per_epoch)))
     member = getattr(_local, "member", None)
