@@ -85,10 +85,12 @@ def epochs_per_call(n_epochs: int, steps_per_epoch: int) -> int:
     :data:`STEPS_PER_CALL` steps and :data:`MOST_EPOCHS_PER_CALL` of the epochs; 1 for a
     training of long epochs (every training from scratch at the paper's scale).
 
-    Why: each call is a few dispatches and a wait for its losses on the host. A
-    fine-tuning's epoch (200 of them, a few minibatches each) is 2 ms of GPU; its host loop,
-    beside the other trainings' and judges' threads, managed 12-25 epochs a second
-    (docs/benchmarks.md, "Session 29")."""
+    Why: each call is a few dispatches and a wait for its losses on the host, each a
+    hand-over of the GIL. A fine-tuning's epoch (200 of them, a few minibatches each) is
+    about 2 ms of GPU: alone on an H100 a compiled fine-tuning took 0.49-1.15 s one epoch a
+    call against 0.12-0.21 s at 25, and beside busy Python threads (the folds run a dozen)
+    the one-a-call loop was 25-50 times slower on a CPU (``experiments/finetune_calls.py``;
+    docs/benchmarks.md, "Session 29")."""
     if steps_per_epoch <= 0 or n_epochs <= 1:
         return 1
     most = max(1, min(STEPS_PER_CALL // steps_per_epoch,
