@@ -250,6 +250,7 @@ def test_several_epochs_per_call_train_the_same_models_as_one_per_call(monkeypat
     assert per_call(30, 281) == 1  # its attention
     assert per_call(60, 100) == 5  # at most 512 steps a call, dividing the epochs
     assert per_call(7, 1) == per_call(1, 1) == per_call(200, 0) == 1
+    assert per_call(15, 1) == 1 and per_call(16, 1) == 2  # on_epoch's timings: per epoch
     cfg = CFG.replace(torque_epochs=16)  # N samples: one step an epoch, 2 epochs a call
 
     def torque(seed, nan=False):
