@@ -26,7 +26,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-__all__ = ["AXIS", "local_mesh", "shard"]
+__all__ = ["AXIS", "local_mesh", "replicate", "shard"]
 
 AXIS = "batch"
 
@@ -37,19 +37,26 @@ def local_mesh() -> Mesh:
     return Mesh(np.asarray(jax.local_devices()), (AXIS,))
 
 
-def shard(tree, axis: int = 0):
+def shard(tree, axis: int | None = 0):
     """``tree``'s arrays placed with ``axis`` split over :func:`local_mesh` (arrays without
-    that axis, or whose length there the device count does not divide: replicated).
-    ``None`` leaves stay ``None``."""
+    that axis, or whose length there the device count does not divide: replicated; every
+    array when ``axis`` is None). ``None`` leaves stay ``None``."""
     mesh = local_mesh()
     n = mesh.devices.size
 
     def place(a):
         a = jax.numpy.asarray(a) if isinstance(a, np.ndarray) else a
-        if np.ndim(a) > axis and np.shape(a)[axis] % n == 0:
+        if axis is not None and np.ndim(a) > axis and np.shape(a)[axis] % n == 0:
             spec = PartitionSpec(*([None] * axis), AXIS)
         else:
             spec = PartitionSpec()
         return jax.device_put(a, NamedSharding(mesh, spec))
 
     return jax.tree_util.tree_map(place, tree)
+
+
+def replicate(tree):
+    """``tree``'s arrays whole on every device of :func:`local_mesh` (committed there, as
+    :func:`shard` commits: a program's inputs then have one placement wherever the arrays
+    came from, and so one compiled program)."""
+    return shard(tree, None)

@@ -78,6 +78,7 @@ __all__ = [
     "split_validation",
     "train_attention_models",
     "train_torque_models",
+    "untrained_torque",
 ]
 
 
@@ -335,6 +336,17 @@ def train_torque_models(
     return TrainedTorque(model, state.best_params, hist, np.asarray(state.best_epoch))
 
 
+def untrained_torque(cfg: TrainConfig, fc: FeatureConfig, train: Samples,
+                     model: TorqueModel | None = None) -> TrainedTorque:
+    """What :func:`train_torque_models` returns for these inputs, but freshly initialised
+    and untrained: the shapes of a trained one, for a rehearsal of the attention's training
+    (:func:`jaxinertia.training_group.rehearse`)."""
+    model = model or TORQUE_MODELS[cfg.torque_model](n_joints=train.q.shape[1])
+    params = _start(model, jax.random.key(0), cfg.n_models, _features(fc, train)[:1], None)
+    return TrainedTorque(model, params, np.zeros((0, 2, cfg.n_models), np.float32),
+                         np.zeros(cfg.n_models, np.int32))
+
+
 # The epochs are kept per architecture and setting (models are hashable Flax modules): a
 # later training of the same kind and shapes (the second fold, another fine-tuning) runs
 # the jitted epoch it already traced, instead of tracing and lowering it again.
@@ -465,9 +477,13 @@ def train_attention_models(
     (feats, A, y, x_obj), (vf, vA, vy, vx) = arrays(train), arrays(val)
     batch = min(cfg.attention_batch, sets.shape[0])
     steps = sets.shape[0] // batch
+    # Without the GPU's autotuner, however long (as a short training's): its program then
+    # compiles on the CPU alone, beside the torque models' training (a rehearsal,
+    # :func:`jaxinertia.training_group.rehearse`), where the autotuner would time its
+    # kernels on a busy GPU and slow both; its epochs run about as fast either way
+    # (docs/benchmarks.md, "Session 30").
     epoch = _attention_epoch(model, cfg.attention_lr, trainable, batch, cfg.w_mass,
-                             cfg.w_com, epoch_compiler_options(cfg.attention_epochs * steps),
-                             **accelerated_epochs())
+                             cfg.w_com, epoch_compiler_options(0), **accelerated_epochs())
     data, val_data = ((feats, A, x_obj, sets), y), ((vf, vA, vx, vsets), vy)
     state = epoch.init(_start(model, k_init, K, feats[:1], init), dtype,
                        None if init is None else val_data)

@@ -41,9 +41,9 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from jaxinertia.errors import TrainingError
-from jaxinertia.sharding import shard
+from jaxinertia.sharding import replicate, shard
 
-__all__ = ["TrainingGroup", "run_epochs", "shared_cache"]
+__all__ = ["TrainingGroup", "rehearse", "run_epochs", "shared_cache"]
 
 _local = threading.local()
 
@@ -62,11 +62,13 @@ class _Training:
     progress: bool
     on_epoch: Callable | None
     per_call: int = 1  # epochs per program call (:func:`epochs_per_call`)
+    compile_only: bool = False  # a rehearsal's (:func:`rehearse`): compiled, not run
 
     def signature(self) -> tuple:
         """Trainings with equal signatures run as one program."""
         trees = (self.state, self.data, self.val_data)
-        return (self.epoch, self.n_epochs, self.per_call, jax.tree_util.tree_structure(trees),
+        return (self.epoch, self.n_epochs, self.per_call, self.compile_only,
+                jax.tree_util.tree_structure(trees),
                 tuple((tuple(np.shape(a)), str(a.dtype))
                       for a in jax.tree_util.tree_leaves(trees)))
 
@@ -113,7 +115,8 @@ def run_epochs(epoch, state, data, val_data, n_epochs: int, key, desc: str, prog
     read its losses (several at once when a call runs several; timings from it are per
     call, and every training of 15 epochs or fewer runs one a call)."""
     training = _Training(epoch, state, data, val_data, int(n_epochs), key, desc, progress,
-                         on_epoch, epochs_per_call(int(n_epochs), int(steps_per_epoch)))
+                         on_epoch, epochs_per_call(int(n_epochs), int(steps_per_epoch)),
+                         getattr(_local, "compile_only", False))
     member = getattr(_local, "member", None)
     if member is None:
         return _raise_or_return(_run_together([training])[0])
@@ -127,6 +130,41 @@ def _raise_or_return(result):
     return result
 
 
+def rehearse(fn: Callable[[], Any]) -> threading.Thread | None:
+    """Compiles a later training of this thread's group member ahead, beside what the
+    thread runs now: ``fn`` (a trainer called as the member will call it later, with
+    inputs of the same shapes) runs in a thread of its own as the member of the group's
+    twin (``TrainingGroup.rehearsal``), where every :func:`run_epochs` compiles the
+    program(s) the group will run, for the members that share its shapes, and runs no
+    epoch (the state comes back as it went in, with no history). Whatever else ``fn``
+    does runs as written (a model's initialisation, the validation loss), compiling its
+    programs too. The later training then finds its programs compiled (JAX keeps them per
+    function and shapes), whose compile a GPU's fold would otherwise wait for on its
+    critical path (the attention's, 14 s in ``reproduce --full`` on an H100).
+
+    Returns the thread (a daemon: a rehearsal waiting for a member that never rehearses
+    ends with the process), or None outside a group (nothing to overlap: the trainings
+    run one after another in this thread). A rehearsal changes no number: its programs
+    are the ones the training would compile, and nothing it computes is kept; a failed
+    one is dropped (the training compiles for itself)."""
+    member = getattr(_local, "member", None)
+    if member is None or member[0].rehearsal is None:
+        return None
+    group, name = member
+
+    def run() -> None:
+        _local.compile_only = True
+        try:
+            with group.rehearsal.member(name):
+                fn()
+        except Exception:  # noqa: BLE001 - a rehearsal only saves time; the training decides
+            pass
+
+    thread = threading.Thread(target=run, name=f"rehearse-{name}", daemon=True)
+    thread.start()
+    return thread
+
+
 class TrainingGroup:
     """Trainings of named members, run side by side in threads, whose epochs run as one
     program where their shapes agree (module docstring). Each member's thread runs its
@@ -134,7 +172,7 @@ class TrainingGroup:
     meets the i-th of the others. The stacking order (and so nothing but the program's
     layout) is ``members``' order."""
 
-    def __init__(self, members: Iterable[str]):
+    def __init__(self, members: Iterable[str], *, _rehearsal: bool = False):
         self._members = tuple(members)
         if len(set(self._members)) != len(self._members):
             raise ValueError(f"training group members repeat: {self._members}")
@@ -143,6 +181,9 @@ class TrainingGroup:
         self._left: set[str] = set()
         self._waiting: dict[int, dict[str, _Training]] = {}
         self._results: dict[int, dict[str, Any]] = {}
+        # The members' rehearsals (:func:`rehearse`) meet in a twin group of their own:
+        # they run beside the members' trainings, which must keep their own count.
+        self.rehearsal = None if _rehearsal else TrainingGroup(self._members, _rehearsal=True)
 
     @property
     def members(self) -> tuple[str, ...]:
@@ -165,9 +206,12 @@ class TrainingGroup:
     def leave(self, names: Iterable[str]) -> None:
         """These members train no more (whether or not they ever joined): the others stop
         waiting for them. Leaving twice is leaving once."""
+        names = list(names)
         with self._cond:
             self._left.update(names)
             self._cond.notify_all()
+        if self.rehearsal is not None:  # one that trains no more rehearses no more either
+            self.rehearsal.leave(names)
 
     def _submit(self, name: str, training: _Training):
         with self._cond:
@@ -289,8 +333,10 @@ def _run_stacked(trainings: list[_Training]) -> list:
         update, axis = _update_of_group(first.epoch), 1
         state, data, val_data = (_stack([getattr(t, f) for t in trainings])
                                  for f in ("state", "data", "val_data"))
+    # Placed alike whatever the arrays' origin (committed by an earlier training's program or
+    # not: a rehearsal's are not): otherwise the same epoch compiles as another program.
     state = shard(state, axis)
-    data, val_data = ((shared, shard(own, axis)) for shared, own in (data, val_data))
+    data, val_data = ((replicate(shared), shard(own, axis)) for shared, own in (data, val_data))
     history: list[list] = [[] for _ in trainings]
     failed: list[BaseException | None] = [None] * G
     desc = first.desc if G == 1 else f"{first.desc} (x{G}, one program)"
@@ -298,6 +344,15 @@ def _run_stacked(trainings: list[_Training]) -> list:
     if n > 1:
         several = _epochs_of(first.epoch, G > 1, n)
         keys = first.key if G == 1 else jnp.stack([t.key for t in trainings])
+    if first.compile_only:  # a rehearsal: the first call's program(s), compiled only
+        if n > 1:
+            several.lower(state, keys, jnp.int32(0), data, val_data).compile()
+        else:
+            keys = [jax.random.fold_in(t.key, 0) for t in trainings]
+            update.lower(state, keys[0] if G == 1 else jnp.stack(keys), data,
+                         val_data).compile()
+        K = jax.tree_util.tree_leaves(first.state)[0].shape[0]
+        return [(t.state, np.zeros((0, 2, K), np.float32)) for t in trainings]
     with tqdm(total=first.n_epochs, desc=desc, unit="epoch",
               disable=not any(t.progress for t in trainings)) as bar:
 

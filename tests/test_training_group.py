@@ -4,6 +4,7 @@ up to float rounding, and no member waits for one that has left."""
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 
 import jax
@@ -190,6 +191,13 @@ def test_short_trainings_compile_their_epochs_without_the_gpu_autotuner(monkeypa
 
     with pytest.raises(Exception, match="No such compile option"):
         grouped()
+    # The attention, however long, as a short training: compiled without the autotuner on
+    # a GPU (a rehearsal compiles it beside a training on the GPU: rehearse).
+    steps.clear()
+    with pytest.raises(Exception, match="No such compile option"):
+        _, fc, tr, va, key = _job(1)
+        train_attention_models(CFG, fc, want["a"], tr, va, key, progress=False)
+    assert steps == [0]
     # The GPU's option on a CPU: ignored, the numbers without it bit for bit.
     monkeypatch.setattr(training, "epoch_compiler_options",
                         lambda n: (("xla_gpu_autotune_level", 0),))
@@ -307,3 +315,69 @@ def test_threads_building_the_same_epoch_at_once_get_one_program(monkeypatch):
     attention = (AttentionModel(n_joints=4), 1.25e-4, "all", 7, 1.0, 0.3)
     epochs = side_by_side([lambda: training._attention_epoch(*attention)] * 4, workers=4)
     assert all(e is epochs[0] for e in epochs)
+
+
+@pytest.mark.parametrize("attention_epochs", [2, 16])  # one epoch a program call, and two
+def test_a_rehearsal_compiles_the_groups_attention_program_and_changes_nothing(
+        monkeypatch, attention_epochs):
+    """``rehearse`` (the folds' attention, compiled while the torque models train): the
+    group's later attention training compiles no epoch program of its own, and its members'
+    models are those of the same group without the rehearsal, bit for bit."""
+    cfg = CFG.replace(attention_epochs=attention_epochs)
+    # Shapes no other test trains (n): the programs are compiled here, by the rehearsal.
+    jobs = {name: (cfg.replace(seed=seed), *_job(seed, n=170 + attention_epochs)[1:])
+            for name, seed in (("a", 11), ("b", 12), ("c", 13))}
+    compiled: list[list[str]] = []  # per real attention program: the programs it compiled
+    stacked = training_group._run_stacked
+
+    class Programs(logging.Handler):  # the names of the programs XLA compiles
+        def emit(self, record):
+            if "Finished XLA compilation" in record.getMessage():
+                compiled[-1].append(record.getMessage())
+
+    def spy(trainings):
+        if trainings[0].compile_only or trainings[0].desc != "attention model":
+            return stacked(trainings)
+        logger, handler = logging.getLogger("jax"), Programs()
+        compiled.append([])
+        logger.addHandler(handler)
+        propagate, logger.propagate = logger.propagate, False
+        try:
+            with jax.log_compiles(True):
+                return stacked(trainings)
+        finally:
+            logger.removeHandler(handler)
+            logger.propagate = propagate
+
+    monkeypatch.setattr(training_group, "_run_stacked", spy)
+
+    def run(rehearsed: bool):
+        group = TrainingGroup(jobs)
+        rehearsals = []
+
+        def member(name):
+            cfg, fc, tr, va, key = jobs[name]
+            with group.member(name):
+                if rehearsed:
+                    rehearsals.append(training_group.rehearse(lambda: train_attention_models(
+                        cfg, fc, training.untrained_torque(cfg, fc, tr), tr, va,
+                        jax.random.split(key)[1], progress=False)))
+                    rehearsals[-1].join()  # here: compiled before the torque trains
+                return _pair(jobs[name])
+
+        out = side_by_side([lambda n=n: member(n) for n in jobs], workers=3)
+        assert all(not t.is_alive() for t in rehearsals) and len(rehearsals) == 3 * rehearsed
+        return out
+
+    got = run(rehearsed=True)
+    # The members' attention as one program, found compiled: nothing named after an epoch
+    # program ("update", or "run" for several epochs a call) compiled in it.
+    assert len(compiled) == 1
+    assert not [m for m in compiled[0] if "jit(update)" in m or "jit(run)" in m], compiled
+    jax.clear_caches()  # the programs forgotten: without the rehearsal, compiled anew
+    want = run(rehearsed=False)
+    # ... which the same group without the rehearsal compiles there (the check can fail).
+    assert [m for m in compiled[1] if "jit(update)" in m or "jit(run)" in m], compiled
+    for name, g, w in zip(jobs, got, want):
+        _assert_same(g, w, name)
+    assert training_group.rehearse(lambda: None) is None  # outside a group: nothing to do

@@ -54,7 +54,9 @@ from jaxinertia.training import (
     split_validation,
     train_attention_models,
     train_torque_models,
+    untrained_torque,
 )
+from jaxinertia.training_group import rehearse
 from jaxinertia.uncertainty import validation_torque_error
 
 __all__ = ["UNIFORM_ATTENTION", "RealData", "adapt_objects", "copy_models", "evaluate_models",
@@ -152,9 +154,19 @@ def _fit(cfg: TrainConfig, fc, train_set: Samples, val_set: Samples, start: Mode
     """The K torque and attention model pairs (from ``start``'s parameters when given) and
     the baselines; returns them, the two trainings' results and when the torque's ended."""
     k_t, k_a = jax.random.split(jax.random.key(cfg.seed))
+    # In a group (the held-out folds on an accelerator) the attention's programs compile
+    # while the torque models train, instead of after them: 14 s of a GPU fold's critical
+    # path (docs/benchmarks.md, "Session 30").
+    rehearsal = None if start is not None else rehearse(lambda: train_attention_models(
+        cfg, fc, untrained_torque(cfg, fc, train_set), train_set, val_set, k_a,
+        progress=False))
     torque = train_torque_models(cfg, fc, train_set, val_set, k_t, progress=progress,
                                  init=None if start is None else start.torque_vars,
                                  model=None if start is None else start.torque_model)
+    if rehearsal is not None:
+        # Done by now: every member of the group reached its torque training, so every one
+        # started its rehearsal (or left); the attention then finds its programs compiled.
+        rehearsal.join()
     t1 = time.perf_counter()
     attention = train_attention_models(
         cfg, fc, torque, train_set, val_set, k_a, progress=progress,
