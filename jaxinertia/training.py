@@ -53,7 +53,7 @@ from jaxinertia.networks import (
     parameter_shapes,
 )
 from jaxinertia.samples import Samples
-from jaxinertia.training_group import run_epochs, shared_cache
+from jaxinertia.training_group import rehearse, run_epochs, shared_cache
 from jaxinertia.training_setup import (
     FINETUNE_DEFAULTS,
     TrainConfig,
@@ -77,8 +77,8 @@ __all__ = [
     "per_object_subset",
     "split_validation",
     "train_attention_models",
+    "rehearse_attention",
     "train_torque_models",
-    "untrained_torque",
 ]
 
 
@@ -336,15 +336,20 @@ def train_torque_models(
     return TrainedTorque(model, state.best_params, hist, np.asarray(state.best_epoch))
 
 
-def untrained_torque(cfg: TrainConfig, fc: FeatureConfig, train: Samples,
-                     model: TorqueModel | None = None) -> TrainedTorque:
-    """What :func:`train_torque_models` returns for these inputs, but freshly initialised
-    and untrained: the shapes of a trained one, for a rehearsal of the attention's training
-    (:func:`jaxinertia.training_group.rehearse`)."""
-    model = model or TORQUE_MODELS[cfg.torque_model](n_joints=train.q.shape[1])
-    params = _start(model, jax.random.key(0), cfg.n_models, _features(fc, train)[:1], None)
-    return TrainedTorque(model, params, np.zeros((0, 2, cfg.n_models), np.float32),
-                         np.zeros(cfg.n_models, np.int32))
+def rehearse_attention(cfg: TrainConfig, fc: FeatureConfig, train: Samples, val: Samples,
+                       key: jax.Array):
+    """The attention's training of these inputs (``key`` as :func:`train_attention_models`
+    would get it), compiled ahead in a group member's thread beside its torque training:
+    :func:`jaxinertia.training_group.rehearse` with an untrained torque model of the
+    trained one's shapes. The thread, or None outside a group."""
+    def attention():
+        model = TORQUE_MODELS[cfg.torque_model](n_joints=train.q.shape[1])
+        params = _start(model, jax.random.key(0), cfg.n_models, _features(fc, train)[:1], None)
+        torque = TrainedTorque(model, params, np.zeros((0, 2, cfg.n_models), np.float32),
+                               np.zeros(cfg.n_models, np.int32))
+        train_attention_models(cfg, fc, torque, train, val, key, progress=False)
+
+    return rehearse(attention)
 
 
 # The epochs are kept per architecture and setting (models are hashable Flax modules): a

@@ -132,21 +132,15 @@ def _raise_or_return(result):
 
 def rehearse(fn: Callable[[], Any]) -> threading.Thread | None:
     """Compiles a later training of this thread's group member ahead, beside what the
-    thread runs now: ``fn`` (a trainer called as the member will call it later, with
-    inputs of the same shapes) runs in a thread of its own as the member of the group's
-    twin (``TrainingGroup.rehearsal``), where every :func:`run_epochs` compiles the
-    program(s) the group will run, for the members that share its shapes, and runs no
-    epoch (the state comes back as it went in, with no history). Whatever else ``fn``
-    does runs as written (a model's initialisation, the validation loss), compiling its
-    programs too. The later training then finds its programs compiled (JAX keeps them per
-    function and shapes), whose compile a GPU's fold would otherwise wait for on its
-    critical path (the attention's, 14 s in ``reproduce --full`` on an H100).
-
-    Returns the thread (a daemon: a rehearsal waiting for a member that never rehearses
-    ends with the process), or None outside a group (nothing to overlap: the trainings
-    run one after another in this thread). A rehearsal changes no number: its programs
-    are the ones the training would compile, and nothing it computes is kept; a failed
-    one is dropped (the training compiles for itself)."""
+    thread runs now: ``fn`` (a trainer called as the member will call it later, inputs of
+    the same shapes) runs in a thread as the member of the group's twin
+    (``TrainingGroup.rehearsal``), where :func:`run_epochs` compiles the program(s) the
+    group will run and runs no epoch (the state comes back as it went in, no history);
+    the rest of ``fn`` runs as written, compiling its programs too. The training then
+    finds them compiled (JAX keeps them per function and shapes): in a GPU fold the
+    attention's compile (14 s) left its critical path. Returns the thread (a daemon), or
+    None outside a group (nothing to overlap). It changes no number: the programs are the
+    training's own and nothing computed is kept; a failed one is dropped."""
     member = getattr(_local, "member", None)
     if member is None or member[0].rehearsal is None:
         return None
@@ -154,11 +148,8 @@ def rehearse(fn: Callable[[], Any]) -> threading.Thread | None:
 
     def run() -> None:
         _local.compile_only = True
-        try:
-            with group.rehearsal.member(name):
-                fn()
-        except Exception:  # noqa: BLE001 - a rehearsal only saves time; the training decides
-            pass
+        with contextlib.suppress(Exception), group.rehearsal.member(name):
+            fn()  # a rehearsal only saves time: a failed one is the training's to report
 
     thread = threading.Thread(target=run, name=f"rehearse-{name}", daemon=True)
     thread.start()
@@ -181,8 +172,7 @@ class TrainingGroup:
         self._left: set[str] = set()
         self._waiting: dict[int, dict[str, _Training]] = {}
         self._results: dict[int, dict[str, Any]] = {}
-        # The members' rehearsals (:func:`rehearse`) meet in a twin group of their own:
-        # they run beside the members' trainings, which must keep their own count.
+        # The rehearsals (:func:`rehearse`) meet in a twin: the trainings keep their count.
         self.rehearsal = None if _rehearsal else TrainingGroup(self._members, _rehearsal=True)
 
     @property
@@ -333,8 +323,7 @@ def _run_stacked(trainings: list[_Training]) -> list:
         update, axis = _update_of_group(first.epoch), 1
         state, data, val_data = (_stack([getattr(t, f) for t in trainings])
                                  for f in ("state", "data", "val_data"))
-    # Placed alike whatever the arrays' origin (committed by an earlier training's program or
-    # not: a rehearsal's are not): otherwise the same epoch compiles as another program.
+    # Placed alike whatever made them (a rehearsal's inputs): else another program compiles.
     state = shard(state, axis)
     data, val_data = ((replicate(shared), shard(own, axis)) for shared, own in (data, val_data))
     history: list[list] = [[] for _ in trainings]

@@ -359,9 +359,8 @@ def test_a_rehearsal_compiles_the_groups_attention_program_and_changes_nothing(
             cfg, fc, tr, va, key = jobs[name]
             with group.member(name):
                 if rehearsed:
-                    rehearsals.append(training_group.rehearse(lambda: train_attention_models(
-                        cfg, fc, training.untrained_torque(cfg, fc, tr), tr, va,
-                        jax.random.split(key)[1], progress=False)))
+                    rehearsals.append(training.rehearse_attention(
+                        cfg, fc, tr, va, jax.random.split(key)[1]))
                     rehearsals[-1].join()  # here: compiled before the torque trains
                 return _pair(jobs[name])
 

@@ -51,12 +51,11 @@ from jaxinertia.training import (
     TrainConfig,
     feature_config_from,
     per_object_subset,
+    rehearse_attention,
     split_validation,
     train_attention_models,
     train_torque_models,
-    untrained_torque,
 )
-from jaxinertia.training_group import rehearse
 from jaxinertia.uncertainty import validation_torque_error
 
 __all__ = ["UNIFORM_ATTENTION", "RealData", "adapt_objects", "copy_models", "evaluate_models",
@@ -154,18 +153,13 @@ def _fit(cfg: TrainConfig, fc, train_set: Samples, val_set: Samples, start: Mode
     """The K torque and attention model pairs (from ``start``'s parameters when given) and
     the baselines; returns them, the two trainings' results and when the torque's ended."""
     k_t, k_a = jax.random.split(jax.random.key(cfg.seed))
-    # In a group (the held-out folds on an accelerator) the attention's programs compile
-    # while the torque models train, instead of after them: 14 s of a GPU fold's critical
-    # path (docs/benchmarks.md, "Session 30").
-    rehearsal = None if start is not None else rehearse(lambda: train_attention_models(
-        cfg, fc, untrained_torque(cfg, fc, train_set), train_set, val_set, k_a,
-        progress=False))
+    # In a group (GPU folds) the attention compiles while the torque models train; done when
+    # they are (every member then started its rehearsal or left): benchmarks.md, Session 30.
+    rehearsal = rehearse_attention(cfg, fc, train_set, val_set, k_a) if start is None else None
     torque = train_torque_models(cfg, fc, train_set, val_set, k_t, progress=progress,
                                  init=None if start is None else start.torque_vars,
                                  model=None if start is None else start.torque_model)
     if rehearsal is not None:
-        # Done by now: every member of the group reached its torque training, so every one
-        # started its rehearsal (or left); the attention then finds its programs compiled.
         rehearsal.join()
     t1 = time.perf_counter()
     attention = train_attention_models(

@@ -1,0 +1,92 @@
+"""``jaxinertia reproduce`` with a timeline: when each thread starts and ends the folds'
+stages (calibration, simulation, each training and its epoch programs, each judge) and
+every XLA compile (its thread, program and seconds), into ``--timeline`` (text, one event
+a line, seconds since start). How session 30 found what a GPU fold waits for
+(docs/benchmarks.md, "Session 30"):
+
+    python experiments/fold_timeline.py --timeline tl.txt -- --full --out DIR --lbipe-dir DIR
+
+Everything after ``--`` is ``reproduce``'s. Cold on a GPU: ``JAXINERTIA_CACHE_DIR=off``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import logging
+import os
+import threading
+import time
+
+import jax
+
+from jaxinertia import training_group
+from jaxinertia.app import cli, folds, pipeline
+
+
+class Timeline:
+    def __init__(self, path: str):
+        self.t0, self.out, self.lock = time.time(), open(path, "w", buffering=1), threading.Lock()
+
+    def emit(self, kind: str, what: str, seconds: float | None = None) -> None:
+        with self.lock:
+            self.out.write(f"{time.time() - self.t0:8.2f} {threading.current_thread().name:30s} "
+                           f"{kind:6s} {what}" + ("" if seconds is None else f" {seconds:.2f}")
+                           + "\n")
+
+    def wrap(self, owner, attr: str) -> None:
+        """``owner.attr`` logs its start and end (with the first path among its arguments)."""
+        fn = getattr(owner, attr)
+
+        @functools.wraps(fn)
+        def timed(*args, **kwargs):
+            path = next((os.path.basename(str(a)) for a in args[:3]
+                         if isinstance(a, (str, os.PathLike))), "")
+            what = f"{attr} {path}".strip()
+            self.emit("start", what)
+            t = time.time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.emit("end", what, time.time() - t)
+
+        setattr(owner, attr, timed)
+
+
+class _Compiles(logging.Handler):
+    def __init__(self, timeline: Timeline):
+        super().__init__(logging.DEBUG)
+        self.timeline = timeline
+
+    def emit(self, record: logging.LogRecord) -> None:
+        message = record.getMessage()
+        if message.startswith("Finished XLA compilation of "):
+            self.timeline.emit("comp", message.removeprefix("Finished XLA compilation of "))
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--timeline", required=True, help="the text file to write")
+    p.add_argument("reproduce", nargs=argparse.REMAINDER, help="-- then reproduce's arguments")
+    a = p.parse_args()
+    timeline = Timeline(a.timeline)
+    jax.config.update("jax_log_compiles", True)
+    logger = logging.getLogger("jax")  # every compile, into the timeline, not onto stderr
+    logger.addHandler(_Compiles(timeline))
+    logger.setLevel(logging.WARNING)
+    logger.propagate = False
+    for owner, attr in ((folds, "fit_simulators"), (folds, "simulate_files"), (folds, "train"),
+                        (folds, "evaluate"), (folds._Fold, "judge"),
+                        (pipeline, "train_torque_models"), (pipeline, "train_attention_models"),
+                        (training_group, "_run_stacked")):
+        timeline.wrap(owner, attr)
+    args = [x for x in a.reproduce if x != "--"]
+    t = time.time()
+    try:
+        cli.main(["reproduce", *args])
+    finally:
+        timeline.emit("end", "reproduce", time.time() - t)
+
+
+if __name__ == "__main__":
+    main()
