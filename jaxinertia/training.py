@@ -482,11 +482,11 @@ def train_attention_models(
     (feats, A, y, x_obj), (vf, vA, vy, vx) = arrays(train), arrays(val)
     batch = min(cfg.attention_batch, sets.shape[0])
     steps = sets.shape[0] // batch
-    # Without the GPU's autotuner, however long (as a short training's): its program then
-    # compiles on the CPU alone, beside the torque models' training (a rehearsal,
-    # :func:`jaxinertia.training_group.rehearse`), where the autotuner would time its
-    # kernels on a busy GPU and slow both; its epochs run about as fast either way
-    # (docs/benchmarks.md, "Session 30").
+    # Without the GPU's autotuner, however long (as a short training's): in the folds it
+    # compiles beside the torque models' training (rehearse_attention), where autotuning
+    # timed kernels on a busy GPU and slowed both. Its 30 epochs then take about 16 s
+    # instead of 8 on an H100, but its 14 s compile leaves the critical path: the
+    # attention's stage 21 s instead of 33 (docs/benchmarks.md, "Session 30").
     epoch = _attention_epoch(model, cfg.attention_lr, trainable, batch, cfg.w_mass,
                              cfg.w_com, epoch_compiler_options(0), **accelerated_epochs())
     data, val_data = ((feats, A, x_obj, sets), y), ((vf, vA, vx, vsets), vy)
