@@ -204,8 +204,9 @@ def epoch_compiler_options(steps: int, backend: str | None = None) -> tuple:
     Session 28: alone, the epochs as a GPU now builds them (:func:`accelerated_epochs`) ran
     as fast without it (``epoch_compile.py --as-trained``), but in ``reproduce --full``, every
     epoch compiled without it, the grouped torque trainings ran 10-20 % slower and the folds
-    ended 6-17 s later (two runs each way): the threshold stays. A CPU has no autotuner:
-    nothing to set."""
+    ended 6-17 s later (two runs each way): the threshold stays. The attention's training
+    asks for a short one's options whatever its length (:func:`train_attention_models`,
+    session 30). A CPU has no autotuner: nothing to set."""
     if steps >= AUTOTUNE_MIN_STEPS or (backend or jax.default_backend()) != "gpu":
         return ()
     return (("xla_gpu_autotune_level", 0),)
