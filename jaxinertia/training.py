@@ -75,9 +75,9 @@ __all__ = [
     "make_epoch",
     "optimizer",
     "per_object_subset",
+    "rehearse_attention",
     "split_validation",
     "train_attention_models",
-    "rehearse_attention",
     "train_torque_models",
 ]
 
