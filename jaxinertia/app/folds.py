@@ -40,6 +40,7 @@ from pathlib import Path
 from jaxinertia.app.ensemble import NETWORK_METHODS, judge_mean
 from jaxinertia.app.fold_calibration import fit_simulators
 from jaxinertia.app.fold_groups import FoldGroups
+from jaxinertia.app.fold_rehearsal import rehearse_scratch
 from jaxinertia.app.pipeline import (
     RealData,
     adapt_objects,
@@ -198,6 +199,7 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
     # thread, on its own core).
     calibrated: list = [None] * len(todo)
     if groups is not None:
+        rehearse_scratch(todo, groups)  # their trainings from scratch compile meanwhile
         for fold in todo:
             log(f"-- fold: calibrate on {fold.fit_on}, judge on {', '.join(fold.held)}")
         t = time.perf_counter()
