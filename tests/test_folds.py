@@ -329,7 +329,7 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     monkeypatch.setattr(folds, "train", fake_train)
     calibrations = []  # (folds, together) of each call
     rehearsed = []  # the groups each run_folds rehearsed (test_fold_rehearsal: what it does)
-    monkeypatch.setattr(folds, "rehearse_scratch",
+    monkeypatch.setattr(folds, "rehearse_folds",
                         lambda todo, groups: rehearsed.append((len(calibrations), groups)))
     monkeypatch.setattr(folds._Fold, "judge", lambda self, models: {
         "objects": {}, "torque": {}, "session_ratio": {}, "by_strength": {}})
@@ -368,9 +368,9 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     calibrations.clear()
     run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False, log=lambda m: None)
     # Side by side, the folds' calibrations run first, together (one call for both folds),
-    # and their trainings from scratch are rehearsed before it starts.
+    # and their trainings are rehearsed once it ends.
     assert calibrations == [(["cube", "white"], True)]
-    assert rehearsed[-1] == (0, made[0])
+    assert rehearsed[-1] == (1, made[0])
     want = {("scratch", f"{n}/{b}", f) for n in ("cube", "white") for b, f in (
         ("paper", "models"), ("physical", "models_physical"),
         ("physical_current", "models_physical_current"),

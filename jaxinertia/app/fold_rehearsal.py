@@ -26,14 +26,15 @@ import jax
 import numpy as np
 
 from jaxinertia.app.fold_groups import branch_tags
+from jaxinertia.networks import TORQUE_MODELS, parameter_shapes
 from jaxinertia.objects import TRAINING_LOADS_KG, load_name
 from jaxinertia.sample_record import Samples
 from jaxinertia.sim.run import ScenarioRequest, request_counts
 from jaxinertia.training import train_attention_models, train_torque_models
 from jaxinertia.training_group import rehearse_as
-from jaxinertia.training_setup import feature_config_from, split_validation
+from jaxinertia.training_setup import feature_config_from, per_object_subset, split_validation
 
-__all__ = ["placeholder_samples", "rehearse_scratch", "scratch_counts"]
+__all__ = ["placeholder_samples", "rehearse_folds", "scratch_counts"]
 
 
 def scratch_counts(scale, seed: int, tag: str | None) -> list[int]:
@@ -70,24 +71,43 @@ def placeholder_samples(counts: list[int], n_joints: int = 4, seed: int = 0) -> 
         names=tuple(f"{name}#{i}" for i, name in enumerate(loads)))
 
 
-def rehearse_scratch(folds, groups) -> list[threading.Thread]:
-    """Every fold's trainings from scratch rehearsed as members of ``groups.scratch``'s
-    twin (one thread each, started here; module docstring); ``folds``:
-    :func:`jaxinertia.app.folds.run_folds`' folds. Returns the threads (daemons; nobody
-    needs to wait for them: a training that starts first compiles its programs itself)."""
-    threads = []
-    for fold in folds:
-        branches = [("paper", None, fold.scale.train.replace(seed=fold.seed))] + [
-            (f"physical{t}", t, fold.scale.train.replace(
-                seed=fold.seed, torque_model="physical", current_input=bool(t)))
-            for t in branch_tags(fold.scale)]
-        for name, tag, cfg in branches:
-            data = placeholder_samples(scratch_counts(fold.scale, fold.seed, tag),
-                                       seed=fold.seed)
-            thread = rehearse_as(groups.scratch, f"{fold.fit_on}/{name}",
-                                 lambda cfg=cfg, data=data: _training(cfg, data))
-            threads.append(thread)
-    return threads
+def rehearse_folds(folds, groups) -> threading.Thread:
+    """Every fold's trainings rehearsed (module docstring): those from scratch as members of
+    ``groups.scratch``'s twin (a thread each, started here), then, once those are
+    compiled, the fine-tunings as members of ``groups.finetune``'s (while the models they
+    start from train). ``folds``: :func:`jaxinertia.app.folds.run_folds`' folds. Returns
+    the thread that waits for the first and starts the second (a daemon; nobody needs to
+    wait for it: a training that starts first compiles its programs itself)."""
+    scratch = [rehearse_as(groups.scratch, f"{fold.fit_on}/{name}",
+                           lambda cfg=cfg, data=data: _training(cfg, data))
+               for fold in folds for name, cfg, data in _scratch_trainings(fold)]
+
+    def then() -> None:
+        for t in scratch:
+            t.join()
+        for fold in folds:
+            for tag in branch_tags(fold.scale):
+                for n in fold.scale.finetune_samples:
+                    rehearse_as(groups.finetune, f"{fold.fit_on}/physical{tag}/{n}",
+                                lambda f=fold, t=tag, n=n: _finetuning(f, t, n))
+
+    thread = threading.Thread(target=then, name="rehearse-fine-tunings", daemon=True)
+    thread.start()
+    return thread
+
+
+def _scratch_trainings(fold) -> list[tuple]:
+    """``(member name, configuration, placeholder data)`` of a fold's trainings from
+    scratch: the paper network, then each physical branch (:func:`branch_tags`)."""
+    out = []
+    for tag in [None, *branch_tags(fold.scale)]:
+        cfg = fold.scale.train.replace(seed=fold.seed)
+        if tag is not None:
+            cfg = cfg.replace(torque_model="physical", current_input=bool(tag))
+        out.append(("paper" if tag is None else f"physical{tag}", cfg,
+                    placeholder_samples(scratch_counts(fold.scale, fold.seed, tag),
+                                        seed=fold.seed)))
+    return out
 
 
 def _training(cfg, data: Samples) -> None:
@@ -98,3 +118,23 @@ def _training(cfg, data: Samples) -> None:
     k_t, k_a = jax.random.split(jax.random.key(cfg.seed))
     torque = train_torque_models(cfg, fc, train_set, val_set, k_t, progress=False)
     train_attention_models(cfg, fc, torque, train_set, val_set, k_a, progress=False)
+
+
+def _finetuning(fold, tag: str, n: int) -> None:
+    """What :func:`jaxinertia.app.pipeline.train` runs of the fine-tuning of the fold's
+    physical branch ``tag`` on ``n`` of its real samples (:func:`jaxinertia.app.folds.
+    _finetuned`): its torque models' servo part from parameters of the start's shapes (the
+    start is still training), on the fold's real samples (their values as read, not as
+    the start's session reads them: the shapes are what counts). The attention is not
+    trained (``trainable="servo"``): nothing to compile."""
+    cfg = fold.scale.finetune.replace(seed=fold.seed, n_models=fold.scale.train.n_models,
+                                      torque_model="physical", current_input=bool(tag))
+    data = per_object_subset(fold.record(fold.fit_on), n, cfg.seed)
+    train_set, val_set = split_validation(data, cfg.val_fraction, cfg.seed)
+    fc = feature_config_from(train_set, current_input=cfg.current_input)
+    model = TORQUE_MODELS["physical"](n_joints=train_set.n_joints)
+    start = jax.tree_util.tree_map(lambda s: np.zeros(s.shape, s.dtype), parameter_shapes(
+        model, train_set.n_joints, cfg.n_models, np.float32, fc.n_inputs))
+    k_t, _ = jax.random.split(jax.random.key(cfg.seed))
+    train_torque_models(cfg, fc, train_set, val_set, k_t, init=start, model=model,
+                        progress=False)
