@@ -123,12 +123,11 @@ def _raise_or_return(result):
 
 def rehearse(fn: Callable[[], Any]) -> threading.Thread | None:
     """Compiles a later training of this thread's group member ahead, beside what the
-    thread runs now: :func:`rehearse_as` for the member. In a GPU fold the attention's
-    compile (14 s) left its critical path this way. Returns the thread, or None outside a
-    group (nothing to overlap) or where the member already rehearsed (its trainings from
-    scratch while the folds calibrate: :mod:`jaxinertia.app.fold_rehearsal`)."""
+    thread runs now: :func:`rehearse_as` for the member (in a GPU fold the attention's
+    14 s compile left its critical path). Returns the thread, or None outside a group
+    (nothing to overlap)."""
     member = getattr(_local, "member", None)
-    if member is None or member[0].rehearsal is None or member[0].rehearsal.began(member[1]):
+    if member is None or member[0].rehearsal is None:
         return None
     return rehearse_as(*member, fn)
 
@@ -188,10 +187,10 @@ class TrainingGroup:
             _local.member = outer
             self.leave([name])
 
-    def began(self, name: str) -> bool:
-        """Whether ``name`` handed in a training or left."""
+    def wait_trained(self, i: int) -> None:
+        """Waits until the members' ``i``-th trainings have run (or every member left)."""
         with self._cond:
-            return self._made[name] > 0 or name in self._left
+            self._cond.wait_for(lambda: i in self._results or self._left >= set(self._made))
 
     def leave(self, names: Iterable[str]) -> None:
         """These members train no more (whether or not they ever joined): the others stop

@@ -20,7 +20,6 @@ from jaxinertia import samples
 from jaxinertia.app import fold_calibration, folds
 from jaxinertia.app import recipe as R
 from jaxinertia.app.cli import main
-from jaxinertia.app.fold_rehearsal import placeholder_samples, scratch_counts
 from jaxinertia.app.folds import FoldScale, run_folds
 from jaxinertia.app.models_real import models_from_folds
 from jaxinertia.app.pipeline import evaluate_models, load_real, train
@@ -32,7 +31,6 @@ from jaxinertia.metrics import inertial_metrics
 from jaxinertia.samples import load_native, save_lbipe, save_native
 from jaxinertia.sim import real_fit
 from jaxinertia.training import TrainConfig
-from jaxinertia.training_setup import split_validation
 
 #: Training samples (four loads or objects) and configuration of every training here and in
 #: test_learning's tiny end to end: one set of shapes, so that the training programs
@@ -102,13 +100,6 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
         assert cal["identified"]["theta"] == ident["theta"]
         # Fine-tuned on 30 real samples of the fold's object only, from the physical model.
         fold = tmp_path / "folds" / f"fit_{fit_on}"
-        # The trainings from scratch got the samples the folds' rehearsal plans for them
-        # (on an accelerator it compiles their programs for those shapes beforehand).
-        planned = split_validation(placeholder_samples(scratch_counts(scale, 0, None)),
-                                   TRAIN.val_fraction, 0)
-        for folder in ("models", "models_physical"):
-            assert load_models(fold / folder).config["samples"] == {
-                "train": planned[0].n_samples, "validation": planned[1].n_samples}, folder
         config = load_models(fold / "models_finetuned_30").config
         assert [Path(e["file"]).name for e in config["data"]] == [f"data_test_{fit_on}.npz"]
         assert config["samples"]["train"] + config["samples"]["validation"] == 30
@@ -329,7 +320,7 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     monkeypatch.setattr(folds, "train", fake_train)
     calibrations = []  # (folds, together) of each call
     rehearsed = []  # the groups each run_folds rehearsed (test_fold_rehearsal: what it does)
-    monkeypatch.setattr(folds, "rehearse_folds",
+    monkeypatch.setattr(folds, "rehearse_finetunes",
                         lambda todo, groups: rehearsed.append((len(calibrations), groups)))
     monkeypatch.setattr(folds._Fold, "judge", lambda self, models: {
         "objects": {}, "torque": {}, "session_ratio": {}, "by_strength": {}})
@@ -368,7 +359,7 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     calibrations.clear()
     run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False, log=lambda m: None)
     # Side by side, the folds' calibrations run first, together (one call for both folds),
-    # and their trainings are rehearsed once it ends.
+    # and their fine-tunings' rehearsal is started once it ends.
     assert calibrations == [(["cube", "white"], True)]
     assert rehearsed[-1] == (1, made[0])
     want = {("scratch", f"{n}/{b}", f) for n in ("cube", "white") for b, f in (

@@ -31,8 +31,8 @@ from jaxinertia.sim.stream import (
     stream_plans,
 )
 
-__all__ = ["as_float64", "native_fields", "request_counts", "run_jobs", "run_plan", "run_plans",
-           "ScenarioRequest", "simulate_scenario", "simulate_scenarios"]
+__all__ = ["as_float64", "native_fields", "run_jobs", "run_plan", "run_plans", "ScenarioRequest",
+           "simulate_scenario", "simulate_scenarios"]
 
 
 def run_plan(params: SimParams, obj: HeldObject, q_d: np.ndarray, direction: np.ndarray,
@@ -228,14 +228,6 @@ def _request_samples(r: ScenarioRequest) -> int | None:
     if r.scenario == "planning":
         return None
     return objects * (r.n or 1000)
-
-
-def request_counts(r: ScenarioRequest, *, arm: Arm | None = None, robot=None) -> list[int]:
-    """The samples each object of ``r`` makes, in the order :func:`simulate_scenarios`
-    returns them (``arm``, ``robot`` as there): the shapes of its data before it is
-    simulated (a planning grid is built for it: about a second)."""
-    return [len(plan[0]) for _, _, plan in _scenario_jobs(r.scenario, r.n, r.objects, r.seed,
-                                                          r.plan, arm=arm, robot=robot)]
 
 
 def _scenario_jobs(scenario: str, n: int | None, objects: list[str] | None, seed: int,
