@@ -7,17 +7,14 @@ The fine-tunings' programs compiled only when their start folders existed: 5-6 s
 GPU fold's critical path, its host otherwise idle during the attention's epochs before
 (docs/benchmarks.md, "Session 31"). Their shapes are known long before: the models' (the
 branch's architecture and model count) and the real samples' (the fold's own file). So once
-every member of the ``scratch`` group has handed in its attention's training (its epochs,
-compiled ahead, about to run: :func:`jaxinertia.training.rehearse_attention`), each
-fine-tuning is rehearsed (:func:`jaxinertia.training_group.rehearse_as`) as the member of the
+every member of the ``scratch`` group has trained its torque models, each fine-tuning is
+rehearsed (:func:`jaxinertia.training_group.rehearse_as`) as the member of the
 ``finetune`` group's twin: its training on the fold's real samples from parameters of the
 start's shapes, compiled and not run. The real fine-tunings then find their programs
 compiled (JAX keeps them per function and shapes; the epochs are cached per model and
 setting, :func:`jaxinertia.training_group.shared_cache`).
 
 Nothing computed is kept: the programs are the trainings' own, so no number changes.
-Started as soon as the torque models had trained, the rehearsal's tracing delayed the
-attention's start (its predictions and data) by about as much as it saved.
 
 Tried and not kept (the same session): rehearsing the trainings from scratch too, on
 placeholder samples of the simulated data's shapes, during the calibration or the
@@ -44,12 +41,12 @@ __all__ = ["rehearse_finetunes"]
 
 def rehearse_finetunes(folds, groups) -> threading.Thread:
     """A thread (a daemon, started here) that waits until every member of
-    ``groups.scratch`` has handed in its attention's training (its second), then
-    rehearses each fold's fine-tunings as the members of ``groups.finetune``'s twin
-    (module docstring); ``folds``: :func:`jaxinertia.app.folds.run_folds`' folds. Nobody
-    needs to wait for it: a fine-tuning that starts first compiles its programs itself."""
+    ``groups.scratch`` has trained its torque models, then rehearses each fold's
+    fine-tunings as the members of ``groups.finetune``'s twin (module docstring); ``folds``:
+    :func:`jaxinertia.app.folds.run_folds`' folds. Nobody needs to wait for it: a
+    fine-tuning that starts first compiles its programs itself."""
     def run() -> None:
-        groups.scratch.wait_reached(1)  # the attention's epochs begin: the host is idle
+        groups.scratch.wait_trained(0)  # the torque models: the attention's epochs now
         for fold in folds:
             for tag in branch_tags(fold.scale):
                 for n in fold.scale.finetune_samples:
