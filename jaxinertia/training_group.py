@@ -187,10 +187,11 @@ class TrainingGroup:
             _local.member = outer
             self.leave([name])
 
-    def wait_trained(self, i: int) -> None:
-        """Waits until the members' ``i``-th trainings have run (or every member left)."""
+    def wait_reached(self, i: int) -> None:
+        """Waits until every member has handed in its ``i``-th training or left."""
         with self._cond:
-            self._cond.wait_for(lambda: i in self._results or self._left >= set(self._made))
+            self._cond.wait_for(lambda: all(m in self._left or self._made[m] > i
+                                            for m in self._members))
 
     def leave(self, names: Iterable[str]) -> None:
         """These members train no more (whether or not they ever joined): the others stop

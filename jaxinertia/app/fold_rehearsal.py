@@ -46,7 +46,7 @@ def rehearse_finetunes(folds, groups) -> threading.Thread:
     :func:`jaxinertia.app.folds.run_folds`' folds. Nobody needs to wait for it: a
     fine-tuning that starts first compiles its programs itself."""
     def run() -> None:
-        groups.scratch.wait_trained(0)  # the torque models: the attention's epochs now
+        groups.scratch.wait_reached(0)  # the torque models' epochs: short GPU programs
         for fold in folds:
             for tag in branch_tags(fold.scale):
                 for n in fold.scale.finetune_samples:
