@@ -70,7 +70,7 @@ class _Training:
 
 #: A call of a training's program runs about this many minibatch steps at most
 #: (:func:`epochs_per_call`).
-STEPS_PER_CALL = 512
+STEPS_PER_CALL = 2048
 
 #: ... and at most this fraction of its epochs, so that a progress bar moves.
 MOST_EPOCHS_PER_CALL = 1 / 8
