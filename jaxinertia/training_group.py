@@ -6,13 +6,18 @@ with the other members' trainings.
 
 Why groups: on an accelerator the held-out folds train many model sets at once in threads
 (both folds; in each the paper network, the physical model and its variants, then their
-fine-tunings), and one epoch of K small MLPs leaves a GPU mostly idle (docs/benchmarks.md,
-"Trainings as one program"). Trainings of the same epoch program and shapes run as one
-program, the epoch ``vmap``-ped over the group, each with its own state, data and keys, at
-about the device time of one. The numbers are each training's own up to float rounding
-(``vmap`` may vectorise a reduction in another order: tests/test_training_group.py).
-Which trainings share a program is fixed by the members and their shapes, never by
-timing: a run's numbers do not depend on which thread came first.
+fine-tunings). One epoch of K small MLPs leaves a GPU mostly idle: a step costs about as
+much for 60 models as for 10 (docs/benchmarks.md, "Trainings as one program"). The members
+of a group hand their epochs to it; trainings of the same epoch program and the same shapes
+run as one program, the epoch ``vmap``-ped over the group, each with its own state, data
+and keys, at about the device time of one: the torque models' epochs (300 of minibatches,
+the bulk) and the attention's (30, through the WLS solve). The numbers are each training's
+own up to float rounding: ``vmap`` may vectorise a reduction (a bias gradient over the
+minibatch, the WLS's sums) in another order, a last-bit difference that training then
+carries (tests/test_training_group.py; at the folds' shapes on an H200 the torque epochs
+of four or six trainings came out bit for bit, of two not). Which trainings share a
+program is fixed by the members and their shapes, never by timing: a run's numbers do not
+depend on which thread came first.
 
 A group waits, at each training of its members, until every member has either reached that
 training or left the group (its ``with group.member(...)`` ended, normally or by an
@@ -38,7 +43,7 @@ from tqdm.auto import tqdm
 from jaxinertia.errors import TrainingError
 from jaxinertia.sharding import replicate, shard
 
-__all__ = ["TrainingGroup", "rehearse", "rehearse_as", "run_epochs", "shared_cache"]
+__all__ = ["TrainingGroup", "rehearse", "run_epochs", "shared_cache"]
 
 _local = threading.local()
 
@@ -70,7 +75,7 @@ class _Training:
 
 #: A call of a training's program runs about this many minibatch steps at most
 #: (:func:`epochs_per_call`).
-STEPS_PER_CALL = 2048
+STEPS_PER_CALL = 512
 
 #: ... and at most this fraction of its epochs, so that a progress bar moves.
 MOST_EPOCHS_PER_CALL = 1 / 8
@@ -83,9 +88,11 @@ def epochs_per_call(n_epochs: int, steps_per_epoch: int) -> int:
     training of long epochs (every training from scratch at the paper's scale).
 
     Why: each call is a few dispatches and a wait for its losses on the host, each a
-    hand-over of the GIL; a fine-tuning's epoch is about 2 ms of GPU (alone on an H100 a
-    fine-tuning took 0.49-1.15 s one epoch a call, 0.12-0.21 s at 25; docs/benchmarks.md,
-    "Session 29")."""
+    hand-over of the GIL. A fine-tuning's epoch (200 of them, a few minibatches each) is
+    about 2 ms of GPU: alone on an H100 a compiled fine-tuning took 0.49-1.15 s one epoch a
+    call against 0.12-0.21 s at 25, and beside busy Python threads (the folds run a dozen)
+    the one-a-call loop was 25-50 times slower on a CPU (``experiments/finetune_calls.py``;
+    docs/benchmarks.md, "Session 29")."""
     if steps_per_epoch <= 0 or n_epochs <= 1:
         return 1
     most = max(1, min(STEPS_PER_CALL // steps_per_epoch,
@@ -105,14 +112,16 @@ def run_epochs(epoch, state, data, val_data, n_epochs: int, key, desc: str, prog
     program call runs (:func:`epochs_per_call`): several as a ``lax.scan`` over the epochs,
     epoch ``e``'s key ``fold_in(key, e)`` either way, so the keys, and so the minibatches,
     are those of one call per epoch. ``on_epoch`` sees a call's epochs when the host has
-    read its losses (several at once when a call runs several)."""
+    read its losses (several at once when a call runs several; timings from it are per
+    call, and every training of 15 epochs or fewer runs one a call)."""
     training = _Training(epoch, state, data, val_data, int(n_epochs), key, desc, progress,
                          on_epoch, epochs_per_call(int(n_epochs), int(steps_per_epoch)),
                          getattr(_local, "compile_only", False))
     member = getattr(_local, "member", None)
     if member is None:
         return _raise_or_return(_run_together([training])[0])
-    return member[0]._submit(member[1], training)
+    group, name = member
+    return group._submit(name, training)
 
 
 def _raise_or_return(result):
@@ -123,28 +132,24 @@ def _raise_or_return(result):
 
 def rehearse(fn: Callable[[], Any]) -> threading.Thread | None:
     """Compiles a later training of this thread's group member ahead, beside what the
-    thread runs now: :func:`rehearse_as` for the member (in a GPU fold the attention's
-    14 s compile left its critical path). Returns the thread, or None outside a group
-    (nothing to overlap)."""
+    thread runs now: ``fn`` (a trainer called as the member will call it later, inputs of
+    the same shapes) runs in a thread as the member of the group's twin
+    (``TrainingGroup.rehearsal``), where :func:`run_epochs` compiles the program(s) the
+    group will run and runs no epoch (the state comes back as it went in, no history);
+    the rest of ``fn`` runs as written, compiling its programs too. The training then
+    finds them compiled (JAX keeps them per function and shapes): in a GPU fold the
+    attention's compile (14 s) left its critical path. Returns the thread (a daemon), or
+    None outside a group (nothing to overlap). It changes no number: the programs are the
+    training's own and nothing computed is kept; a failed one is dropped."""
     member = getattr(_local, "member", None)
     if member is None or member[0].rehearsal is None:
         return None
-    return rehearse_as(*member, fn)
+    group, name = member
 
-
-def rehearse_as(group: TrainingGroup, name: str, fn: Callable[[], Any]) -> threading.Thread:
-    """``fn`` (trainings as the member ``name`` of ``group`` will call them later, on
-    inputs of the same shapes) in a thread as that member of the group's twin
-    (``TrainingGroup.rehearsal``), where :func:`run_epochs` compiles the program(s) the
-    group will run and runs no epoch (the state comes back as it went in, no history);
-    the rest of ``fn`` runs as written, compiling its programs too. The trainings then
-    find them compiled (JAX keeps them per function and shapes). Returns the thread (a
-    daemon). It changes no number: the programs are the trainings' own and nothing
-    computed is kept; a failed one is dropped (the training's to report)."""
     def run() -> None:
         _local.compile_only = True
         with contextlib.suppress(Exception), group.rehearsal.member(name):
-            fn()
+            fn()  # a rehearsal only saves time: a failed one is the training's to report
 
     thread = threading.Thread(target=run, name=f"rehearse-{name}", daemon=True)
     thread.start()
@@ -155,7 +160,8 @@ class TrainingGroup:
     """Trainings of named members, run side by side in threads, whose epochs run as one
     program where their shapes agree (module docstring). Each member's thread runs its
     trainings inside ``with group.member(name):``; the i-th training of every member
-    meets the i-th of the others, stacked in ``members``' order."""
+    meets the i-th of the others. The stacking order (and so nothing but the program's
+    layout) is ``members``' order."""
 
     def __init__(self, members: Iterable[str], *, _rehearsal: bool = False):
         self._members = tuple(members)
@@ -186,12 +192,6 @@ class TrainingGroup:
         finally:
             _local.member = outer
             self.leave([name])
-
-    def wait_reached(self, i: int) -> None:
-        """Waits until every member has handed in its ``i``-th training or left."""
-        with self._cond:
-            self._cond.wait_for(lambda: all(m in self._left or self._made[m] > i
-                                            for m in self._members))
 
     def leave(self, names: Iterable[str]) -> None:
         """These members train no more (whether or not they ever joined): the others stop
@@ -259,8 +259,8 @@ def shared_cache(fn):
     ``lru_cache`` lets threads that miss at once each build their own (it calls the
     function outside its lock): then a group's members can split by timing, the one way
     found in which they could (most likely why, in a full run on an H100 in session 29,
-    one of the folds' groups of four fine-tunings ran as three and one). The lock is
-    held briefly: building an epoch or a ``jax.jit`` traces nothing."""
+    one of the folds' groups of four fine-tunings ran as three and one). Building an
+    epoch or a ``jax.jit`` traces nothing: the lock is held briefly."""
     cached = functools.lru_cache(maxsize=32)(fn)
     lock = threading.Lock()
 

@@ -318,10 +318,6 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
 
     monkeypatch.setattr(folds, "simulate_files", lambda p, wanted, **kw: [w[0] for w in wanted])
     monkeypatch.setattr(folds, "train", fake_train)
-    calibrations = []  # (folds, together) of each call
-    rehearsed = []  # the groups each run_folds rehearsed (test_fold_rehearsal: what it does)
-    monkeypatch.setattr(folds, "rehearse_finetunes",
-                        lambda todo, groups: rehearsed.append((len(calibrations), groups)))
     monkeypatch.setattr(folds._Fold, "judge", lambda self, models: {
         "objects": {}, "torque": {}, "session_ratio": {}, "by_strength": {}})
     monkeypatch.setattr(folds, "choose_recipe", lambda f: None)
@@ -339,6 +335,7 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     # A branch that fails before its training (the drawn sessions' candidate) leaves its
     # members: the other trainings finish, the error is raised, and nothing waits for ever.
     arm = SimpleNamespace(robot=SimpleNamespace(n_joints=4))
+    calibrations = []  # (folds, together) of each call
 
     def calibrated(todo, together=False):
         calibrations.append(([f.fit_on for f in todo], together))
@@ -358,10 +355,8 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     fails.clear()
     calibrations.clear()
     run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False, log=lambda m: None)
-    # Side by side, the folds' calibrations run first, together (one call for both folds),
-    # and their fine-tunings' rehearsal is started once it ends.
+    # Side by side, the folds' calibrations run first, together (one call for both folds).
     assert calibrations == [(["cube", "white"], True)]
-    assert rehearsed[-1] == (1, made[0])
     want = {("scratch", f"{n}/{b}", f) for n in ("cube", "white") for b, f in (
         ("paper", "models"), ("physical", "models_physical"),
         ("physical_current", "models_physical_current"),

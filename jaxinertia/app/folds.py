@@ -40,7 +40,6 @@ from pathlib import Path
 from jaxinertia.app.ensemble import NETWORK_METHODS, judge_mean
 from jaxinertia.app.fold_calibration import fit_simulators
 from jaxinertia.app.fold_groups import FoldGroups
-from jaxinertia.app.fold_rehearsal import rehearse_finetunes
 from jaxinertia.app.pipeline import (
     RealData,
     adapt_objects,
@@ -204,7 +203,6 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
         t = time.perf_counter()
         fitted = fit_simulators(todo, together=True)
         calibrated = [(*c, time.perf_counter() - t) for c in fitted]
-        rehearse_finetunes(todo, groups)  # compiled while their starts' attention trains
 
     def run(fold: _Fold, calibration) -> dict:
         if calibration is None:
