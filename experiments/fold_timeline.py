@@ -1,8 +1,9 @@
 """``jaxinertia reproduce`` with a timeline: when each thread starts and ends the folds'
-stages (calibration, simulation, each training and its epoch programs, each judge) and
-every XLA compile (its thread, program and seconds), into ``--timeline`` (text, one event
-a line, seconds since start). How session 30 found what a GPU fold waits for
-(docs/benchmarks.md, "Session 30"):
+stages (calibration, simulation, each training and its epoch programs, each judge),
+``reproduce``'s own stages (what runs beside the folds) and every XLA compile (its thread,
+program and seconds), into ``--timeline`` (text, one event a line, seconds since start).
+How sessions 30 and 31 found what a GPU fold waits for (docs/benchmarks.md, "Session 30",
+"Session 31"):
 
     python experiments/fold_timeline.py --timeline tl.txt -- --full --out DIR --lbipe-dir DIR
 
@@ -12,6 +13,7 @@ Everything after ``--`` is ``reproduce``'s. Cold on a GPU: ``JAXINERTIA_CACHE_DI
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import logging
 import os
@@ -21,7 +23,7 @@ import time
 import jax
 
 from jaxinertia import training_group
-from jaxinertia.app import cli, folds, pipeline
+from jaxinertia.app import cli, folds, pipeline, reproduce
 
 
 class Timeline:
@@ -53,6 +55,24 @@ class Timeline:
         setattr(owner, attr, timed)
 
 
+def _stages(timeline: Timeline) -> None:
+    """``reproduce``'s own stages (simulate, train, ..., the held-out folds) on the timeline
+    too: what runs beside the folds."""
+    call = reproduce._Stages.__call__
+
+    @contextlib.contextmanager
+    def timed(self, name: str):
+        timeline.emit("start", f"stage {name}")
+        t = time.time()
+        try:
+            with call(self, name):
+                yield
+        finally:
+            timeline.emit("end", f"stage {name}", time.time() - t)
+
+    reproduce._Stages.__call__ = timed
+
+
 class _Compiles(logging.Handler):
     def __init__(self, timeline: Timeline):
         super().__init__(logging.DEBUG)
@@ -80,6 +100,7 @@ def main() -> None:
                         (pipeline, "train_torque_models"), (pipeline, "train_attention_models"),
                         (training_group, "_run_stacked")):
         timeline.wrap(owner, attr)
+    _stages(timeline)
     args = [x for x in a.reproduce if x != "--"]
     t = time.time()
     try:
