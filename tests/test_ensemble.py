@@ -178,3 +178,67 @@ def test_several_objects_are_evaluated_by_the_one_object_programs(folders):
     # Their results are stacked: objects with sets of another shape are refused, one line.
     with pytest.raises(UsageError, match="differ in shape across objects"):
         evaluate(two, [sets[0], sets[1][:3]], l_max=[0.1, 0.1], **kw)
+
+
+def test_shares_weigh_the_members_and_another_model_count_enters_by_its_pairs_mean(
+        folders, tmp_path, capsys):
+    """``attach_members(..., weights)`` (models_real_with_released: the released models'
+    half): evaluate and estimate give the weighted mean of what each folder gives alone; a
+    member of another model count then enters with its pairs' mean on each set."""
+    d, path, _ = folders
+    from jaxinertia.checkpoints import save_models  # noqa: PLC0415 - orbax at first use
+
+    b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.q_d)
+    models = tmp_path / "m"
+    save_models(models, tiny_pair(seed=0), b, feature_config(), robot=ROBOT)
+    save_models(models / "two", tiny_pair(seed=1), b, feature_config(), robot=ROBOT)
+    save_models(models / "three", tiny_pair(K=3, seed=3), b, feature_config(), robot=ROBOT)
+    for bad in ([1.0, 1.0], [1.0, -1.0, 1.0], [0.0, 0.0, 0.0], [1.0, np.nan, 1.0]):
+        with pytest.raises(UsageError, match="shares >= 0"):
+            attach_members(models, ["two", "three"], bad)
+    attach_members(models, ["two", "three"], [1.0, 1.0, 2.0])
+    assert json.loads((models / "config.json").read_text())["ensemble_weights"] == [
+        0.25, 0.25, 0.5]
+    sets, _ = choose_sets(d.by_object(), n_sets=8, set_size=32, seed=0)
+    res = evaluate_models(models, d.by_object(), sets, l_max=[0.1])
+    copy = copy_models(models, tmp_path / "copy")
+    plain = [evaluate_models(f, d.by_object(), sets, l_max=[0.1])["estimates"]
+             for f in (copy, models / "two", models / "three")]
+    (name,) = res["objects"]
+    for method in ("T", "T-A"):
+        a, b2, c = (np.asarray(p[method], np.float64) for p in plain)
+        assert a.shape[1] == 2 and c.shape[1] == 3
+        want = 0.25 * a + 0.25 * b2 + 0.5 * c.mean(axis=1, keepdims=True)
+        np.testing.assert_allclose(res["estimates"][method], want, rtol=1e-9, atol=1e-15)
+        x = want.reshape(-1, 4)
+        x = x[np.all(np.isfinite(x), axis=-1)]
+        assert res["objects"][name][method] == pytest.approx(
+            inertial_metrics(x, d.by_object()[0].x[0], 0.1), rel=1e-9)
+    assert res["ensemble_weights"] == [0.25, 0.25, 0.5]
+    # estimate: the answer on all samples is the weighted mean of each folder's answer
+    # (each folder's the mean over its own pairs), and says the shares.
+    kw = dict(set_size=32, n_sets=8, max_mass=1e3, max_com=1e3)
+    alone = [estimate(f, path, **kw)["objects"][name]["methods"]
+             for f in (copy, models / "two", models / "three")]
+    both = estimate(models, path, **kw)
+    assert both["ensemble_weights"] == [0.25, 0.25, 0.5]
+    m = both["objects"][name]["methods"]
+    answered = 0
+    for method in ("T", "T-A"):
+        if not (m[method]["ok"] and all(r[method]["ok"] for r in alone)):
+            continue
+        answered += 1
+        x = np.array([[r[method]["mass_kg"], *(r[method]["mass_kg"]
+                                               * np.asarray(r[method]["com_tag_m"]))]
+                      for r in alone])
+        want = np.average(x, axis=0, weights=[0.25, 0.25, 0.5])
+        assert m[method]["mass_kg"] == pytest.approx(want[0], rel=1e-9)
+        np.testing.assert_allclose(m[method]["com_tag_m"], want[1:] / want[0], rtol=1e-9)
+        noise = np.average([r[method]["covariance_terms"]["noise"] for r in alone], axis=0,
+                           weights=[0.25, 0.25, 0.5])
+        np.testing.assert_allclose(m[method]["covariance_terms"]["noise"], noise, rtol=1e-9)
+    assert answered > 0, "no network method answered in every folder: nothing was checked"
+    capsys.readouterr()
+    assert main(["estimate", "--models", str(models), "--samples", str(path), "--set-size",
+                 "32", "--max-mass", "1000", "--max-com", "1000"]) == 0
+    assert "shares: 0.25 each, but three 0.5" in capsys.readouterr().out

@@ -63,7 +63,9 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
                       finetune=TRAIN.replace(trainable="servo", val_fraction=0.2),
                       randomize_draws=2, identify_generations=1, identify_population=2,
                       identify_samples=24, session_strengths=(0.0, 1.0))
-    res = run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False, log=lambda m: None)
+    keep: dict = {}
+    res = run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False,
+                    log=lambda m: None, keep=keep)
     assert set(res["folds"]) == {"cube", "white"}
     # Every look at real samples is restricted: to the fold's object while fitting, to the
     # held-out one for the replay; never all files at once.
@@ -217,9 +219,82 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
     want = inertial_metrics(x, real.objects[i].x[0], real.l_max[i])
     got = made["objects"]["white"]["T-A"]
     np.testing.assert_allclose(got["mass_NMAE_pct"], want["mass_NMAE_pct"], rtol=1e-9)
+    _check_with_released(tmp_path, res, keep, real, chosen, sources, folder_of, names, made)
     with pytest.raises(FileNotFoundError, match="no folder of the candidate"):
         models_from_folds(tmp_path, res, real, R._recipe(
             "physical, servo part fine-tuned on 999 real samples", 0.0))
+
+
+def _finite_metrics(x, obj, l_max) -> dict:
+    x = np.asarray(x, np.float64).reshape(-1, 4)
+    return inertial_metrics(x[np.all(np.isfinite(x), axis=-1)], obj.x[0], l_max)
+
+
+def _check_with_released(tmp_path, res, keep, real, chosen, sources, folder_of, names,
+                         made_real):
+    """``models_real_with_released`` (app.with_released): half ``models_real``'s parts,
+    half the authors' released models, per model pair and set (the released models' ten
+    pairs against these folds' two: their pairs' mean), judged by the folds on each fold's
+    own members; and the folder that ``reproduce`` writes, whose released member answers
+    as the released benchmark does."""
+    from jaxinertia.app.with_released import (  # noqa: PLC0415
+        judge_with_released,
+        models_with_released,
+    )
+
+    judged = judge_with_released(res, keep["estimates"], keep["released"], real, chosen)
+    objects = [o.name for o in real.objects]
+    ratios = []
+    for fit, other in (("cube", "white"), ("white", "cube")):
+        i = objects.index(other)
+        obj, kw = real.objects[i], dict(l_max=[real.l_max[i]])
+
+        def alone(folder, s, method, i=i, obj=obj, kw=kw):
+            return evaluate_models(folder, [obj], [real.sets[i]], session_strength=s,
+                                   **kw)["estimates"][method][0]
+
+        released = np.asarray(keep["released"]["T-A"][i]).mean(axis=0)  # (B, 4)
+        mass = np.mean([alone(tmp_path / "folds" / f"fit_{fit}" / folder_of[n], 0.0, "T")
+                        for n in names], axis=0)
+        com = alone(tmp_path / "folds" / f"fit_{fit}" / "models_physical", 1.0, "T-A")
+        got = judged["folds"][fit][other]
+        want_m = _finite_metrics(0.5 * mass + 0.5 * released, obj, real.l_max[i])
+        want_c = _finite_metrics(0.5 * com + 0.5 * released, obj, real.l_max[i])
+        assert got["mass_NMAE_pct"] == pytest.approx(want_m["mass_NMAE_pct"], rel=1e-6)
+        assert got["com_NMAE_pct"] == pytest.approx(want_c["com_NMAE_pct"], rel=1e-6)
+        ref = res["folds"][fit]["released"][other]["T-A"]
+        ratios += [got["mass_NMAE_pct"] / ref["mass_NMAE_pct"],
+                   got["com_NMAE_pct"] / ref["com_NMAE_pct"]]
+    assert judged["score"] == pytest.approx(np.mean(ratios), rel=1e-12)
+    # The folder: each part of models_real with the released models as one more member,
+    # of share one half.
+    made = models_with_released(tmp_path, real)
+    dst = tmp_path / "models_real_with_released"
+    for part, n in ((dst, len(sources["mass"])), (dst / "com", len(sources["com"]))):
+        config = load_models(part).config
+        assert config["ensemble_members"][-1] == "released"
+        assert len(config["ensemble_members"]) == n
+        np.testing.assert_allclose(config["ensemble_weights"], [0.5 / n] * n + [0.5])
+    i = objects.index("white")
+    obj = real.objects[i]
+    rel = evaluate_models(dst / "released", [obj], [real.sets[i]], l_max=[real.l_max[i]])
+    np.testing.assert_allclose(rel["estimates"]["T-A"][0], keep["released"]["T-A"][i],
+                               rtol=1e-6, atol=1e-9)
+    mass = np.mean([evaluate_models(tmp_path / src, [obj], [real.sets[i]], session_strength=0.0,
+                                    l_max=[real.l_max[i]])["estimates"]["T"][0]
+                    for src in sources["mass"]], axis=0)
+    want = _finite_metrics(0.5 * mass + 0.5 * rel["estimates"]["T-A"][0].mean(axis=0), obj,
+                           real.l_max[i])
+    assert made["objects"]["white"]["T-A"]["mass_NMAE_pct"] == pytest.approx(
+        want["mass_NMAE_pct"], rel=1e-6)
+    # The report says what it is and gives the folds' numbers.
+    from jaxinertia.app.report import reproduce_section_new_object  # noqa: PLC0415
+
+    text = reproduce_section_new_object({**made_real, "with_released": {**made,
+                                                                        "held_out": judged}})
+    assert "averaged with the authors' released models, 0.5 each" in text
+    r = judged["folds"]["white"]["cube"]
+    assert f"| white | cube | {r['mass_NMAE_pct']:.2f} | {r['com_NMAE_pct']:.2f} |" in text
 
 
 def test_fits_refuse_objects_the_folder_does_not_have(small_lbipe_dir, capsys):

@@ -11,7 +11,9 @@ member reads a file in its own session (its reference and strength). The baselin
 PE), the attention weights and the torque metrics are the first member's. ``estimate``'s
 covariance of the mean: the members' residual covariances averaged (their errors are not
 independent, so not divided by their number) plus the covariance of every member's pair
-estimates around the mean (as one folder's pairs give theirs).
+estimates around the mean (as one folder's pairs give theirs). A folder may give its members
+shares (``ensemble_weights``; :mod:`jaxinertia.app.with_released` weighs the authors'
+released models half against every model of ``models_real``): the means are then weighted.
 """
 
 from __future__ import annotations
@@ -31,11 +33,16 @@ from jaxinertia.metrics import inertial_metrics
 from jaxinertia.samples import Samples
 from jaxinertia.uncertainty import SetUncertainty
 
-__all__ = ["ENSEMBLE_MEMBERS", "NETWORK_METHODS", "attach_members", "judge_mean",
-           "mean_estimates", "mean_evaluation", "mean_uncertainty", "members_of"]
+__all__ = ["ENSEMBLE_MEMBERS", "ENSEMBLE_WEIGHTS", "NETWORK_METHODS", "attach_members",
+           "judge_mean", "mean_estimates", "mean_evaluation", "mean_uncertainty", "members_of",
+           "weights_of"]
 
 #: The ``config.json`` key naming the further members (relative to the folder).
 ENSEMBLE_MEMBERS = "ensemble_members"
+#: The ``config.json`` key giving each member's share of the mean (the folder's own models
+#: first; absent: equal shares). With shares given, a member of another model count than
+#: the folder's enters with its pairs' mean on each set, for every pair of the folder.
+ENSEMBLE_WEIGHTS = "ensemble_weights"
 #: The methods whose estimates are averaged.
 NETWORK_METHODS = ("T", "T-A")
 
@@ -45,23 +52,47 @@ def members_of(models: str | os.PathLike, config: dict) -> list[Path]:
     return [Path(models) / name for name in config.get(ENSEMBLE_MEMBERS) or ()]
 
 
-def attach_members(models: str | os.PathLike, names: Sequence[str]) -> None:
+def attach_members(models: str | os.PathLike, names: Sequence[str],
+                   weights: Sequence[float] | None = None) -> None:
     """Records in ``models/config.json`` that ``models`` answers with the mean of its own
-    models and those of ``models/<name>`` for each name (model folders already there)."""
+    models and those of ``models/<name>`` for each name (model folders already there);
+    ``weights``: each one's share (the folder's own first; normalised), else equal."""
     path = Path(models) / CONFIG
     for name in names:
         if not (Path(models) / name / CONFIG).is_file():
             raise FileNotFoundError(f"{Path(models) / name}: no model folder to average")
-    write_json(path, {**json.loads(path.read_text()), ENSEMBLE_MEMBERS: list(names)})
+    config = {k: v for k, v in json.loads(path.read_text()).items() if k != ENSEMBLE_WEIGHTS}
+    config[ENSEMBLE_MEMBERS] = list(names)
+    if weights is not None:
+        w = np.asarray(weights, float)
+        if w.shape != (len(names) + 1,) or not np.all(np.isfinite(w)) or np.any(w < 0) \
+                or w.sum() <= 0:
+            raise UsageError(f"{len(names) + 1} shares >= 0 (the folder's own first) are "
+                             f"needed, not {list(weights)}")
+        config[ENSEMBLE_WEIGHTS] = (w / w.sum()).tolist()
+    write_json(path, config)
 
 
-def mean_estimates(estimates: Sequence[np.ndarray], folders: Sequence) -> np.ndarray:
-    """The members' estimates (..., K, B, 4) averaged per model pair and set."""
-    shapes = {np.shape(x) for x in estimates}
+def weights_of(config: dict) -> list[float] | None:
+    """The members' shares that a folder's ``config`` records (None: equal)."""
+    return config.get(ENSEMBLE_WEIGHTS)
+
+
+def mean_estimates(estimates: Sequence[np.ndarray], folders: Sequence,
+                   weights: Sequence[float] | None = None) -> np.ndarray:
+    """The members' estimates (..., K, B, 4) averaged per model pair and set; ``weights``:
+    each member's share, and then a member of another model count K than the first's
+    enters with its pairs' mean (:data:`ENSEMBLE_WEIGHTS`)."""
+    xs = [np.asarray(x) for x in estimates]
+    if weights is not None:
+        k = xs[0].shape[-3]
+        xs = [x if x.shape[-3] == k else np.broadcast_to(
+            x.mean(axis=-3, keepdims=True), x.shape[:-3] + (k,) + x.shape[-2:]) for x in xs]
+    shapes = {x.shape for x in xs}
     if len(shapes) > 1:
         raise UsageError("the members of an ensemble must have as many model pairs each: "
                          + ", ".join(f"{f}: {np.shape(x)}" for f, x in zip(folders, estimates)))
-    return np.mean(np.stack([np.asarray(x) for x in estimates]), axis=0)
+    return np.average(np.stack(xs), axis=0, weights=weights)
 
 
 def _finite(x: np.ndarray) -> np.ndarray:
@@ -95,39 +126,48 @@ def judge_mean(estimates: dict, objects: Sequence[Samples], l_max: Sequence[floa
 
 
 def mean_evaluation(evaluations: Sequence[dict], objects: Sequence[Samples],
-                    folders: Sequence) -> dict:
+                    folders: Sequence, weights: Sequence[float] | None = None) -> dict:
     """An evaluation (``pipeline.evaluate_models``) of the members' mean: the first
-    member's, with the network methods' estimates averaged and their Table I metrics
-    computed again from them. ``evaluations`` and ``folders``: the folder's own and each
-    further member's, in that order."""
+    member's, with the network methods' estimates averaged (``weights``: the members'
+    shares) and their Table I metrics computed again from them. ``evaluations`` and
+    ``folders``: the folder's own and each further member's, in that order."""
     out = copy.copy(evaluations[0])
     out["objects"] = copy.deepcopy(out["objects"])
     out["estimates"] = dict(out["estimates"])
     for m in NETWORK_METHODS:
         if m not in out["estimates"]:
             continue
-        x = mean_estimates([e["estimates"][m] for e in evaluations], folders)
+        x = mean_estimates([e["estimates"][m] for e in evaluations], folders, weights)
         out["estimates"][m] = x
         for o, obj in enumerate(objects):
             entry = out["objects"][obj.name]
             if m in entry:
                 entry[m] = inertial_metrics(_finite(x[o]), obj.x[0], entry["L_max_m"])
     out["ensemble_members"] = [str(f) for f in folders[1:]]  # the further members
+    if weights is not None:
+        out["ensemble_weights"] = list(weights)
     return out
 
 
 def mean_uncertainty(uncertainties: Sequence[SetUncertainty],
-                     pair_estimates: Sequence[np.ndarray]) -> SetUncertainty:
+                     pair_estimates: Sequence[np.ndarray],
+                     weights: Sequence[float] | None = None) -> SetUncertainty:
     """The answer and covariance of the members' mean, for one set (leading axes (1, 1) as
     :func:`jaxinertia.uncertainty.uncertainty_of` gives them); ``pair_estimates``: each
-    member's K pairs' estimates (K, 4) on that set."""
+    member's K pairs' estimates (K, 4) on that set; ``weights``: the members' shares (each
+    member's pairs then weigh its share between them in the spread)."""
     us = [SetUncertainty(*(np.asarray(a, np.float64) for a in u)) for u in uncertainties]
-    x = np.mean([u.x for u in us], axis=0)
-    cov_noise = np.mean([u.cov_noise for u in us], axis=0)
-    pairs = np.concatenate([np.reshape(p, (-1, 4)) for p in pair_estimates])
-    spread = (np.cov(pairs, rowvar=False, ddof=1) if len(pairs) > 1
+    w = None if weights is None else np.asarray(weights, float)
+    x = np.average([u.x for u in us], axis=0, weights=w)
+    cov_noise = np.average([u.cov_noise for u in us], axis=0, weights=w)
+    pairs = [np.reshape(p, (-1, 4)) for p in pair_estimates]
+    # Equal shares: every pair alike (as before shares existed); else each member's share.
+    aw = (None if w is None else
+          np.concatenate([np.full(len(p), wi / len(p)) for p, wi in zip(pairs, w)]))
+    pairs = np.concatenate(pairs)
+    spread = (np.cov(pairs, rowvar=False, ddof=1, aweights=aw) if len(pairs) > 1
               else np.zeros((4, 4)))[None, None]
     return SetUncertainty(
         x=x, cov=cov_noise + spread, cov_noise=cov_noise, cov_ensemble=spread,
-        noise_std=np.sqrt(np.mean([u.noise_std ** 2 for u in us], axis=0)),
-        floor_used=np.mean([u.floor_used for u in us], axis=0))
+        noise_std=np.sqrt(np.average([u.noise_std ** 2 for u in us], axis=0, weights=w)),
+        floor_used=np.average([u.floor_used for u in us], axis=0, weights=w))

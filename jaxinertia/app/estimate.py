@@ -11,7 +11,13 @@ import numpy as np
 
 from jaxinertia.app.arm_options import samples_arm
 from jaxinertia.app.by_part import com_models_of, merge_answers
-from jaxinertia.app.ensemble import NETWORK_METHODS, mean_estimates, mean_uncertainty, members_of
+from jaxinertia.app.ensemble import (
+    NETWORK_METHODS,
+    mean_estimates,
+    mean_uncertainty,
+    members_of,
+    weights_of,
+)
 from jaxinertia.app.pipeline import (
     UNIFORM_ATTENTION,
     adapt_objects,
@@ -195,7 +201,7 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
         spread = evaluate([obj], sets, pair=pair, baselines=baselines, fc=fc, l_max=[np.nan])
         if members:
             _average_members(res, unc, spread, [m.parts(o, all_samples, sets) for m in members],
-                             [models, *(m.path for m in members)])
+                             [models, *(m.path for m in members)], weights_of(folder.config))
         methods = {m: _method_answer(x_all, spread["estimates"][m], unc[m], set_size=set_size,
                                      max_mass=max_mass, max_com=max_com)
                    for m, x_all in res["estimates"].items()}
@@ -225,6 +231,8 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
                 f"{max_com_se * 1e3:.1f} mm: sample more varied poses (jaxinertia plan-poses)")
     if members:
         out["ensemble_members"] = [str(m.path) for m in members]
+        if weights_of(folder.config) is not None:
+            out["ensemble_weights"] = weights_of(folder.config)
     out["uniform_attention"] = bool(folder.config.get(UNIFORM_ATTENTION))
     return out, folder.config
 
@@ -250,14 +258,16 @@ class _Member:
                 evaluate([obj], sets, l_max=[np.nan], **kw)["estimates"])
 
 
-def _average_members(res: dict, unc: dict, spread: dict, parts: list, folders: list) -> None:
+def _average_members(res: dict, unc: dict, spread: dict, parts: list, folders: list,
+                     weights: list[float] | None) -> None:
     """The network methods' estimates and uncertainty of one object replaced, in place, by
-    the mean over the folder and its further members (``parts``: :meth:`_Member.parts`)."""
+    the mean over the folder and its further members (``parts``: :meth:`_Member.parts`;
+    ``weights``: their shares, :data:`~jaxinertia.app.ensemble.ENSEMBLE_WEIGHTS`)."""
     for m in NETWORK_METHODS:
         if m not in res["estimates"]:
             continue
         x_all = [res["estimates"][m], *(p[0][m] for p in parts)]
-        unc[m] = mean_uncertainty([unc[m], *(p[1][m] for p in parts)], x_all)
-        res["estimates"][m] = mean_estimates(x_all, folders)
+        unc[m] = mean_uncertainty([unc[m], *(p[1][m] for p in parts)], x_all, weights)
+        res["estimates"][m] = mean_estimates(x_all, folders, weights)
         spread["estimates"][m] = mean_estimates(
-            [spread["estimates"][m], *(p[2][m] for p in parts)], folders)
+            [spread["estimates"][m], *(p[2][m] for p in parts)], folders, weights)

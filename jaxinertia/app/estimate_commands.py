@@ -60,9 +60,14 @@ def cmd_estimate(args) -> int:
             print(f"{name}: these models weight every joint alike (their attention off, as "
                   "the held-out folds chose): T-A answers as T")
         if res.get("ensemble_members"):
+            w = res.get("ensemble_weights")
+            other = [f"{Path(m).name} {x:.3g}" for m, x in zip(res["ensemble_members"], w[1:] if w
+                                                      else ()) if x != w[0]]
+            shares = ("" if w is None else f"; shares: {w[0]:.3g} each, but "
+                      + ", ".join(other) if other else "")
             print(f"{name}: T and T-A the mean of these models and "
                   f"{len(res['ensemble_members'])} more inside them (each read in its own "
-                  "session); the baselines from the models above")
+                  f"session{shares}); the baselines from the models above")
         if res.get("com_models"):
             ratio = ", ".join(f"{r:.3f}" for r in o["com_session_ratio"])
             print(f"{name}: the COM of T and T-A from {res['com_models']} (session strength "

@@ -37,6 +37,8 @@ from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 
+import numpy as np
+
 from jaxinertia.app.ensemble import NETWORK_METHODS, judge_mean
 from jaxinertia.app.fold_calibration import fit_simulators
 from jaxinertia.app.fold_groups import FoldGroups
@@ -178,17 +180,22 @@ class _Fold:
 
 def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldScale, *,
               seed: int = 0, progress: bool = True, log=print,
-              real: RealData | None = None) -> dict | None:
+              real: RealData | None = None, keep: dict | None = None) -> dict | None:
     """Every fold into ``out/fit_<object>/`` (calibration.json, data, models); returns the
     held-out results and the recipe they choose (None when there is no real data, or only
-    one object). ``real``: the folder's real data when already loaded."""
+    one object). ``real``: the folder's real data when already loaded. ``keep``: filled
+    with the estimates the folds judged (``estimates``: fold -> (folder, strength) ->
+    {method: (held objects, K, B, 4)}; ``released``: the released models' {method:
+    (objects, K, B, 4)}), for judgements made after the recipe
+    (:func:`jaxinertia.app.with_released.judge_with_released`)."""
     if real is None and not Path(lbipe_dir).is_dir():
         return None
     real = real or load_real(lbipe_dir, seed=seed)
     names = [o.name for o in real.objects]
     if len(names) < 2:
         return None
-    released = released_benchmark(lbipe_dir, real=real)["objects"]
+    benchmark = released_benchmark(lbipe_dir, real=real)
+    released = benchmark["objects"]
     groups = FoldGroups.of(names, scale)
     todo = [_Fold(Path(out) / f"fit_{fit_on}", fit_on, [n for n in names if n != fit_on],
                   real, scale, seed, progress, groups) for fit_on in names]
@@ -215,6 +222,9 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
     calls = [fold.branch(partial(run, fold, c)) for fold, c in zip(todo, calibrated)]
     workers = todo[0].workers(len(calls)) or folds_side_by_side(len(calls))
     folds = dict(zip(names, side_by_side(calls, workers)))
+    if keep is not None:
+        keep.update(estimates={f.fit_on: f.estimates for f in todo},
+                    released={m: np.asarray(x) for m, x in benchmark["estimates"].items()})
     return {"folds": folds, "sets": dict(zip(names, real.sources)),
             "recipe": choose_recipe(folds), "side_by_side": workers}
 

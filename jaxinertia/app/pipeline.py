@@ -21,7 +21,7 @@ import numpy as np
 
 from jaxinertia.app.arm_options import LBIPE_ARM, samples_arm
 from jaxinertia.app.by_part import COM_MODELS, com_models_of, merge_evaluations
-from jaxinertia.app.ensemble import ENSEMBLE_MEMBERS, mean_evaluation, members_of
+from jaxinertia.app.ensemble import ENSEMBLE_MEMBERS, mean_evaluation, members_of, weights_of
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import (
     UNIFORM_ATTENTION,
@@ -317,14 +317,14 @@ def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
     folder = load_models(models, robot=robot, arm=arm)
     adapted, ratios = adapt_objects(objects, session_reference(folder.config, session_strength,
                                                                simulated=simulated))
-    t = time.perf_counter()
+    t, members = time.perf_counter(), members_of(models, folder.config)
     res = evaluate(adapted, sets, pair=folder.pair, baselines=folder.baselines,
                    fc=folder.features, l_max=l_max)
-    members = members_of(models, folder.config)
     if members:  # each member reads the objects in its own session
         res = mean_evaluation([res] + [evaluate_models(
             m, objects, sets, l_max=l_max, robot=robot, session_strength=session_strength,
-            simulated=simulated, arm=arm) for m in members], objects, [Path(models), *members])
+            simulated=simulated, arm=arm) for m in members], objects, [Path(models), *members],
+            weights_of(folder.config))
     com = com_models_of(models, folder.config)
     if com is not None:
         res = merge_evaluations(res, evaluate_models(

@@ -12,7 +12,7 @@ from jaxinertia.evaluation import METHODS, average
 from jaxinertia.sim.real_fit import baseline_statistics
 
 __all__ = ["sim_fit_report", "coverage_table", "format_folds", "recipe_table", "render",
-           "reproduce_report", "table1", "table2", "table3"]
+           "reproduce_report", "reproduce_section_new_object", "table1", "table2", "table3"]
 
 _T1_COLS = (("mass_MAE_g", "mass MAE [g]"), ("mass_NMAE_pct", "mass NMAE [%]"),
             ("mass_NRMSE_pct", "mass NRMSE [%]"), ("com_MAE_mm", "COM MAE [mm]"),
@@ -318,4 +318,31 @@ def _new_object_section(ft: dict | None) -> list[str]:
             "folds below measure.", "",
             table1(ft["objects"], f"On {names}: **not held out** (" + (
                 "each file was seen by the members its own fold made" if ft.get("from_folds")
-                else "the models saw these files") + ")"), ""]
+                else "the models saw these files") + ")"), ""] + _with_released(
+                    ft.get("with_released"), ft["models"])
+
+
+def reproduce_section_new_object(ft: dict | None) -> str:
+    """The report's section on the models for a new real object (``real_finetuned`` of
+    ``tables.json``)."""
+    return "\n".join(_new_object_section(ft))
+
+
+def _with_released(w: dict | None, models: str) -> list[str]:
+    """``models_real_with_released`` (:mod:`jaxinertia.app.with_released`)."""
+    if w is None:
+        return []
+    h = w["held_out"]
+    rows = [f"| {fit} | {held} | {r['mass_NMAE_pct']:.2f} | {r['com_NMAE_pct']:.2f} |"
+            for fit, f in h["folds"].items() for held, r in f.items()]
+    return [f"`{w['models']}`: `{models}` averaged with the authors' released models, "
+            f"{w['released_share']:g} each per model pair and set (T and T-A; the share "
+            "fixed beforehand), a second folder beside it, never a candidate of the recipe. "
+            "Judged by the same folds (each fold's own models of the recipe's parts, the "
+            "released models on the same sets): score over the released models' T-A "
+            f"{h['score']:.3f} (mass {h['mass_score']:.3f}, COM {h['com_score']:.3f}).", "",
+            "| fit on | judged on | T-A mass NMAE [%] | T-A COM NMAE [%] |",
+            "| --- | --- | ---: | ---: |", *rows, "",
+            table1(w["objects"], f"`{w['models']}` on the real files: **not held out** "
+                   "(each file was seen by the members of `models_real` its own fold made)"),
+            ""]

@@ -43,6 +43,7 @@ from jaxinertia.app.pipeline import (
 from jaxinertia.app.programs import side_by_side
 from jaxinertia.app.report import reproduce_report
 from jaxinertia.app.simdata import cached, params_digest, simulate_files
+from jaxinertia.app.with_released import judge_with_released, models_with_released
 from jaxinertia.arm import Arm
 from jaxinertia.arms import DEFAULT_ARM, get_arm
 from jaxinertia.checkpoints import load_models
@@ -236,6 +237,8 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
     real = (load_real(lbipe_dir, seed=seed, n_sets=scale.n_sets)
             if lbipe_dir.is_dir() and real_skipped is None else None)
 
+    judged: dict = {}  # the folds' estimates, for judging models_real_with_released
+
     def held_out() -> dict | None:
         if real is None or scale.fold_calibration_iterations <= 0:
             return None
@@ -246,7 +249,7 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
                 train=scale.train, finetune_samples=scale.fold_finetune_samples,
                 current_input=scale.fold_current_input,
                 session_draws=scale.fold_session_draws),
-                seed=seed, progress=progress, real=real)
+                seed=seed, progress=progress, real=real, keep=judged)
 
     sim, folds = side_by_side([
         partial(_simulated_stages, out, scale, arm, real, lbipe_dir, real_skipped, seed,
@@ -260,6 +263,13 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
             real_ft = (models_from_folds(out, folds, real, recipe) if folds else
                        models_real(out, sim["train_files"], real, scale, recipe, seed,
                                    progress, sim["session"]))
+            if folds:  # (the folds judged the released models: their weights are there)
+                # Beside them, half and half with the authors' released models, judged by
+                # the same folds (app.with_released).
+                real_ft["with_released"] = {
+                    **models_with_released(out, real),
+                    "held_out": judge_with_released(folds, judged["estimates"],
+                                                    judged["released"], real, recipe)}
     info, ev, coverage, cres, s2r = (sim[k] for k in ("info", "evaluation", "coverage",
                                                        "continuous", "sim-to-real"))
     results = {
