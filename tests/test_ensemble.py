@@ -242,3 +242,13 @@ def test_shares_weigh_the_members_and_another_model_count_enters_by_its_pairs_me
     assert main(["estimate", "--models", str(models), "--samples", str(path), "--set-size",
                  "32", "--max-mass", "1000", "--max-com", "1000"]) == 0
     assert "shares: 0.25 each, but three 0.5" in capsys.readouterr().out
+    # A folder without its attention whose member keeps its own (the released models in
+    # models_real_with_released): T-A is no longer T, and estimate does not say it is.
+    flat = copy_models(models, tmp_path / "flat", uniform=True)
+    copy_models(models / "three", flat / "own")
+    attach_members(flat, ["own"], [1.0, 1.0])
+    mixed = estimate(flat, path, **kw)
+    assert mixed["uniform_attention"] is False
+    assert main(["estimate", "--models", str(flat), "--samples", str(path), "--set-size",
+                 "32", "--max-mass", "1000", "--max-com", "1000"]) == 0
+    assert "T-A answers as T" not in capsys.readouterr().out

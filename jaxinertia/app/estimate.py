@@ -233,7 +233,10 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
         out["ensemble_members"] = [str(m.path) for m in members]
         if weights_of(folder.config) is not None:
             out["ensemble_weights"] = weights_of(folder.config)
-    out["uniform_attention"] = bool(folder.config.get(UNIFORM_ATTENTION))
+    # (T-A answers as T only where no member has its attention: models_real_with_released's
+    # released member keeps the authors')
+    out["uniform_attention"] = all(bool(f.config.get(UNIFORM_ATTENTION))
+                                   for f in (folder, *(m.folder for m in members)))
     return out, folder.config
 
 
