@@ -19,12 +19,23 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
+import jax
 
-from jaxinertia.app.pipeline import adapt_objects, load_real, released_benchmark, session_reference
-from jaxinertia.app.with_released import judge_with_released, models_with_released
-from jaxinertia.checkpoints import load_models
-from jaxinertia.evaluation import evaluate
+# The least squares in float64, as the command line solves them (jaxinertia.app.options):
+# in float32 a GPU's TF32 products move the weighted solves by percents.
+jax.config.update("jax_enable_x64", True)
+
+import numpy as np  # noqa: E402
+
+from jaxinertia.app.pipeline import (  # noqa: E402
+    adapt_objects,
+    load_real,
+    released_benchmark,
+    session_reference,
+)
+from jaxinertia.app.with_released import judge_with_released, models_with_released  # noqa: E402
+from jaxinertia.checkpoints import load_models  # noqa: E402
+from jaxinertia.evaluation import evaluate  # noqa: E402
 
 SHARES = (0.0, 0.25, 0.5, 0.75, 1.0)
 
