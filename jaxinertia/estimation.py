@@ -6,7 +6,7 @@ float32 (as trained); identification runs in the dtype of ``A`` (float64 by defa
 
 from __future__ import annotations
 
-from functools import cache, partial
+from functools import cache, partial, wraps
 from typing import NamedTuple
 
 import flax.linen as nn
@@ -55,6 +55,7 @@ def run_once_jit(fn, **jit_kwargs):
     built = cache(lambda gpu: jax.jit(fn, **jit_kwargs, compiler_options=(
         {"xla_gpu_autotune_level": 0} if gpu else None)))
 
+    @wraps(fn)
     def call(*args, **kwargs):
         return built(jax.default_backend() == "gpu")(*args, **kwargs)
 

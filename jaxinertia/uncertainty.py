@@ -47,7 +47,12 @@ import numpy as np
 
 from jaxinertia.baselines import Baselines
 from jaxinertia.errors import UsageError
-from jaxinertia.estimation import ModelPair, estimate_sets, predict_torques_stacked
+from jaxinertia.estimation import (
+    ModelPair,
+    estimate_sets,
+    predict_torques_stacked,
+    run_once_jit,
+)
 from jaxinertia.evaluation import baseline_methods, baseline_torques, stack
 from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.identification import (
@@ -164,7 +169,6 @@ def _noise_covariance(A, y, w, sets, x, floor):
     return Gi @ meat @ Gi, var, (floor**2 > resid_var).astype(A.dtype)
 
 
-@jax.jit
 def set_uncertainty(A: jnp.ndarray, tau_g: jnp.ndarray, tau_hat: jnp.ndarray,
                     weights: jnp.ndarray | None, sets: jnp.ndarray, x: jnp.ndarray,
                     floor: jnp.ndarray) -> SetUncertainty:
@@ -194,6 +198,12 @@ def set_uncertainty(A: jnp.ndarray, tau_g: jnp.ndarray, tau_hat: jnp.ndarray,
                           jnp.mean(floor_k, axis=1))
 
 
+# One program per shape, run once where it is called (a command's answer, a coverage table):
+# on a GPU without the autotuner, whose timing of kernels made one compile take 15 s beside
+# the folds in ``reproduce --full`` (docs/benchmarks.md, "Session 32").
+set_uncertainty = run_once_jit(set_uncertainty)
+
+
 # ---- mass, COM, intervals ---------------------------------------------------------------
 
 
@@ -217,11 +227,15 @@ def standard_errors(x, cov):
     return jnp.sqrt(jnp.maximum(jnp.diagonal(c, axis1=-2, axis2=-1), 0.0))
 
 
+def _intervals(x, cov, z):
+    v, _ = mass_com_covariance(x, cov)
+    half = z * standard_errors(x, cov)
+    return v, v - half, v + half
+
+
 def intervals(x, cov, level: float = 0.95):
     """``([m, p], lo, hi)`` (..., 4): the normal ``level`` interval of mass and COM."""
-    v, _ = mass_com_covariance(x, cov)
-    half = z_of(level) * standard_errors(x, cov)
-    return v, v - half, v + half
+    return _intervals_jit(x, cov, z_of(level))
 
 
 def z_scores(x, cov, x_true):
@@ -235,6 +249,15 @@ def z_scores(x, cov, x_true):
     d = err[..., 1:]
     maha = jnp.einsum("...p,...p->...", d, cholesky_solve(c[..., 1:, 1:], d))
     return jnp.abs(err) / se, maha
+
+
+# The answers' post-processing as one program each (per shape), not op by op: called
+# eagerly, each of their dozens of operations compiled a program of its own (``estimate``,
+# the coverage tables), slowing whatever ran beside them.
+mass_com_covariance = run_once_jit(mass_com_covariance)
+standard_errors = run_once_jit(standard_errors)
+z_scores = run_once_jit(z_scores)
+_intervals_jit = run_once_jit(_intervals)
 
 
 def coverage(x, cov, x_true, *, levels: Sequence[float] = LEVELS, inflate=1.0) -> dict:
@@ -393,12 +416,13 @@ def interval_coverage(objects: Sequence[Samples], answers: dict[str, SetUncertai
     out: dict = {"objects": {}, "per_set": {}}
     for m, u in answers.items():
         se = np.asarray(standard_errors(u.x, u.cov)) * np.asarray(inflate)
-        v, _ = mass_com_covariance(u.x, u.cov)
-        err = np.stack([np.asarray(v[o]) - np.r_[obj.x[0, 0], obj.x[0, 1:] / obj.x[0, 0]]
+        v = np.asarray(mass_com_covariance(u.x, u.cov)[0])
+        ux, ucov = np.asarray(u.x), np.asarray(u.cov)  # indexed on the host, not op by op
+        err = np.stack([v[o] - np.r_[obj.x[0, 0], obj.x[0, 1:] / obj.x[0, 0]]
                         for o, obj in enumerate(objects)])
         out["per_set"][m] = {"se": se, "error": err}
         for o, obj in enumerate(objects):
-            c = coverage(u.x[o], u.cov[o], obj.x[0], levels=levels, inflate=inflate)
+            c = coverage(ux[o], ucov[o], obj.x[0], levels=levels, inflate=inflate)
             c["median_se"] = np.nanmedian(se[o], axis=0).tolist()
             c["rms_error"] = np.sqrt(np.nanmean(err[o] ** 2, axis=0)).tolist()
             out["objects"].setdefault(obj.name, {})[m] = c
