@@ -57,6 +57,11 @@ def run_once_jit(fn, **jit_kwargs):
 
     @wraps(fn)
     def call(*args, **kwargs):
+        if any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves((args,
+                                                                                  kwargs))):
+            # Called inside another program being traced: part of it (compiler options
+            # belong to the top-level program alone; JAX refuses them on a nested jit).
+            return fn(*args, **kwargs)
         return built(jax.default_backend() == "gpu")(*args, **kwargs)
 
     return call

@@ -216,6 +216,32 @@ def test_set_uncertainty_compiles_once():
     assert not np.allclose(a.cov, b.cov)
 
 
+def test_the_answers_post_processing_is_one_program_and_nests_on_a_gpu(monkeypatch):
+    """Standard errors, intervals and z-scores run as one program each per shape (called
+    eagerly, each of their operations compiled a program of its own), and inside another
+    program being traced (``identifiability`` calls ``standard_errors``) they become part
+    of it: on a GPU their own programs carry compiler options, which JAX refuses on a
+    nested jit (session 32's first GPU run stopped there)."""
+    from jaxinertia.uncertainty import intervals, z_scores  # noqa: PLC0415
+
+    rng = np.random.default_rng(9)
+    x = np.array([0.05, 0.05 * 0.01, 0.05 * 0.002, -0.05 * 0.02])
+    L = rng.normal(size=(6, 4, 4)) * 1e-3
+    cov = L @ np.swapaxes(L, -1, -2) + 1e-8 * np.eye(4)
+    with compile_counter("standard_errors", "_intervals", "z_scores", "matmul",
+                         "concatenate") as seen:
+        se = np.asarray(standard_errors(x, cov))
+        _, lo, hi = (np.asarray(a) for a in intervals(x, cov, 0.95))
+        z, _ = z_scores(x, cov, x)
+    assert seen.compiles["standard_errors"] == 1 and seen.compiles["_intervals"] == 1
+    assert seen.compiles["matmul"] == seen.compiles["concatenate"] == 0, seen
+    np.testing.assert_allclose(hi - lo, 2 * 1.959963984540054 * se, rtol=1e-5)
+    np.testing.assert_array_equal(np.asarray(z), 0.0)
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")  # the GPU's options
+    nested = jax.jit(lambda c: standard_errors(x, c))(cov)
+    np.testing.assert_allclose(np.asarray(nested), se, rtol=1e-6)
+
+
 def test_validation_error_is_one_program_per_shape_and_equals_the_models_predictions():
     """After every training and fine-tuning: one jitted program for the K models' torques
     (op by op, an eager vmap compiled every product and sum anew for each new sample count:
