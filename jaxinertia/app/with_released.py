@@ -31,6 +31,7 @@ from jaxinertia.app.pipeline import RealData, evaluate_models
 from jaxinertia.app.recipe import candidate_of_folder
 from jaxinertia.checkpoints import load_models, read_config, save_models
 from jaxinertia.features import LBIPE_FEATURES
+from jaxinertia.fileio import replacing_dir
 from jaxinertia.lbipe import load_released_models
 from jaxinertia.metrics import inertial_metrics
 
@@ -60,15 +61,15 @@ def models_with_released(out: Path, real: RealData, share: float = RELEASED_SHAR
     of their own members alike; evaluated on the real files (**not held out**: each file
     was seen by ``models_real``'s members of its own fold)."""
     src, dst = out / "models_real", out / "models_real_with_released"
-    shutil.rmtree(dst, ignore_errors=True)
-    shutil.copytree(src, dst)
-    like = load_models(dst)
-    com = com_models_of(dst, like.config)
-    for part in [dst] + ([com] if com is not None else []):
-        released_folder(part / RELEASED, real, like)
-        members = read_config(part).get(ENSEMBLE_MEMBERS) or []
-        n = len(members) + 1
-        attach_members(part, [*members, RELEASED], [(1 - share) / n] * n + [share])
+    with replacing_dir(dst) as tmp:  # in place once complete, never half written
+        shutil.copytree(src, tmp, dirs_exist_ok=True)
+        like = load_models(tmp)
+        com = com_models_of(tmp, like.config)
+        for part in [tmp] + ([com] if com is not None else []):
+            released_folder(part / RELEASED, real, like)
+            members = read_config(part).get(ENSEMBLE_MEMBERS) or []
+            n = len(members) + 1
+            attach_members(part, [*members, RELEASED], [(1 - share) / n] * n + [share])
     res = evaluate_models(dst, real.objects, real.sets, l_max=real.l_max)
     return {"objects": res["objects"], "models": str(dst), "released_share": share}
 
