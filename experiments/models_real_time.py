@@ -16,12 +16,16 @@ from pathlib import Path
 
 import jax
 
-from jaxinertia.app.folds import SESSION_STRENGTHS
-from jaxinertia.app.models_real import models_from_folds, recipe_of
-from jaxinertia.app.pipeline import adapt_objects, load_real, session_reference
-from jaxinertia.app.reproduce import FULL
-from jaxinertia.checkpoints import load_models
-from jaxinertia.evaluation import evaluate
+# The least squares in float64, as the command line solves them (jaxinertia.app.options):
+# in float32 a GPU's TF32 products move the attention's solves by percents.
+jax.config.update("jax_enable_x64", True)
+
+from jaxinertia.app.folds import SESSION_STRENGTHS  # noqa: E402
+from jaxinertia.app.models_real import models_from_folds, recipe_of  # noqa: E402
+from jaxinertia.app.pipeline import adapt_objects, load_real, session_reference  # noqa: E402
+from jaxinertia.app.reproduce import FULL  # noqa: E402
+from jaxinertia.checkpoints import load_models  # noqa: E402
+from jaxinertia.evaluation import evaluate  # noqa: E402
 
 #: One folder of each kind of model a fold judges (paper network, physical, with the
 #: current input, fine-tuned).
