@@ -202,6 +202,9 @@ def test_shares_weigh_the_members_and_another_model_count_enters_by_its_pairs_me
     sets, _ = choose_sets(d.by_object(), n_sets=8, set_size=32, seed=0)
     res = evaluate_models(models, d.by_object(), sets, l_max=[0.1])
     copy = copy_models(models, tmp_path / "copy")
+    # (the copy is the folder's own models alone: neither members nor their shares)
+    assert not {"ensemble_members", "ensemble_weights"} & set(
+        json.loads((copy / "config.json").read_text()))
     plain = [evaluate_models(f, d.by_object(), sets, l_max=[0.1])["estimates"]
              for f in (copy, models / "two", models / "three")]
     (name,) = res["objects"]

@@ -33,9 +33,9 @@ from jaxinertia.metrics import inertial_metrics
 from jaxinertia.samples import Samples
 from jaxinertia.uncertainty import SetUncertainty
 
-__all__ = ["ENSEMBLE_MEMBERS", "ENSEMBLE_WEIGHTS", "NETWORK_METHODS", "attach_members",
-           "judge_mean", "mean_estimates", "mean_evaluation", "mean_uncertainty", "members_of",
-           "weights_of"]
+__all__ = ["ENSEMBLE_KEYS", "ENSEMBLE_MEMBERS", "ENSEMBLE_WEIGHTS", "NETWORK_METHODS",
+           "attach_members", "judge_mean", "mean_estimates", "mean_evaluation",
+           "mean_uncertainty", "members_of", "weights_of"]
 
 #: The ``config.json`` key naming the further members (relative to the folder).
 ENSEMBLE_MEMBERS = "ensemble_members"
@@ -43,6 +43,8 @@ ENSEMBLE_MEMBERS = "ensemble_members"
 #: first; absent: equal shares). With shares given, a member of another model count than
 #: the folder's enters with its pairs' mean on each set, for every pair of the folder.
 ENSEMBLE_WEIGHTS = "ensemble_weights"
+#: Both: what a copy of the folder's own models leaves out (``pipeline.copy_models``).
+ENSEMBLE_KEYS = (ENSEMBLE_MEMBERS, ENSEMBLE_WEIGHTS)
 #: The methods whose estimates are averaged.
 NETWORK_METHODS = ("T", "T-A")
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from jaxinertia.app.arm_options import LBIPE_ARM, samples_arm
 from jaxinertia.app.by_part import COM_MODELS, com_models_of, merge_evaluations
-from jaxinertia.app.ensemble import ENSEMBLE_MEMBERS, mean_evaluation, members_of, weights_of
+from jaxinertia.app.ensemble import ENSEMBLE_KEYS, mean_evaluation, members_of, weights_of
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import (
     UNIFORM_ATTENTION,
@@ -275,7 +275,7 @@ def copy_models(src: str | os.PathLike, dst: str | os.PathLike, *,
     config = read_config(src)
     # A folder's COM models (app.by_part) and ensemble members (app.ensemble) live inside
     # it and are not copied: neither are the keys that name them.
-    config = {k: v for k, v in config.items() if k not in (COM_MODELS, ENSEMBLE_MEMBERS)}
+    config = {k: v for k, v in config.items() if k not in (COM_MODELS, *ENSEMBLE_KEYS)}
     for key, simulated in (("session", False), ("simulator_session", True)):
         ref = session_reference(config, session_strength, simulated=simulated)
         config[key] = None if ref is None else ref.to_dict()
