@@ -15,7 +15,7 @@ from jaxinertia.app.ensemble import ENSEMBLE_MEMBERS, attach_members
 from jaxinertia.app.estimate import estimate
 from jaxinertia.app.pipeline import copy_models, evaluate_models
 from jaxinertia.baselines import fit_baselines
-from jaxinertia.errors import UsageError
+from jaxinertia.errors import ModelFolderError, UsageError
 from jaxinertia.evaluation import choose_sets
 from jaxinertia.metrics import inertial_metrics
 from jaxinertia.samples import save_native
@@ -116,6 +116,31 @@ def test_members_must_be_there_and_agree_in_model_count(folders, tmp_path):
     sets, _ = choose_sets(d.by_object(), n_sets=4, set_size=32, seed=0)
     with pytest.raises(UsageError, match="as many model pairs each"):
         evaluate_models(tmp_path / "m", d.by_object(), sets, l_max=[0.1])
+    # A member is a plain folder inside, named once: not the folder itself (evaluate would
+    # recurse), not one that answers with members of its own (estimate reads a member's
+    # own models only, evaluate would read its members too).
+    for names, match in ((["three", "three"], "named twice"), (["."], "inside"),
+                         (["../m/three"], None), (["three/.."], "inside")):
+        if match is None:  # (a roundabout name of a folder inside is that folder)
+            attach_members(tmp_path / "m", names)
+            continue
+        with pytest.raises(UsageError, match=match):
+            attach_members(tmp_path / "m", names)
+    save_models(tmp_path / "m" / "outer", tiny_pair(seed=2), b, feature_config(), robot=ROBOT)
+    save_models(tmp_path / "m" / "outer" / "inner", tiny_pair(seed=4), b, feature_config(),
+                robot=ROBOT)
+    attach_members(tmp_path / "m" / "outer", ["inner"])
+    with pytest.raises(UsageError, match="its own models only, not with ensemble_members"):
+        attach_members(tmp_path / "m", ["outer"])
+    # Shares edited by hand to another count than the members': one line naming the folder.
+    attach_members(tmp_path / "m", ["outer/inner"], [1.0, 1.0])
+    config = json.loads((tmp_path / "m" / "config.json").read_text())
+    config["ensemble_weights"] = [0.5, 0.25, 0.25]
+    (tmp_path / "m" / "config.json").write_text(json.dumps(config))
+    with pytest.raises(ModelFolderError, match=r"m \[ensemble_weights\]: 2 shares >= 0"):
+        evaluate_models(tmp_path / "m", d.by_object(), sets, l_max=[0.1])
+    with pytest.raises(ModelFolderError, match=r"ensemble_weights\]: 2 shares"):
+        estimate(tmp_path / "m", path, set_size=32, n_sets=4, max_mass=1e3, max_com=1e3)
 
 
 def test_a_folder_without_its_attention_answers_t_a_as_t(folders, capsys):
@@ -240,6 +265,18 @@ def test_shares_weigh_the_members_and_another_model_count_enters_by_its_pairs_me
         noise = np.average([r[method]["covariance_terms"]["noise"] for r in alone], axis=0,
                            weights=[0.25, 0.25, 0.5])
         np.testing.assert_allclose(m[method]["covariance_terms"]["noise"], noise, rtol=1e-9)
+        # The spread: every member's pairs, each weighing its member's share over the
+        # member's pair count (np.cov's aweights, ddof 1), rebuilt here from each folder's
+        # own spread (ddof 1 over its K pairs) and answer (its pairs' mean).
+        w, k = np.array([0.25, 0.25, 0.5]), np.array([2, 2, 3])
+        own = [np.asarray(r[method]["covariance_terms"]["ensemble"]) for r in alone]
+        scatter = sum(wi / ki * ((ki - 1) * ci + ki * np.outer(xi - want, xi - want))
+                      for wi, ki, ci, xi in zip(w, k, own, x))
+        spread = scatter / (1 - np.sum(w ** 2 / k))
+        np.testing.assert_allclose(m[method]["covariance_terms"]["ensemble"], spread,
+                                   rtol=1e-7, atol=1e-7 * np.abs(spread).max())
+        np.testing.assert_allclose(m[method]["covariance_x"], noise + spread, rtol=1e-7,
+                                   atol=1e-7 * np.abs(noise + spread).max())
     assert answered > 0, "no network method answered in every folder: nothing was checked"
     capsys.readouterr()
     assert main(["estimate", "--models", str(models), "--samples", str(path), "--set-size",

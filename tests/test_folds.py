@@ -220,9 +220,21 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
     got = made["objects"]["white"]["T-A"]
     np.testing.assert_allclose(got["mass_NMAE_pct"], want["mass_NMAE_pct"], rtol=1e-9)
     _check_with_released(tmp_path, res, keep, real, chosen, sources, folder_of, names, made)
+    # A recipe that cannot be made leaves the previous models_real whole (it is written
+    # beside and put in place once complete), and nothing half written beside it.
+    before = {p.relative_to(dst): p.read_bytes() for p in dst.rglob("*") if p.is_file()}
     with pytest.raises(FileNotFoundError, match="no folder of the candidate"):
-        models_from_folds(tmp_path, res, real, R._recipe(
-            "physical, servo part fine-tuned on 999 real samples", 0.0))
+        models_from_folds(tmp_path, res, real, {**chosen, "com": R._recipe(
+            "physical, servo part fine-tuned on 999 real samples", 0.0)})
+    assert {p.relative_to(dst): p.read_bytes() for p in dst.rglob("*") if p.is_file()} \
+        == before
+    assert not list(tmp_path.glob(".models_real*"))
+    # A run that remakes models_real without the folds drops the average of the old one.
+    from jaxinertia.app.with_released import drop_with_released  # noqa: PLC0415
+
+    assert drop_with_released(tmp_path) == tmp_path / "models_real_with_released"
+    assert not (tmp_path / "models_real_with_released").exists()
+    assert drop_with_released(tmp_path) is None
 
 
 def _finite_metrics(x, obj, l_max) -> dict:

@@ -26,16 +26,17 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxinertia.app.by_part import COM_MODELS
 from jaxinertia.checkpoints import CONFIG
-from jaxinertia.errors import UsageError
+from jaxinertia.errors import ModelFolderError, UsageError
 from jaxinertia.fileio import write_json
 from jaxinertia.metrics import inertial_metrics
 from jaxinertia.samples import Samples
 from jaxinertia.uncertainty import SetUncertainty
 
 __all__ = ["ENSEMBLE_KEYS", "ENSEMBLE_MEMBERS", "ENSEMBLE_WEIGHTS", "NETWORK_METHODS",
-           "attach_members", "judge_mean", "mean_estimates", "mean_evaluation",
-           "mean_uncertainty", "members_of", "weights_of"]
+           "attach_members", "finite_estimates", "judge_mean", "mean_estimates",
+           "mean_evaluation", "mean_uncertainty", "members_of", "weights_of"]
 
 #: The ``config.json`` key naming the further members (relative to the folder).
 ENSEMBLE_MEMBERS = "ensemble_members"
@@ -54,30 +55,62 @@ def members_of(models: str | os.PathLike, config: dict) -> list[Path]:
     return [Path(models) / name for name in config.get(ENSEMBLE_MEMBERS) or ()]
 
 
+def _checked_shares(weights, n: int, where: str) -> np.ndarray:
+    """``n`` shares, finite, >= 0, not all zero, normalised; else the error says so."""
+    w = np.asarray(weights, float) if weights is not None else np.full(0, np.nan)
+    if w.shape != (n,) or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+        raise ModelFolderError(f"{where}: {n} shares >= 0 (the folder's own first) are "
+                               f"needed, not {weights!r}")
+    return w / w.sum()
+
+
+def _check_member(models: Path, name: str) -> None:
+    """A member is a plain model folder inside ``models``: not the folder itself, not one
+    that answers with members or COM models of its own (``evaluate`` and ``estimate``
+    would then disagree on what it answers)."""
+    path = models / name
+    if not (path / CONFIG).is_file():
+        raise FileNotFoundError(f"{path}: no model folder to average")
+    if path.resolve() == models.resolve() or models.resolve() not in path.resolve().parents:
+        raise UsageError(f"{path}: a member must be a model folder inside {models}")
+    nested = [k for k in (ENSEMBLE_MEMBERS, COM_MODELS)
+              if json.loads((path / CONFIG).read_text()).get(k)]
+    if nested:
+        raise UsageError(f"{path}: a member answers with its own models only, not with "
+                         f"{' and '.join(nested)}")
+
+
 def attach_members(models: str | os.PathLike, names: Sequence[str],
                    weights: Sequence[float] | None = None) -> None:
     """Records in ``models/config.json`` that ``models`` answers with the mean of its own
     models and those of ``models/<name>`` for each name (model folders already there);
     ``weights``: each one's share (the folder's own first; normalised), else equal."""
-    path = Path(models) / CONFIG
+    models = Path(models)
+    path = models / CONFIG
+    if len(set(names)) != len(names):
+        raise UsageError(f"{models}: a member named twice in {list(names)}")
     for name in names:
-        if not (Path(models) / name / CONFIG).is_file():
-            raise FileNotFoundError(f"{Path(models) / name}: no model folder to average")
+        _check_member(models, name)
     config = {k: v for k, v in json.loads(path.read_text()).items() if k != ENSEMBLE_WEIGHTS}
     config[ENSEMBLE_MEMBERS] = list(names)
     if weights is not None:
-        w = np.asarray(weights, float)
-        if w.shape != (len(names) + 1,) or not np.all(np.isfinite(w)) or np.any(w < 0) \
-                or w.sum() <= 0:
-            raise UsageError(f"{len(names) + 1} shares >= 0 (the folder's own first) are "
-                             f"needed, not {list(weights)}")
-        config[ENSEMBLE_WEIGHTS] = (w / w.sum()).tolist()
+        try:
+            w = _checked_shares(weights, len(names) + 1, str(models))
+        except ModelFolderError as e:
+            raise UsageError(str(e)) from None
+        config[ENSEMBLE_WEIGHTS] = w.tolist()
     write_json(path, config)
 
 
-def weights_of(config: dict) -> list[float] | None:
-    """The members' shares that a folder's ``config`` records (None: equal)."""
-    return config.get(ENSEMBLE_WEIGHTS)
+def weights_of(config: dict, models: str | os.PathLike = "the model folder"
+               ) -> list[float] | None:
+    """The members' shares that a folder's ``config`` records (None: equal), checked
+    against its members (a hand-edited record is an error naming the folder)."""
+    weights = config.get(ENSEMBLE_WEIGHTS)
+    if weights is None:
+        return None
+    n = len(config.get(ENSEMBLE_MEMBERS) or ()) + 1
+    return _checked_shares(weights, n, f"{models} [{ENSEMBLE_WEIGHTS}]").tolist()
 
 
 def mean_estimates(estimates: Sequence[np.ndarray], folders: Sequence,
@@ -97,7 +130,8 @@ def mean_estimates(estimates: Sequence[np.ndarray], folders: Sequence,
     return np.average(np.stack(xs), axis=0, weights=weights)
 
 
-def _finite(x: np.ndarray) -> np.ndarray:
+def finite_estimates(x: np.ndarray) -> np.ndarray:
+    """The estimates ``x`` (..., 4) as rows, without those a failed solve left non-finite."""
     x = np.asarray(x).reshape(-1, 4)
     return x[np.all(np.isfinite(x), axis=-1)]
 
@@ -121,8 +155,9 @@ def judge_mean(estimates: dict, objects: Sequence[Samples], l_max: Sequence[floa
         if len({np.shape(e["T-A"]) for e in members}) > 1:
             return None
         by_strength[str(s)] = {
-            obj.name: {m: inertial_metrics(_finite(np.mean([e[m][o] for e in members], axis=0)),
-                                           obj.x[0], l_max[o]) for m in NETWORK_METHODS}
+            obj.name: {m: inertial_metrics(
+                finite_estimates(np.mean([e[m][o] for e in members], axis=0)), obj.x[0],
+                l_max[o]) for m in NETWORK_METHODS}
             for o, obj in enumerate(objects)}
     return {"members": names, "by_strength": by_strength}
 
@@ -144,7 +179,7 @@ def mean_evaluation(evaluations: Sequence[dict], objects: Sequence[Samples],
         for o, obj in enumerate(objects):
             entry = out["objects"][obj.name]
             if m in entry:
-                entry[m] = inertial_metrics(_finite(x[o]), obj.x[0], entry["L_max_m"])
+                entry[m] = inertial_metrics(finite_estimates(x[o]), obj.x[0], entry["L_max_m"])
     out["ensemble_members"] = [str(f) for f in folders[1:]]  # the further members
     if weights is not None:
         out["ensemble_weights"] = list(weights)

@@ -172,14 +172,15 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
     """:func:`estimate` by one model folder: the answer and the folder's config."""
     objects, meta = objects_at_rest(sample_file, need_truth=False)
     objects = [o.without_truth() for o in objects]
-    folder = load_models(models, robot=meta.get("robot"),
-                         arm=samples_arm(sample_file, meta, arm))
+    arm = samples_arm(sample_file, meta, arm)  # the folder's and every member's
+    folder = load_models(models, robot=meta.get("robot"), arm=arm)
     pair, baselines, fc = folder.pair, folder.baselines, folder.features
     reference = session_reference(folder.config, session_strength,
                                   simulated=is_simulated(meta))
     # An ensemble's further members (app.ensemble): each reads the objects in its session.
     members = [_Member(m, objects, meta, session_strength, arm)
                for m in members_of(models, folder.config)]
+    weights = weights_of(folder.config, models)  # checked before any estimate
     objects, ratios = adapt_objects(objects, reference)
     floor, floor_source = training_validation_error(folder.config)
     noise = floor if floor is not None else np.full(objects[0].n_joints,
@@ -201,7 +202,7 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
         spread = evaluate([obj], sets, pair=pair, baselines=baselines, fc=fc, l_max=[np.nan])
         if members:
             _average_members(res, unc, spread, [m.parts(o, all_samples, sets) for m in members],
-                             [models, *(m.path for m in members)], weights_of(folder.config))
+                             [models, *(m.path for m in members)], weights)
         methods = {m: _method_answer(x_all, spread["estimates"][m], unc[m], set_size=set_size,
                                      max_mass=max_mass, max_com=max_com)
                    for m, x_all in res["estimates"].items()}
@@ -231,8 +232,8 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
                 f"{max_com_se * 1e3:.1f} mm: sample more varied poses (jaxinertia plan-poses)")
     if members:
         out["ensemble_members"] = [str(m.path) for m in members]
-        if weights_of(folder.config) is not None:
-            out["ensemble_weights"] = weights_of(folder.config)
+        if weights is not None:
+            out["ensemble_weights"] = weights
     # (T-A answers as T only where no member has its attention: models_real_with_released's
     # released member keeps the authors')
     out["uniform_attention"] = all(bool(f.config.get(UNIFORM_ATTENTION))

@@ -13,13 +13,13 @@ module)."""
 from __future__ import annotations
 
 import contextlib
-import shutil
 from pathlib import Path
 
 from jaxinertia.app.by_part import attach_com_models
 from jaxinertia.app.ensemble import attach_members
 from jaxinertia.app.pipeline import RealData, copy_models, evaluate_models, train
 from jaxinertia.app.recipe import candidate_of_folder
+from jaxinertia.fileio import replacing_dir
 from jaxinertia.open_manipulator_x import load_sim_fit
 from jaxinertia.session import ServoSession, servo_session
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
@@ -106,28 +106,30 @@ def models_from_folds(out: Path, folds: dict, real: RealData, recipe: dict) -> d
                     found[candidate_of_folder(p.name)] = p
         by_candidate.append(found)
     parts = {"mass": recipe, "com": recipe["com"]} if recipe.get("com") else {"mass": recipe}
-    where = {"mass": dst, "com": out / "models_real_com"}
     made = {}
-    for part, r in parts.items():
-        units = [r] if not r.get("members") else r["members"]
-        sources = []
-        for u in units:
-            for d, found in zip(fold_dirs, by_candidate):
-                if u["candidate"] not in found:
-                    raise FileNotFoundError(f"{d}: no folder of the candidate "
-                                            f"{u['candidate']!r} that the recipe names")
-                sources.append(found[u["candidate"]])
-        names = [""] + [f"members/{i}" for i in range(1, len(sources))]
-        for name, src in zip(names, sources):
-            copy_models(src, where[part] / name, session_strength=float(r["session_strength"]),
-                        uniform=not r.get("attention", True))
-        if len(names) > 1:
-            attach_members(where[part], names[1:])
-        made[part] = [str(s.relative_to(out)) for s in sources]
-    if "com" in parts:
-        shutil.rmtree(dst / "com", ignore_errors=True)
-        shutil.move(where["com"], dst / "com")
-        attach_com_models(dst, "com")
+    # Written beside and put in place once complete: an interrupted run leaves the previous
+    # models_real (or none), never one that answers without its members or COM part.
+    with replacing_dir(dst) as tmp:
+        where = {"mass": tmp, "com": tmp / "com"}
+        for part, r in parts.items():
+            units = [r] if not r.get("members") else r["members"]
+            sources = []
+            for u in units:
+                for d, found in zip(fold_dirs, by_candidate):
+                    if u["candidate"] not in found:
+                        raise FileNotFoundError(f"{d}: no folder of the candidate "
+                                                f"{u['candidate']!r} that the recipe names")
+                    sources.append(found[u["candidate"]])
+            names = [""] + [f"members/{i}" for i in range(1, len(sources))]
+            for name, src in zip(names, sources):
+                copy_models(src, where[part] / name,
+                            session_strength=float(r["session_strength"]),
+                            uniform=not r.get("attention", True))
+            if len(names) > 1:
+                attach_members(where[part], names[1:])
+            made[part] = [str(s.relative_to(out)) for s in sources]
+        if "com" in parts:
+            attach_com_models(tmp, "com")
     res = evaluate_models(dst, real.objects, real.sets, l_max=real.l_max)
     return {"objects": res["objects"], "files": [str(f.path) for f in real.files],
             "samples": None, "models": str(dst), "recipe": recipe,

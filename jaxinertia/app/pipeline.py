@@ -324,7 +324,7 @@ def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
         res = mean_evaluation([res] + [evaluate_models(
             m, objects, sets, l_max=l_max, robot=robot, session_strength=session_strength,
             simulated=simulated, arm=arm) for m in members], objects, [Path(models), *members],
-            weights_of(folder.config))
+            weights_of(folder.config, models))
     com = com_models_of(models, folder.config)
     if com is not None:
         res = merge_evaluations(res, evaluate_models(

@@ -43,7 +43,11 @@ from jaxinertia.app.pipeline import (
 from jaxinertia.app.programs import side_by_side
 from jaxinertia.app.report import reproduce_report
 from jaxinertia.app.simdata import cached, params_digest, simulate_files
-from jaxinertia.app.with_released import judge_with_released, models_with_released
+from jaxinertia.app.with_released import (
+    drop_with_released,
+    judge_with_released,
+    models_with_released,
+)
 from jaxinertia.arm import Arm
 from jaxinertia.arms import DEFAULT_ARM, get_arm
 from jaxinertia.checkpoints import load_models
@@ -270,6 +274,9 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
                     **models_with_released(out, real),
                     "held_out": judge_with_released(folds, judged["estimates"],
                                                     judged["released"], real, recipe)}
+            elif (stale := drop_with_released(out)) is not None:
+                print(f"removed {stale}: a previous run's average of another models_real "
+                      "(this run's folds did not run)")
     info, ev, coverage, cres, s2r = (sim[k] for k in ("info", "evaluation", "coverage",
                                                        "continuous", "sim-to-real"))
     results = {

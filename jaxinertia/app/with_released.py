@@ -26,7 +26,12 @@ from pathlib import Path
 import numpy as np
 
 from jaxinertia.app.by_part import com_models_of
-from jaxinertia.app.ensemble import ENSEMBLE_MEMBERS, attach_members, mean_estimates
+from jaxinertia.app.ensemble import (
+    ENSEMBLE_MEMBERS,
+    attach_members,
+    finite_estimates,
+    mean_estimates,
+)
 from jaxinertia.app.pipeline import RealData, evaluate_models
 from jaxinertia.app.recipe import candidate_of_folder
 from jaxinertia.checkpoints import load_models, read_config, save_models
@@ -35,8 +40,8 @@ from jaxinertia.fileio import replacing_dir
 from jaxinertia.lbipe import load_released_models
 from jaxinertia.metrics import inertial_metrics
 
-__all__ = ["RELEASED", "RELEASED_SHARE", "judge_with_released", "models_with_released",
-           "released_folder"]
+__all__ = ["RELEASED", "RELEASED_SHARE", "drop_with_released", "judge_with_released",
+           "models_with_released", "released_folder"]
 
 #: The released models' share of the mean (the rest: ``models_real``'s members alike).
 RELEASED_SHARE = 0.5
@@ -74,9 +79,15 @@ def models_with_released(out: Path, real: RealData, share: float = RELEASED_SHAR
     return {"objects": res["objects"], "models": str(dst), "released_share": share}
 
 
-def _finite(x: np.ndarray) -> np.ndarray:
-    x = np.asarray(x).reshape(-1, 4)
-    return x[np.all(np.isfinite(x), axis=-1)]
+def drop_with_released(out: Path) -> Path | None:
+    """Removes ``out/models_real_with_released`` when there is one (a run that remade
+    ``models_real`` without the folds has no average of it to write: an older one would
+    average the *previous* ``models_real``); returns the folder removed, else None."""
+    dst = out / "models_real_with_released"
+    if not dst.exists():
+        return None
+    shutil.rmtree(dst)
+    return dst
 
 
 def judge_with_released(folds: dict, estimates: dict, released: dict, real: RealData,
@@ -109,7 +120,8 @@ def judge_with_released(folds: dict, estimates: dict, released: dict, real: Real
                 ours = [est[(folder_of[u["candidate"]], s)][method][i] for u in units]
                 x = mean_estimates([mean_estimates(ours, units), released["T-A"][g]],
                                    ["models_real", "released"], [1 - share, share])
-                row[part] = inertial_metrics(_finite(x), real.objects[g].x[0], real.l_max[g])
+                row[part] = inertial_metrics(finite_estimates(x), real.objects[g].x[0],
+                                             real.l_max[g])
                 ref = fold["released"][held]["T-A"][f"{part}_NMAE_pct"]
                 ratios[part].append(row[part][f"{part}_NMAE_pct"] / ref)
             out.setdefault(fit_on, {})[held] = {
