@@ -33,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import os
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -194,8 +195,25 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
     names = [o.name for o in real.objects]
     if len(names) < 2:
         return None
-    benchmark = released_benchmark(lbipe_dir, real=real)
-    released = benchmark["objects"]
+    # The released models' benchmark is needed only once a fold judges: it runs beside the
+    # calibrations instead of before them (on an accelerator 7 s of loading, tracing and
+    # compiling off the folds' critical path: docs/benchmarks.md, "Session 33").
+    with ThreadPoolExecutor(1, thread_name_prefix="jaxinertia-released") as pool:
+        benchmark = pool.submit(released_benchmark, lbipe_dir, real=real)
+        folds, todo, workers = _run_all(out, names, real, scale, seed, progress, log,
+                                        benchmark)
+    if keep is not None:
+        keep.update(estimates={f.fit_on: f.estimates for f in todo},
+                    released={m: np.asarray(x)
+                              for m, x in benchmark.result()["estimates"].items()})
+    return {"folds": folds, "sets": dict(zip(names, real.sources)),
+            "recipe": choose_recipe(folds), "side_by_side": workers}
+
+
+def _run_all(out, names, real, scale, seed, progress, log, benchmark: Future
+             ) -> tuple[dict[str, dict], list[_Fold], int]:
+    """Every fold's stages: their results by name, the folds, and how many ran side by
+    side; ``benchmark``: the released models' on the real files, awaited when judged."""
     groups = FoldGroups.of(names, scale)
     todo = [_Fold(Path(out) / f"fit_{fit_on}", fit_on, [n for n in names if n != fit_on],
                   real, scale, seed, progress, groups) for fit_on in names]
@@ -214,19 +232,16 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
     def run(fold: _Fold, calibration) -> dict:
         if calibration is None:
             log(f"-- fold: calibrate on {fold.fit_on}, judge on {', '.join(fold.held)}")
-        return {**_run_fold(fold, calibration),
-                "released": {n: {m: released[n][m] for m in ("T", "T-A")} for n in fold.held}}
+        res = _run_fold(fold, calibration)
+        released = benchmark.result()["objects"]
+        return {**res, "released": {n: {m: released[n][m] for m in ("T", "T-A")}
+                                    for n in fold.held}}
 
     # The folds share nothing but the real data they read: side by side (on an
     # accelerator their trainings grouped into few programs; on a CPU one fold per core).
     calls = [fold.branch(partial(run, fold, c)) for fold, c in zip(todo, calibrated)]
     workers = todo[0].workers(len(calls)) or folds_side_by_side(len(calls))
-    folds = dict(zip(names, side_by_side(calls, workers)))
-    if keep is not None:
-        keep.update(estimates={f.fit_on: f.estimates for f in todo},
-                    released={m: np.asarray(x) for m, x in benchmark["estimates"].items()})
-    return {"folds": folds, "sets": dict(zip(names, real.sources)),
-            "recipe": choose_recipe(folds), "side_by_side": workers}
+    return dict(zip(names, side_by_side(calls, workers))), todo, workers
 
 
 def _run_fold(fold: _Fold, calibration: tuple | None = None) -> dict:
