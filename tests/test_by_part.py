@@ -63,12 +63,18 @@ def test_the_mass_is_the_mass_folders_and_the_com_the_com_folders(folders, capsy
                                             "com_tag_m": c[method]["interval_95"]["com_tag_m"]}
         assert "covariance_x" not in m[method] and "covariance_note" in m[method]
         assert m[method]["mass_kg"] != c[method]["mass_kg"]  # two different folders
+        # What 1 % of a joint's torque moves: the mass's from the mass folder's answer, the
+        # COM's from the COM folder's.
+        sens = m[method]["servo_state_sensitivity"]
+        assert sens["mass_kg"] == a[method]["servo_state_sensitivity"]["mass_kg"]
+        assert sens["com_m"] == c[method]["servo_state_sensitivity"]["com_m"]
     assert answered > 0, "no network method answered on both folders: nothing was checked"
     # The command line says where each part comes from.
     assert main(["estimate", "--models", str(models), "--samples", str(path), "--set-size",
                  "32", "--max-mass", "1000", "--max-com", "1000"]) == 0
     said = capsys.readouterr().out
     assert f"the COM of T and T-A from {models / 'com'}" in said, said
+    assert "servo state (a bias the intervals do not hold): 1 % of one joint's torque" in said
     # Table I of such a folder: mass metrics the mass folder's, COM metrics the COM's.
     sets, _ = choose_sets(d.by_object(), n_sets=8, set_size=32, seed=0)
     res = evaluate_models(models, d.by_object(), sets, l_max=[0.1])

@@ -19,6 +19,7 @@ from jaxinertia.errors import ModelFolderError, UsageError
 from jaxinertia.evaluation import choose_sets
 from jaxinertia.metrics import inertial_metrics
 from jaxinertia.samples import save_native
+from jaxinertia.statics import torque_scale_sensitivity
 
 ROBOT = "open_manipulator_x"
 MEMBERS = ["members/1", "members/2"]
@@ -53,6 +54,13 @@ def test_the_answer_is_the_members_mean_and_the_baselines_the_folders(folders, c
     a = [r["objects"][name]["methods"] for r in alone]
     for method in ("Sensor", "PE"):  # the baselines: the folder's own, whole
         assert m[method] == a[0][method]
+    # What 1 % of a joint's torque moves T's answer (every row alike): the statics' own
+    # sensitivity at the members' mean (jaxinertia.statics, checked against new solves).
+    assert m["T"]["ok"], m["T"]
+    x = np.r_[m["T"]["mass_kg"], m["T"]["mass_kg"] * np.asarray(m["T"]["com_tag_m"])]
+    np.testing.assert_allclose(m["T"]["servo_state_sensitivity"]["mass_kg"],
+                               torque_scale_sensitivity(d.A, d.tau_g, x, rel=0.01)[:, 0],
+                               rtol=1e-9)
     answered = 0
     for method in ("T", "T-A"):
         if not (m[method]["ok"] and all(r[method]["ok"] for r in a)):

@@ -92,6 +92,8 @@ def merge_answers(mass: dict, com: dict) -> dict:
             for k, v in b.items():
                 if k.startswith("interval_"):
                     a[k]["com_tag_m"] = v["com_tag_m"]
+                elif k == "servo_state_sensitivity":  # the mass's from a, the COM's from b
+                    a[k] = {**a[k], "com_m": v["com_m"]}
             for k in _COVARIANCE:
                 a.pop(k, None)
             a["covariance_note"] = ("mass and COM from two model folders: their joint "

@@ -29,6 +29,7 @@ from jaxinertia.checkpoints import load_models
 from jaxinertia.errors import UsageError
 from jaxinertia.evaluation import choose_sets, evaluate
 from jaxinertia.samples import Samples
+from jaxinertia.statics import torque_scale_sensitivity
 from jaxinertia.uncertainty import (
     DEFAULT_TORQUE_NOISE_NM,
     LEVELS,
@@ -104,6 +105,29 @@ def _method_answer(x_all, x_sets, unc, *, set_size: int, max_mass: float,
             np.std(xs[good, 1:] / xs[good, :1], axis=0).tolist(),
         "failed_sets": int(np.sum(~good)), "n_sets": int(len(xs)),
     }
+
+
+#: The servo-state step of :func:`_servo_state`: 1 % of a joint's torque.
+SERVO_STATE_STEP = 0.01
+
+
+def _servo_state(methods: dict, obj, weights: np.ndarray) -> None:
+    """Adds to each network method's answer how far it moves when one joint's torques are
+    read 1 % off (:func:`jaxinertia.statics.torque_scale_sensitivity`): a servo in another
+    state than the models learnt (supply, temperature) is a bias the intervals do not
+    hold. ``weights``: the folder's own attention weights (K, S, N) for T-A."""
+    for m, w in (("T", None), ("T-A", weights)):
+        r = methods.get(m)
+        if not (r and r["ok"]):
+            continue
+        p = np.asarray(r["com_tag_m"])
+        x = np.r_[r["mass_kg"], r["mass_kg"] * p]
+        dx = np.mean([torque_scale_sensitivity(obj.A, obj.tau_g, x, wk, SERVO_STATE_STEP)
+                      for wk in ([None] if w is None else w)], axis=0)  # (N, 4)
+        moved = (x[1:] + dx[:, 1:]) / (x[0] + dx[:, :1]) - p
+        r["servo_state_sensitivity"] = {"torque_fraction": SERVO_STATE_STEP,
+                                        "mass_kg": dx[:, 0].tolist(),
+                                        "com_m": np.linalg.norm(moved, axis=1).tolist()}
 
 
 def _uncertainty_fields(u, o: int) -> dict:
@@ -206,6 +230,7 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
         methods = {m: _method_answer(x_all, spread["estimates"][m], unc[m], set_size=set_size,
                                      max_mass=max_mass, max_com=max_com)
                    for m, x_all in res["estimates"].items()}
+        _servo_state(methods, obj, np.asarray(res["model_estimates"].weights[0]))
         if not any(r["ok"] for r in methods.values()):
             raise UsageError(f"{sample_file} [{obj.name}]: no method gives a physically possible "
                              "estimate (" + "; ".join(f"{m}: {r['reason']}"

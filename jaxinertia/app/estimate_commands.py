@@ -97,6 +97,15 @@ def cmd_estimate(args) -> int:
                                             for lo, hi in lo_hi))
         for m, why in o.get("unavailable", {}).items():
             print(f"{m:<7} {why}")
+        lead = next((m for m in ("T-A", "T") if o["methods"].get(m, {}).get("ok")), None)
+        if lead is not None:
+            sens = o["methods"][lead]["servo_state_sensitivity"]
+            mass = " / ".join(f"{v * 1e3:+.1f}" for v in sens["mass_kg"])
+            com = " / ".join(f"{v * 1e3:.1f}" for v in sens["com_m"])
+            print(f"servo state (a bias the intervals do not hold): "
+                  f"{sens['torque_fraction'] * 100:g} % of one joint's torque moves {lead}'s "
+                  f"mass by {mass} g, its COM by {com} mm (joints 1-{len(sens['mass_kg'])}): "
+                  "a servo in another state than the models learnt (supply, temperature)")
     print(f"torque error floor: {floor['source']}" + (
         "" if floor["Nm"] is None else
         " (" + ", ".join(f"{v * 1e3:.0f}" for v in floor["Nm"]) + " N mm per joint)"))
