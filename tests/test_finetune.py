@@ -383,3 +383,61 @@ def test_servo_and_attention_finetuning_moves_both_and_nothing_else(folders):
                 lambda a, b: bool(np.all(np.asarray(a) != np.asarray(b))),
                 pair.attention_vars, start.attention_vars))
             assert any(moved)
+
+
+def test_a_finetuning_from_a_start_still_training_is_the_one_from_its_folder(folders,
+                                                                              monkeypatch):
+    """``app.fit.EarlyStart`` (the held-out folds on an accelerator): a fine-tuning of the
+    servo part given a start whose torque models are trained and whose attention is still
+    training runs meanwhile (here the start's attention waits until it has begun), and
+    writes the models, record and all, that the same fine-tuning of the written folder
+    writes. A start that fails fails the fine-tunings waiting for it."""
+    import threading  # noqa: PLC0415
+    from concurrent.futures import ThreadPoolExecutor  # noqa: PLC0415
+
+    from jaxinertia.app import fit  # noqa: PLC0415
+    from jaxinertia.app.pipeline import train  # noqa: PLC0415
+    from jaxinertia.training import FINETUNE_DEFAULTS  # noqa: PLC0415
+
+    tmp, sim, real = folders
+    start_cfg = TrainConfig(n_models=2, torque_epochs=6, attention_epochs=2, attention_sets=6,
+                            attention_val_sets=3, set_size=16, torque_batch=64,
+                            attention_batch=4, torque_model="physical")
+    ft_cfg = TrainConfig(**{**FINETUNE_DEFAULTS, "torque_epochs": 5}, trainable="servo",
+                         set_size=16)
+    begun = threading.Event()
+
+    class Watched(fit.EarlyStart):
+        def start(self):
+            s = super().start()
+            begun.set()  # the fine-tuning has its start: the start's attention may train
+            return s
+
+    attention = fit.train_attention_models
+
+    def after_the_finetuning_began(*args, **kw):
+        assert begun.wait(120), "the fine-tuning did not begin before the start's attention"
+        return attention(*args, **kw)
+
+    monkeypatch.setattr(fit, "train_attention_models", after_the_finetuning_began)
+    early = Watched(tmp / "early_start")
+    kw = dict(overwrite=True, progress=False, samples_per_object=60)
+    with ThreadPoolExecutor(1) as pool:
+        tuned = pool.submit(train, [real], tmp / "tuned_early", ft_cfg, init=early, **kw)
+        train([sim], tmp / "early_start", start_cfg, overwrite=True, progress=False,
+              early=early)
+        tuned.result(timeout=600)
+    monkeypatch.setattr(fit, "train_attention_models", attention)
+    train([real], tmp / "tuned_late", ft_cfg, init=tmp / "early_start", **kw)
+    a, b = load_models(tmp / "tuned_early"), load_models(tmp / "tuned_late")
+    assert_tree_equal(a.pair.torque_vars, b.pair.torque_vars, what="torque")
+    assert_tree_equal(a.pair.attention_vars, b.pair.attention_vars, what="attention")
+    assert_tree_equal(a.pair.attention_vars, load_models(tmp / "early_start").pair
+                      .attention_vars, what="the start's attention, kept")
+    mine = {k: v for k, v in a.config.items() if k not in ("wall_time_s", "checksums")}
+    assert mine == {k: v for k, v in b.config.items() if k not in ("wall_time_s", "checksums")}
+    failed = fit.EarlyStart(tmp / "never")
+    failed.failed(RuntimeError("the start failed"))
+    with pytest.raises(RuntimeError, match="the start failed"):
+        train([real], tmp / "tuned_never", ft_cfg, init=failed, **kw)
+    assert not (tmp / "tuned_never").exists()

@@ -381,6 +381,7 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     member leaves when its branch ends. The heavy stages are stand-ins that record it."""
     from jaxinertia import training_group
     from jaxinertia.app import fold_groups
+    from jaxinertia.app.fit import EarlyStart
 
     monkeypatch.setattr(fold_groups, "side_by_side_workers", lambda: 4)
     made: list = []
@@ -395,12 +396,22 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
 
     fails = set()
 
-    def fake_train(files, out, cfg, **kw):
+    def fake_train(files, out, cfg, *, early=None, init=None, **kw):
         group, name = training_group._local.member
+        if isinstance(init, EarlyStart):
+            init.start()  # a fine-tuning waits for its start's torque models (fails with it)
         if Path(out).name in fails:
-            raise RuntimeError(f"{name} failed")
+            error = RuntimeError(f"{name} failed")
+            if early is not None:
+                early.failed(error)
+            raise error
         calls.append(("scratch" if group is made[0].scratch else "finetune", name,
                       Path(out).name))
+        if early is not None:  # a stand-in start: published, then written
+            early.torque_trained(SimpleNamespace(variables={"w": np.zeros((2, 1))},
+                                                 model=None),
+                                 SimpleNamespace(tau_scale=np.ones(4)), {})
+            early.written(None)
         return {"samples": {}, "best_epoch": {}, "data": [{"session_ratio": None}]}
 
     monkeypatch.setattr(folds, "simulate_files", lambda p, wanted, **kw: [w[0] for w in wanted])

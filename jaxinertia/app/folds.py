@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxinertia.app.ensemble import NETWORK_METHODS, judge_mean
+from jaxinertia.app.fit import EarlyStart
 from jaxinertia.app.fold_calibration import fit_simulators
 from jaxinertia.app.fold_groups import FoldGroups
 from jaxinertia.app.pipeline import (
@@ -355,24 +356,37 @@ def _finetuned(fold: _Fold, files: list[Path], current_input: bool = False,
     if tag is None:
         tag = "_current" if current_input else ""
     start = fold.dir / f"models_physical{tag}"
-    with fold.member("scratch", f"physical{tag}"):
-        train(files, start, fold.scale.train.replace(seed=fold.seed, torque_model="physical",
-                                                     current_input=current_input),
-              overwrite=True, progress=fold.progress, session=fold.session)
+    # Side by side (an accelerator), the fine-tunings start from the start's torque models
+    # while its attention trains (they keep its attention: app.fit.EarlyStart); on a CPU
+    # once its folder is written.
+    early = EarlyStart(start) if fold.groups is not None else None
+
+    def fit_start() -> None:
+        with fold.member("scratch", f"physical{tag}"):
+            train(files, start, fold.scale.train.replace(
+                seed=fold.seed, torque_model="physical", current_input=current_input),
+                  overwrite=True, progress=fold.progress, session=fold.session, early=early)
 
     def finetune(n: int) -> dict:
         models = fold.dir / f"models_finetuned{tag}_{n}"
         with fold.member("finetune", f"physical{tag}/{n}"):
             info = train([fold.real.files[fold.index(fold.fit_on)]], models,
                          fold.scale.finetune.replace(seed=fold.seed), overwrite=True,
-                         progress=fold.progress, init=start, samples_per_object=n)
+                         progress=fold.progress, init=early or start, samples_per_object=n)
         return {**fold.judge(models), "samples": info["samples"],
                 "best_epoch": info["best_epoch"],
                 "fit_session_ratio": info["data"][0]["session_ratio"]}
 
+    def judged_start() -> dict:
+        if early is not None:  # trained here, beside the fine-tunings
+            fit_start()
+        return fold.judge(start)
+
     # Each fine-tuning has its own shapes (its own programs): they compile side by side,
     # and each runs in one program with the other branches' and folds' of its shapes.
     sizes = fold.scale.finetune_samples
-    calls = [partial(fold.judge, start)] + [partial(finetune, n) for n in sizes]
+    if early is None:
+        fit_start()
+    calls = [judged_start] + [partial(finetune, n) for n in sizes]
     physical, *fine = side_by_side(calls, fold.workers(len(calls)))
     return physical, {str(n): f for n, f in zip(sizes, fine)}

@@ -22,7 +22,7 @@ import numpy as np
 from jaxinertia.app.arm_options import LBIPE_ARM, samples_arm
 from jaxinertia.app.by_part import COM_MODELS, com_models_of, merge_evaluations
 from jaxinertia.app.ensemble import ENSEMBLE_KEYS, mean_evaluation, members_of, weights_of
-from jaxinertia.baselines import fit_baselines
+from jaxinertia.app.fit import EarlyStart, fit_pairs
 from jaxinertia.checkpoints import (
     UNIFORM_ATTENTION,
     copy_folder,
@@ -31,7 +31,6 @@ from jaxinertia.checkpoints import (
     save_models,
 )
 from jaxinertia.errors import FileFormatError, UsageError
-from jaxinertia.estimation import ModelPair
 from jaxinertia.evaluation import choose_sets, evaluate, l_max_of
 from jaxinertia.features import LBIPE_FEATURES
 from jaxinertia.fileio import check_output
@@ -51,10 +50,7 @@ from jaxinertia.training import (
     TrainConfig,
     feature_config_from,
     per_object_subset,
-    rehearse_attention,
     split_validation,
-    train_attention_models,
-    train_torque_models,
 )
 from jaxinertia.uncertainty import validation_torque_error
 
@@ -70,7 +66,8 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
           *, progress: bool = True, overwrite: bool = False,
           init: str | os.PathLike | None = None,
           samples_per_object: int | None = None,
-          session: ServoSession | None = None, arm: str | None = None) -> dict:
+          session: ServoSession | None = None, arm: str | None = None,
+          early: EarlyStart | None = None) -> dict:
     """Trains K model pairs and fits the baselines; writes the model folder ``out``
     (atomically; an existing one only with ``overwrite``). ``sample_files``: paths, or
     records already read (:class:`~jaxinertia.samples.SampleFile`).
@@ -87,12 +84,17 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
     default: the init folder's, else the training data's own (pooled). Every real training
     file is read in it (simulated files in the simulator's own); the folder records it, and
     evaluation and estimation read every file in it. ``arm``: the arm the samples must
-    come from (the folder records it; default: the one the files record).
+    come from (the folder records it; default: the one the files record). ``early``: told
+    the torque models as soon as they are trained, and the folder once written, for
+    fine-tunings that start from it meanwhile (``init`` may be such an
+    :class:`~jaxinertia.app.fit.EarlyStart`).
     """
     check_output(out, overwrite=overwrite, folder=True)
     files, robot = _training_files(sample_files, arm)
     parts, metas = [f.samples for f in files], [f.meta for f in files]
-    start = None if init is None else load_models(init, robot=robot)
+    start = (None if init is None else init.start() if isinstance(init, EarlyStart)
+             else load_models(init, robot=robot))
+    init = getattr(init, "path", init)
     if start is not None and members_of(init, start.config):
         raise UsageError(f"{init}: the mean of {len(members_of(init, start.config)) + 1} model "
                          "folders (app.ensemble), no one set of models to start from: "
@@ -118,9 +120,6 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
     if cfg.session_terms:
         train_set, val_set, terms = with_session_terms(start, parts, train_set, val_set)
     cfg = cfg.replace(current_input=fc.current_scale is not None)  # fine-tuning: the folder's
-    pair, baselines, torque, attention, t1 = _fit(cfg, fc, train_set, val_set,
-                                                  None if start is None else start.pair, progress)
-    t2 = time.perf_counter()
     info = {
         "training": cfg.to_dict(),
         "data": [{"file": str(f.path.resolve()), "sha256": f.meta["sha256"],
@@ -132,46 +131,33 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
         "session_terms": terms,
         "simulator": metas[0].get("simulator") or (start and start.config.get("simulator")),
         "samples": {"train": train_set.n_samples, "validation": val_set.n_samples},
-        # What the uncertainty's floor needs: the torque models' error on this run's own
-        # validation split (per joint, RMS over the pairs) [N m].
-        "torque_validation_error_Nm": validation_torque_error(pair, fc, val_set).tolist(),
-        "best_epoch": {"torque": torque.best_epoch.tolist(),
-                       "attention": attention.best_epoch.tolist()},
-        "history": {"torque": torque.history.tolist(), "attention": attention.history.tolist()},
-        "wall_time_s": {"torque": t1 - t0, "attention": t2 - t1},
     }
     if start is not None:
         info["fine_tuned_from"] = {"folder": str(Path(init).resolve()),
                                    "data": start.config.get("data"),
                                    "training": start.config.get("training")}
-    save_models(out, pair, baselines, fc, robot=robot, extra=info, arm=arm)  # atomic
+    try:
+        pair, baselines, torque, attention, t1 = fit_pairs(
+            cfg, fc, train_set, val_set, None if start is None else start.pair, progress,
+            early and (lambda t: early.torque_trained(t, fc, {"robot": robot, **info})))
+        t2 = time.perf_counter()
+        info.update({
+            # What the uncertainty's floor needs: the torque models' error on this run's own
+            # validation split (per joint, RMS over the pairs) [N m].
+            "torque_validation_error_Nm": validation_torque_error(pair, fc, val_set).tolist(),
+            "best_epoch": {"torque": torque.best_epoch.tolist(),
+                           "attention": attention.best_epoch.tolist()},
+            "history": {"torque": torque.history.tolist(),
+                        "attention": attention.history.tolist()},
+            "wall_time_s": {"torque": t1 - t0, "attention": t2 - t1}})
+        save_models(out, pair, baselines, fc, robot=robot, extra=info, arm=arm)  # atomic
+    except BaseException as e:
+        if early is not None:
+            early.failed(e)
+        raise
+    if early is not None:
+        early.written(pair)
     return info
-
-
-def _fit(cfg: TrainConfig, fc, train_set: Samples, val_set: Samples, start: ModelPair | None,
-         progress: bool):
-    """The K torque and attention model pairs (from ``start``'s parameters when given) and
-    the baselines; returns them, the two trainings' results and when the torque's ended."""
-    k_t, k_a = jax.random.split(jax.random.key(cfg.seed))
-    # In a group (GPU folds) the attention compiles while the torque models train; done when
-    # they are (every member then started its rehearsal or left): benchmarks.md, Session 30.
-    rehearsal = rehearse_attention(cfg, fc, train_set, val_set, k_a) if start is None else None
-    torque = train_torque_models(cfg, fc, train_set, val_set, k_t, progress=progress,
-                                 init=None if start is None else start.torque_vars,
-                                 model=None if start is None else start.torque_model)
-    if rehearsal is not None:
-        rehearsal.join()
-    t1 = time.perf_counter()
-    attention = train_attention_models(
-        cfg, fc, torque, train_set, val_set, k_a, progress=progress,
-        init=None if start is None else start.attention_vars,
-        model=None if start is None else start.attention_model)
-    baselines = fit_baselines(train_set.q_d, train_set.q, train_set.direction,
-                              train_set.current_tau, train_set.tau)
-    pair = ModelPair(torque_vars=torque.variables, attention_vars=attention.variables,
-                     tau_scale=np.asarray(fc.tau_scale, np.float32),
-                     torque_model=torque.model, attention_model=attention.model)
-    return pair, baselines, torque, attention, t1
 
 
 def _training_files(sample_files, arm: str | None) -> tuple[list[SampleFile], str | None]:
