@@ -23,7 +23,7 @@ import time
 import jax
 
 from jaxinertia import training_group
-from jaxinertia.app import cli, folds, pipeline, reproduce
+from jaxinertia.app import cli, fit, folds, reproduce
 
 
 class Timeline:
@@ -97,7 +97,7 @@ def main() -> None:
     logger.propagate = False
     for owner, attr in ((folds, "fit_simulators"), (folds, "simulate_files"), (folds, "train"),
                         (folds, "evaluate"), (folds._Fold, "judge"),
-                        (pipeline, "train_torque_models"), (pipeline, "train_attention_models"),
+                        (fit, "train_torque_models"), (fit, "train_attention_models"),
                         (training_group, "_run_stacked")):
         timeline.wrap(owner, attr)
     _stages(timeline)
