@@ -16,7 +16,7 @@ from support.synthetic import feature_config, synthetic_samples
 from jaxinertia.app.cli import main
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import load_models, save_models
-from jaxinertia.errors import ModelFolderError, UsageError
+from jaxinertia.errors import JaxinertiaError, ModelFolderError, UsageError
 from jaxinertia.estimation import ModelPair
 from jaxinertia.networks import AttentionModel, PhysicalTorqueModel, TorqueModel
 from jaxinertia.samples import load_samples, save_native
@@ -436,8 +436,16 @@ def test_a_finetuning_from_a_start_still_training_is_the_one_from_its_folder(fol
                       .attention_vars, what="the start's attention, kept")
     mine = {k: v for k, v in a.config.items() if k not in ("wall_time_s", "checksums")}
     assert mine == {k: v for k, v in b.config.items() if k not in ("wall_time_s", "checksums")}
-    failed = fit.EarlyStart(tmp / "never")
-    failed.failed(RuntimeError("the start failed"))
-    with pytest.raises(RuntimeError, match="the start failed"):
-        train([real], tmp / "tuned_never", ft_cfg, init=failed, **kw)
+    # A start that fails, even before it trains (here: its folder exists and it may not
+    # replace it), fails the fine-tuning waiting for it instead of leaving it waiting.
+    failing = fit.EarlyStart(tmp / "early_start")
+    with ThreadPoolExecutor(1) as pool:
+        waiting = pool.submit(train, [real], tmp / "tuned_never", ft_cfg, init=failing, **kw)
+        try:
+            with pytest.raises(JaxinertiaError) as refused:
+                train([sim], tmp / "early_start", start_cfg, progress=False, early=failing)
+            with pytest.raises(type(refused.value), match="early_start"):
+                waiting.result(timeout=120)
+        finally:
+            failing.failed(RuntimeError("released by the test"))  # never left waiting
     assert not (tmp / "tuned_never").exists()

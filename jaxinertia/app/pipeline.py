@@ -31,6 +31,7 @@ from jaxinertia.checkpoints import (
     save_models,
 )
 from jaxinertia.errors import FileFormatError, UsageError
+from jaxinertia.estimation import ModelPair
 from jaxinertia.evaluation import choose_sets, evaluate, l_max_of
 from jaxinertia.features import LBIPE_FEATURES
 from jaxinertia.fileio import check_output
@@ -87,8 +88,23 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
     come from (the folder records it; default: the one the files record). ``early``: told
     the torque models as soon as they are trained, and the folder once written, for
     fine-tunings that start from it meanwhile (``init`` may be such an
-    :class:`~jaxinertia.app.fit.EarlyStart`).
+    :class:`~jaxinertia.app.fit.EarlyStart`; one that fails, at any step, fails them too).
     """
+    try:
+        info, pair = _train(sample_files, out, cfg, progress=progress, overwrite=overwrite,
+                            init=init, samples_per_object=samples_per_object,
+                            session=session, arm=arm, early=early)
+    except BaseException as e:
+        if early is not None:
+            early.failed(e)
+        raise
+    if early is not None:
+        early.written(pair)
+    return info
+
+
+def _train(sample_files, out, cfg: TrainConfig, *, progress, overwrite, init,
+           samples_per_object, session, arm, early) -> tuple[dict, ModelPair]:
     check_output(out, overwrite=overwrite, folder=True)
     files, robot = _training_files(sample_files, arm)
     parts, metas = [f.samples for f in files], [f.meta for f in files]
@@ -136,28 +152,20 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
         info["fine_tuned_from"] = {"folder": str(Path(init).resolve()),
                                    "data": start.config.get("data"),
                                    "training": start.config.get("training")}
-    try:
-        pair, baselines, torque, attention, t1 = fit_pairs(
-            cfg, fc, train_set, val_set, None if start is None else start.pair, progress,
-            early and (lambda t: early.torque_trained(t, fc, {"robot": robot, **info})))
-        t2 = time.perf_counter()
-        info.update({
-            # What the uncertainty's floor needs: the torque models' error on this run's own
-            # validation split (per joint, RMS over the pairs) [N m].
-            "torque_validation_error_Nm": validation_torque_error(pair, fc, val_set).tolist(),
-            "best_epoch": {"torque": torque.best_epoch.tolist(),
-                           "attention": attention.best_epoch.tolist()},
-            "history": {"torque": torque.history.tolist(),
-                        "attention": attention.history.tolist()},
-            "wall_time_s": {"torque": t1 - t0, "attention": t2 - t1}})
-        save_models(out, pair, baselines, fc, robot=robot, extra=info, arm=arm)  # atomic
-    except BaseException as e:
-        if early is not None:
-            early.failed(e)
-        raise
-    if early is not None:
-        early.written(pair)
-    return info
+    pair, baselines, torque, attention, t1 = fit_pairs(
+        cfg, fc, train_set, val_set, None if start is None else start.pair, progress,
+        early and (lambda t: early.torque_trained(t, fc, {"robot": robot, **info})))
+    t2 = time.perf_counter()
+    info.update({
+        # What the uncertainty's floor needs: the torque models' error on this run's own
+        # validation split (per joint, RMS over the pairs) [N m].
+        "torque_validation_error_Nm": validation_torque_error(pair, fc, val_set).tolist(),
+        "best_epoch": {"torque": torque.best_epoch.tolist(),
+                       "attention": attention.best_epoch.tolist()},
+        "history": {"torque": torque.history.tolist(), "attention": attention.history.tolist()},
+        "wall_time_s": {"torque": t1 - t0, "attention": t2 - t1}})
+    save_models(out, pair, baselines, fc, robot=robot, extra=info, arm=arm)  # atomic
+    return info, pair
 
 
 def _training_files(sample_files, arm: str | None) -> tuple[list[SampleFile], str | None]:
