@@ -116,6 +116,8 @@ class EarlyStart:
         self._final.set_result(pair)
 
     def failed(self, error: BaseException) -> None:
+        """The start failed with ``error``: every fine-tuning waiting for it (or that will)
+        raises it; what was already published stays."""
         for f in (self._torque, self._final):
             if not f.done():
                 f.set_exception(error)
