@@ -25,6 +25,11 @@ ROBOT = "open_manipulator_x"
 MEMBERS = ["members/1", "members/2"]
 
 
+def _x(answer: dict) -> np.ndarray:
+    """``x = [m, m p]`` of one method's answer as ``estimate`` gives it."""
+    return np.r_[answer["mass_kg"], answer["mass_kg"] * np.asarray(answer["com_tag_m"])]
+
+
 @pytest.fixture(scope="module")
 def folders(tmp_path_factory):
     """A sample file and three folders of untrained pairs: one, and two more inside it
@@ -57,10 +62,9 @@ def test_the_answer_is_the_members_mean_and_the_baselines_the_folders(folders, c
     # What 1 % of a joint's torque moves T's answer (every row alike): the statics' own
     # sensitivity at the members' mean (jaxinertia.statics, checked against new solves).
     assert m["T"]["ok"], m["T"]
-    x = np.r_[m["T"]["mass_kg"], m["T"]["mass_kg"] * np.asarray(m["T"]["com_tag_m"])]
     np.testing.assert_allclose(m["T"]["servo_state_sensitivity"]["mass_kg"],
-                               torque_scale_sensitivity(d.A, d.tau_g, x, rel=0.01)[:, 0],
-                               rtol=1e-9)
+                               torque_scale_sensitivity(d.A, d.tau_g, _x(m["T"]),
+                                                        rel=0.01)[:, 0], rtol=1e-9)
     answered = 0
     for method in ("T", "T-A"):
         if not (m[method]["ok"] and all(r[method]["ok"] for r in a)):
@@ -68,9 +72,7 @@ def test_the_answer_is_the_members_mean_and_the_baselines_the_folders(folders, c
         answered += 1
         # Each member's answer is the mean over its K pairs: the mean of the three is the
         # mean of x over every member and pair.
-        x = np.array([[r[method]["mass_kg"], *(r[method]["mass_kg"]
-                                               * np.asarray(r[method]["com_tag_m"]))]
-                      for r in a])
+        x = np.array([_x(r[method]) for r in a])
         want = x.mean(axis=0)
         assert m[method]["mass_kg"] == pytest.approx(want[0], rel=1e-9)
         np.testing.assert_allclose(m[method]["com_tag_m"], want[1:] / want[0], rtol=1e-9)
@@ -264,9 +266,7 @@ def test_shares_weigh_the_members_and_another_model_count_enters_by_its_pairs_me
         if not (m[method]["ok"] and all(r[method]["ok"] for r in alone)):
             continue
         answered += 1
-        x = np.array([[r[method]["mass_kg"], *(r[method]["mass_kg"]
-                                               * np.asarray(r[method]["com_tag_m"]))]
-                      for r in alone])
+        x = np.array([_x(r[method]) for r in alone])
         want = np.average(x, axis=0, weights=[0.25, 0.25, 0.5])
         assert m[method]["mass_kg"] == pytest.approx(want[0], rel=1e-9)
         np.testing.assert_allclose(m[method]["com_tag_m"], want[1:] / want[0], rtol=1e-9)
