@@ -26,7 +26,7 @@ from jaxinertia.app.pipeline import evaluate_models, load_real, train
 from jaxinertia.app.programs import folds_side_by_side
 from jaxinertia.app.report import format_folds
 from jaxinertia.checkpoints import load_models
-from jaxinertia.errors import UsageError
+from jaxinertia.errors import UsageError, WeightsError
 from jaxinertia.metrics import inertial_metrics
 from jaxinertia.samples import load_native, save_lbipe, save_native
 from jaxinertia.sim import real_fit
@@ -394,12 +394,14 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     monkeypatch.setattr(folds.FoldGroups, "of", of)
     calls = []
 
-    fails = set()
+    fails, fails_unseen = set(), set()
 
     def fake_train(files, out, cfg, *, early=None, init=None, **kw):
         group, name = training_group._local.member
         if isinstance(init, EarlyStart):
             init.start()  # a fine-tuning waits for its start's torque models (fails with it)
+        if Path(out).name in fails_unseen:  # raised where train's own handler never sees it
+            raise RuntimeError(f"{name} failed before its training")
         if Path(out).name in fails:
             error = RuntimeError(f"{name} failed")
             if early is not None:
@@ -448,9 +450,56 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     assert {n for _, n, _ in calls} == set(made[0].scratch.members + made[0].finetune.members
                                            ) - {f"{n}/physical_current_sessions{k}" for n in (
                                                "cube", "white") for k in ("", "/30", "/60")}
+    # A start that fails before its training takes over (setting it up) fails its waiting
+    # fine-tunings too. Run in a thread, so that a wait for ever fails the test instead of
+    # hanging it (the stand-ins take well under a second; the limit is 100 times that):
+    # then the starts are failed from here, which lets the waiting threads end.
+    fails.clear()
+    fails_unseen.add("models_physical")
+    raised: list = []
+    starts: list = []
+
+    class RecordedStart(EarlyStart):
+        def __init__(self, path):
+            super().__init__(path)
+            starts.append(self)
+
+    def failing_run():
+        try:
+            run_folds(tmp_path / "failed", small_lbipe_dir, scale, progress=False,
+                      log=lambda m: None)
+        except RuntimeError as e:
+            raised.append(e)
+
+    with monkeypatch.context() as m:
+        m.setattr(folds, "EarlyStart", RecordedStart)
+        thread = threading.Thread(target=failing_run, daemon=True)
+        thread.start()
+        thread.join(120)
+        hung = thread.is_alive()
+        for start in starts:
+            start.failed(RuntimeError("released by the test"))
+        thread.join()
+    assert starts and not hung, "fine-tunings still wait for a start that failed"
+    assert len(raised) == 1 and "physical failed before its training" in str(raised[0])
+    # Torn released weights stop the folds before any fold calibrates or trains, not
+    # after every fold has (their benchmark runs in a thread beside the folds).
+    fails_unseen.clear()
+    calls.clear()
+    calibrations.clear()
+
+    def torn(*args, **kwargs):
+        raise WeightsError("weights: model pair 3 unreadable, torn or corrupt")
+
+    with monkeypatch.context() as m:
+        m.setattr(folds, "load_released_models", torn)
+        m.setattr(folds, "released_benchmark", torn)
+        with pytest.raises(WeightsError, match="torn"):
+            run_folds(tmp_path / "failed", small_lbipe_dir, scale, progress=False,
+                      log=lambda m: None)
+    assert calls == [] and calibrations == []
     made.clear()
     calls.clear()
-    fails.clear()
     calibrations.clear()
     run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False, log=lambda m: None)
     # Side by side, the folds' calibrations run first, together (one call for both folds).

@@ -19,6 +19,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
+from contextlib import contextmanager
 from pathlib import Path
 
 import jax
@@ -121,6 +122,19 @@ class EarlyStart:
         for f in (self._torque, self._final):
             if not f.done():
                 f.set_exception(error)
+
+    @contextmanager
+    def resolving(self):
+        """Around the whole of the start's making: whatever it raises, where :func:`train`
+        does not see it too (setting the training up), fails the fine-tunings waiting for
+        it, and a block that ends without the folder written fails them as well, so that
+        none waits for ever."""
+        try:
+            yield self
+        except BaseException as e:
+            self.failed(e)
+            raise
+        self.failed(RuntimeError(f"{self.path}: its training ended without writing it"))
 
     def start(self) -> _Start:
         """The start as a fine-tuning reads it (waits for the torque models)."""

@@ -58,6 +58,7 @@ from jaxinertia.app.recipe import choose_recipe
 from jaxinertia.app.simdata import simulate_files
 from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import evaluate
+from jaxinertia.lbipe import load_released_models
 from jaxinertia.session import ServoSession, servo_session
 from jaxinertia.sim.randomize import session_prior, spread_from_samples
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
@@ -197,10 +198,13 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
     if len(names) < 2:
         return None
     # The released models' benchmark is needed only once a fold judges: it runs beside the
-    # calibrations instead of before them (on an accelerator 7 s of loading, tracing and
-    # compiling off the folds' critical path: docs/benchmarks.md, "Session 33").
+    # calibrations instead of before them (on an accelerator 7 s of tracing and compiling
+    # off the folds' critical path: docs/benchmarks.md, "Session 33"). Their weights are
+    # read here, before any fold starts: a torn or missing file stops the run at once, not
+    # after every fold has trained.
+    released = load_released_models(real.layout.weights_dir, prefer=real.layout.prefer)
     with ThreadPoolExecutor(1, thread_name_prefix="jaxinertia-released") as pool:
-        benchmark = pool.submit(released_benchmark, lbipe_dir, real=real)
+        benchmark = pool.submit(released_benchmark, lbipe_dir, real=real, pair=released)
         folds, todo, workers = _run_all(out, names, real, scale, seed, progress, log,
                                         benchmark)
     if keep is not None:
@@ -379,7 +383,8 @@ def _finetuned(fold: _Fold, files: list[Path], current_input: bool = False,
 
     def judged_start() -> dict:
         if early is not None:  # trained here, beside the fine-tunings
-            fit_start()
+            with early.resolving():  # a failure anywhere fails the waiting fine-tunings
+                fit_start()
         return fold.judge(start)
 
     # Each fine-tuning has its own shapes (its own programs): they compile side by side,
