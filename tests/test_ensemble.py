@@ -16,7 +16,7 @@ from jaxinertia.app.estimate import estimate
 from jaxinertia.app.pipeline import copy_models, evaluate_models
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.errors import ModelFolderError, UsageError
-from jaxinertia.evaluation import choose_sets
+from jaxinertia.evaluation import choose_sets, evaluate
 from jaxinertia.metrics import inertial_metrics
 from jaxinertia.samples import save_native
 from jaxinertia.statics import torque_scale_sensitivity
@@ -228,7 +228,8 @@ def test_shares_weigh_the_members_and_another_model_count_enters_by_its_pairs_me
     save_models(models, tiny_pair(seed=0), b, feature_config(), robot=ROBOT)
     save_models(models / "two", tiny_pair(seed=1), b, feature_config(), robot=ROBOT)
     save_models(models / "three", tiny_pair(K=3, seed=3), b, feature_config(), robot=ROBOT)
-    for bad in ([1.0, 1.0], [1.0, -1.0, 1.0], [0.0, 0.0, 0.0], [1.0, np.nan, 1.0]):
+    for bad in ([1.0, 1.0], [1.0, -1.0, 1.0], [0.0, 0.0, 0.0], [1.0, np.nan, 1.0],
+                "0.5,0.5,1", {"two": 1.0}, [1e308, 1e308, 1e308], ["a", "b", "c"]):
         with pytest.raises(UsageError, match="shares >= 0"):
             attach_members(models, ["two", "three"], bad)
     attach_members(models, ["two", "three"], [1.0, 1.0, 2.0])
@@ -297,6 +298,25 @@ def test_shares_weigh_the_members_and_another_model_count_enters_by_its_pairs_me
     attach_members(flat, ["own"], [1.0, 1.0])
     mixed = estimate(flat, path, **kw)
     assert mixed["uniform_attention"] is False
+    # What 1 % of a joint's torque moves T-A's answer: each folder's shift with its own
+    # attention (the folder's uniform, the member's its own, each pair's), by its share.
+    ta = mixed["objects"][name]["methods"]["T-A"]
+    assert ta["ok"], ta
+    from jaxinertia.checkpoints import load_models  # noqa: PLC0415
+
+    own = load_models(flat / "own")
+    obj = d.by_object()[0]
+    w_own = np.asarray(evaluate([obj], [np.arange(obj.n_samples)[None]], pair=own.pair,
+                                fc=own.features, l_max=[np.nan])["model_estimates"]
+                       .weights[0])  # (K, S, N)
+    assert not np.allclose(w_own, 0.25)  # the member's attention is not the folder's
+
+    def moved(w):
+        return torque_scale_sensitivity(d.A, d.tau_g, _x(ta), w, rel=0.01)[:, 0]
+
+    want = 0.5 * moved(None) + 0.5 * np.mean([moved(w) for w in w_own], axis=0)
+    np.testing.assert_allclose(ta["servo_state_sensitivity"]["mass_kg"], want, rtol=1e-6)
+    assert not np.allclose(want, moved(None), rtol=1e-3)  # the member's weights count
     assert main(["estimate", "--models", str(flat), "--samples", str(path), "--set-size",
                  "32", "--max-mass", "1000", "--max-com", "1000"]) == 0
     assert "T-A answers as T" not in capsys.readouterr().out

@@ -57,11 +57,17 @@ def members_of(models: str | os.PathLike, config: dict) -> list[Path]:
 
 def _checked_shares(weights, n: int, where: str) -> np.ndarray:
     """``n`` shares, finite, >= 0, not all zero, normalised; else the error says so."""
-    w = np.asarray(weights, float) if weights is not None else np.full(0, np.nan)
-    if w.shape != (n,) or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+    try:  # a hand-edited record may hold anything: a string, a mapping, huge numbers
+        w = np.asarray(weights, float) if weights is not None else np.full(0, np.nan)
+    except (TypeError, ValueError):
+        w = np.full(0, np.nan)
+    with np.errstate(over="ignore"):
+        total = w.sum()
+    if (w.shape != (n,) or not np.all(np.isfinite(w)) or np.any(w < 0) or total <= 0
+            or not np.isfinite(total)):
         raise ModelFolderError(f"{where}: {n} shares >= 0 (the folder's own first) are "
                                f"needed, not {weights!r}")
-    return w / w.sum()
+    return w / total
 
 
 def _check_member(models: Path, name: str) -> None:

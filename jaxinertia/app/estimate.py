@@ -111,19 +111,25 @@ def _method_answer(x_all, x_sets, unc, *, set_size: int, max_mass: float,
 SERVO_STATE_STEP = 0.01
 
 
-def _servo_state(methods: dict, obj, weights: np.ndarray) -> None:
+def _servo_state(methods: dict, obj, weights: list[np.ndarray],
+                 shares: list[float] | None = None) -> None:
     """Adds to each network method's answer how far it moves when one joint's torques are
     read 1 % off (:func:`jaxinertia.statics.torque_scale_sensitivity`): a servo in another
     state than the models learnt (supply, temperature) is a bias the intervals do not
-    hold. ``weights``: the folder's own attention weights (K, S, N) for T-A."""
-    for m, w in (("T", None), ("T-A", weights)):
+    hold. ``weights``: per folder answering (the folder, then an ensemble's further
+    members) its attention weights (K, S, N) for T-A; ``shares``: the folders' shares of
+    the answer (None: alike). The answer is their mean, and so is its shift."""
+    shares = np.full(len(weights), 1 / len(weights)) if shares is None else np.asarray(shares)
+    for m, per_folder in (("T", [[None]]), ("T-A", weights)):
         r = methods.get(m)
         if not (r and r["ok"]):
             continue
         p = np.asarray(r["com_tag_m"])
         x = np.r_[r["mass_kg"], r["mass_kg"] * p]
-        dx = np.mean([torque_scale_sensitivity(obj.A, obj.tau_g, x, wk, SERVO_STATE_STEP)
-                      for wk in ([None] if w is None else w)], axis=0)  # (N, 4)
+        dx = sum(share * np.mean([torque_scale_sensitivity(obj.A, obj.tau_g, x, wk,
+                                                           SERVO_STATE_STEP) for wk in w],
+                                 axis=0)
+                 for share, w in zip(shares if m == "T-A" else [1.0], per_folder))  # (N, 4)
         moved = (x[1:] + dx[:, 1:]) / (x[0] + dx[:, :1]) - p
         r["servo_state_sensitivity"] = {"torque_fraction": SERVO_STATE_STEP,
                                         "mass_kg": dx[:, 0].tolist(),
@@ -224,13 +230,15 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
                              floor=floor)
         sets, _ = choose_sets([obj], n_sets=n_sets, set_size=set_size, seed=seed)
         spread = evaluate([obj], sets, pair=pair, baselines=baselines, fc=fc, l_max=[np.nan])
+        member_parts = [m.parts(o, all_samples, sets) for m in members]
         if members:
-            _average_members(res, unc, spread, [m.parts(o, all_samples, sets) for m in members],
+            _average_members(res, unc, spread, member_parts,
                              [models, *(m.path for m in members)], weights)
         methods = {m: _method_answer(x_all, spread["estimates"][m], unc[m], set_size=set_size,
                                      max_mass=max_mass, max_com=max_com)
                    for m, x_all in res["estimates"].items()}
-        _servo_state(methods, obj, np.asarray(res["model_estimates"].weights[0]))
+        _servo_state(methods, obj, [np.asarray(res["model_estimates"].weights[0]),
+                                    *(p[3] for p in member_parts)], weights)
         if not any(r["ok"] for r in methods.values()):
             raise UsageError(f"{sample_file} [{obj.name}]: no method gives a physically possible "
                              "estimate (" + "; ".join(f"{m}: {r['reason']}"
@@ -277,14 +285,16 @@ class _Member:
             self.folder.config, session_strength, simulated=is_simulated(meta)))
         self.floor, _ = training_validation_error(self.folder.config)
 
-    def parts(self, o: int, all_samples, sets) -> tuple[dict, dict, dict]:
-        """Object ``o``'s network estimates on all its samples, their uncertainty, and the
-        estimates on the ``sets`` (as :func:`_estimate` computes them)."""
+    def parts(self, o: int, all_samples, sets) -> tuple[dict, dict, dict, np.ndarray]:
+        """Object ``o``'s network estimates on all its samples, their uncertainty, the
+        estimates on the ``sets`` (as :func:`_estimate` computes them), and its attention
+        weights on all the samples (K, S, N)."""
         obj, f = self.objects[o], self.folder
         kw = dict(pair=f.pair, fc=f.features)
-        return (evaluate([obj], all_samples, l_max=[np.nan], **kw)["estimates"],
-                uncertainty_of([obj], all_samples, floor=self.floor, **kw),
-                evaluate([obj], sets, l_max=[np.nan], **kw)["estimates"])
+        every = evaluate([obj], all_samples, l_max=[np.nan], **kw)
+        return (every["estimates"], uncertainty_of([obj], all_samples, floor=self.floor, **kw),
+                evaluate([obj], sets, l_max=[np.nan], **kw)["estimates"],
+                np.asarray(every["model_estimates"].weights[0]))
 
 
 def _average_members(res: dict, unc: dict, spread: dict, parts: list, folders: list,
