@@ -36,6 +36,7 @@ __all__ = [
     "load_golden",
     "load_released_models",
     "load_test_files",
+    "read_released_pairs",
     "read_test_files",
 ]
 
@@ -116,15 +117,29 @@ def golden_path(layout: LbipeLayout, name: str) -> Path | None:
 N_RELEASED = 10
 
 
-def load_released_models(weights_dir: str | os.PathLike, *, prefer: str = "npz",
-                         n_models: int = N_RELEASED,
-                         features: FeatureConfig = LBIPE_FEATURES) -> ModelPair:
-    """The authors' released model pairs (``weights/*.npz`` or ``dicts/*.pt``), stacked."""
+def read_released_pairs(weights_dir: str | os.PathLike, *, prefer: str = "npz",
+                        n_models: int = N_RELEASED) -> list[tuple]:
+    """The authors' released model pairs one by one (``weights/*.npz`` or
+    ``dicts/*.pt``), each read and checked: a missing, torn or corrupt file, or a pair of
+    another architecture, is a :class:`WeightsError` naming it. Tenths of a second: a
+    run that uses them late can read them first and stop before its long work."""
     pairs = [_released_pair(weights_dir, k, prefer) for k in range(1, n_models + 1)]
     tm, am = pairs[0][0], pairs[0][2]
     for k, p in enumerate(pairs, start=1):
         if p[0] != tm or p[2] != am:
             raise WeightsError(f"{weights_dir}: model pair {k} has another architecture")
+    return pairs
+
+
+def load_released_models(weights_dir: str | os.PathLike, *, prefer: str = "npz",
+                         n_models: int = N_RELEASED,
+                         features: FeatureConfig = LBIPE_FEATURES,
+                         pairs: list[tuple] | None = None) -> ModelPair:
+    """The authors' released model pairs (``weights/*.npz`` or ``dicts/*.pt``), stacked;
+    ``pairs``: as :func:`read_released_pairs` gave them, when already read."""
+    if pairs is None:
+        pairs = read_released_pairs(weights_dir, prefer=prefer, n_models=n_models)
+    tm, am = pairs[0][0], pairs[0][2]
     return ModelPair(
         torque_vars=stack_params([p[1] for p in pairs]),
         attention_vars=stack_params([p[3] for p in pairs]),

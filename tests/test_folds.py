@@ -492,7 +492,7 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
         raise WeightsError("weights: model pair 3 unreadable, torn or corrupt")
 
     with monkeypatch.context() as m:
-        m.setattr(folds, "load_released_models", torn)
+        m.setattr(folds, "read_released_pairs", torn)
         m.setattr(folds, "released_benchmark", torn)
         with pytest.raises(WeightsError, match="torn"):
             run_folds(tmp_path / "failed", small_lbipe_dir, scale, progress=False,

@@ -58,7 +58,7 @@ from jaxinertia.app.recipe import choose_recipe
 from jaxinertia.app.simdata import simulate_files
 from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import evaluate
-from jaxinertia.lbipe import load_released_models
+from jaxinertia.lbipe import read_released_pairs
 from jaxinertia.session import ServoSession, servo_session
 from jaxinertia.sim.randomize import session_prior, spread_from_samples
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
@@ -202,9 +202,9 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
     # off the folds' critical path: docs/benchmarks.md, "Session 33"). Their weights are
     # read here, before any fold starts: a torn or missing file stops the run at once, not
     # after every fold has trained.
-    released = load_released_models(real.layout.weights_dir, prefer=real.layout.prefer)
+    released = read_released_pairs(real.layout.weights_dir, prefer=real.layout.prefer)
     with ThreadPoolExecutor(1, thread_name_prefix="jaxinertia-released") as pool:
-        benchmark = pool.submit(released_benchmark, lbipe_dir, real=real, pair=released)
+        benchmark = pool.submit(released_benchmark, lbipe_dir, real=real, pairs=released)
         folds, todo, workers = _run_all(out, names, real, scale, seed, progress, log,
                                         benchmark)
     if keep is not None:

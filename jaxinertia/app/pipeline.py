@@ -242,14 +242,14 @@ def load_real(lbipe_dir: str | os.PathLike, *, seed: int = 0, n_sets: int = 1000
 
 def released_benchmark(lbipe_dir: str | os.PathLike, *, seed: int = 0,
                        l_max: dict[str, float] | None = None,
-                       real: RealData | None = None, pair: ModelPair | None = None) -> dict:
+                       real: RealData | None = None, pairs: list | None = None) -> dict:
     """The authors' released model pairs on the real files (Tables I and III): the result
     of :func:`jaxinertia.evaluation.evaluate` plus ``set_source``, ``timing_s`` and the
-    objects. ``pair``: the released pairs when already loaded."""
+    objects. ``pairs``: as :func:`jaxinertia.lbipe.read_released_pairs` read them."""
     t0 = time.perf_counter()
     real = real or load_real(lbipe_dir, seed=seed, l_max=l_max)
-    if pair is None:
-        pair = load_released_models(real.layout.weights_dir, prefer=real.layout.prefer)
+    pair = load_released_models(real.layout.weights_dir, prefer=real.layout.prefer,
+                                pairs=pairs)
     t1 = time.perf_counter()
     res = evaluate(real.objects, real.sets, pair=pair, fc=LBIPE_FEATURES, l_max=real.l_max)
     jax.block_until_ready(res["model_estimates"])
