@@ -210,7 +210,8 @@ def _dense(sd, prefix, path, shape_in=None, shape_out=None):
         if not np.all(np.isfinite(a)):
             raise WeightsError(f"{path}: {prefix}.{name} holds non-finite values")
     # PyTorch Linear stores (out, in) and computes x W^T + b; Dense's kernel is (in, out).
-    return {"kernel": jnp.asarray(w.T), "bias": jnp.asarray(b)}
+    # Host arrays: reading and checking a file touches no device (stacking puts them there).
+    return {"kernel": np.ascontiguousarray(w.T), "bias": np.ascontiguousarray(b)}
 
 
 def _joint_prefixes(sd, pattern):
