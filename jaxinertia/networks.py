@@ -294,7 +294,9 @@ def parameter_shapes(model, n_joints: int, n_models: int | None = None,
 def _init_structs(model, n: int, dtype: str, n_inputs: int = 4):
     """Traced once per architecture (a Flax module is a frozen dataclass, hashed by its
     fields), not once per weight file (the ten released pairs took a second to check)."""
-    return jax.eval_shape(model.init, jax.random.key(0), jnp.zeros((1, n, n_inputs), dtype))
+    # The key and the input made inside the traced function: nothing runs on a device.
+    return jax.eval_shape(lambda: model.init(jax.random.key(0),
+                                             jnp.zeros((1, n, n_inputs), dtype)))
 
 
 def load_released_pair(weights_dir: str | os.PathLike, index: int, *, prefer: str = "npz"):
