@@ -5,6 +5,7 @@ simulator (issue "Sim-to-real II")."""
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
@@ -449,3 +450,28 @@ def test_a_finetuning_from_a_start_still_training_is_the_one_from_its_folder(fol
         finally:
             failing.failed(RuntimeError("released by the test"))  # never left waiting
     assert not (tmp / "tuned_never").exists()
+
+
+def test_a_start_made_in_resolving_never_leaves_its_waiters_waiting(tmp_path):
+    """``EarlyStart.resolving`` around a start's whole making (the folds' ``judged_start``):
+    an error raised where ``train`` does not see it fails the waiting fine-tunings with that
+    error, and a block that ends without the folder written fails them too; a written
+    start is left as it is."""
+    from jaxinertia.app import fit  # noqa: PLC0415
+
+    raised = fit.EarlyStart(tmp_path / "raised")
+    with pytest.raises(ValueError, match="setting up"), raised.resolving():
+        raise ValueError("setting up")
+    with pytest.raises(ValueError, match="setting up"):
+        raised.start()
+    unwritten = fit.EarlyStart(tmp_path / "unwritten")
+    with unwritten.resolving():
+        pass
+    with pytest.raises(RuntimeError, match="unwritten: its training ended without writing"):
+        unwritten.start()
+    written = fit.EarlyStart(tmp_path / "written")
+    with written.resolving():  # stand-ins for a start's torque models, record and pairs
+        written.torque_trained(SimpleNamespace(variables={"w": np.zeros((2, 1))}, model=None),
+                               SimpleNamespace(tau_scale=np.ones(4)), {"config": 1})
+        written.written(None)
+    assert written.start().config == {"config": 1}

@@ -120,7 +120,7 @@ def _servo_state(methods: dict, obj, weights: list[np.ndarray],
     members) its attention weights (K, S, N) for T-A; ``shares``: the folders' shares of
     the answer (None: alike). The answer is their mean, and so is its shift."""
     shares = np.full(len(weights), 1 / len(weights)) if shares is None else np.asarray(shares)
-    for m, per_folder in (("T", [[None]]), ("T-A", weights)):
+    for m, folders in (("T", [(1.0, [None])]), ("T-A", list(zip(shares, weights)))):
         r = methods.get(m)
         if not (r and r["ok"]):
             continue
@@ -128,8 +128,7 @@ def _servo_state(methods: dict, obj, weights: list[np.ndarray],
         x = np.r_[r["mass_kg"], r["mass_kg"] * p]
         dx = sum(share * np.mean([torque_scale_sensitivity(obj.A, obj.tau_g, x, wk,
                                                            SERVO_STATE_STEP) for wk in w],
-                                 axis=0)
-                 for share, w in zip(shares if m == "T-A" else [1.0], per_folder))  # (N, 4)
+                                 axis=0) for share, w in folders)  # (N, 4)
         moved = (x[1:] + dx[:, 1:]) / (x[0] + dx[:, :1]) - p
         r["servo_state_sensitivity"] = {"torque_fraction": SERVO_STATE_STEP,
                                         "mass_kg": dx[:, 0].tolist(),

@@ -134,7 +134,8 @@ class EarlyStart:
         except BaseException as e:
             self.failed(e)
             raise
-        self.failed(RuntimeError(f"{self.path}: its training ended without writing it"))
+        if not self._final.done():
+            self.failed(RuntimeError(f"{self.path}: its training ended without writing it"))
 
     def start(self) -> _Start:
         """The start as a fine-tuning reads it (waits for the torque models)."""

@@ -71,9 +71,9 @@ def models_with_released(out: Path, real: RealData, share: float = RELEASED_SHAR
         like = load_models(tmp)
         com = com_models_of(tmp, like.config)
         written = released_folder(tmp / RELEASED, real, like)  # loaded and written once
+        if com is not None:
+            shutil.copytree(written, com / RELEASED)
         for part in [tmp] + ([com] if com is not None else []):
-            if part != tmp:
-                shutil.copytree(written, part / RELEASED)
             members = read_config(part).get(ENSEMBLE_MEMBERS) or []
             n = len(members) + 1
             attach_members(part, [*members, RELEASED], [(1 - share) / n] * n + [share])
