@@ -229,7 +229,8 @@ def test_shares_weigh_the_members_and_another_model_count_enters_by_its_pairs_me
     save_models(models / "two", tiny_pair(seed=1), b, feature_config(), robot=ROBOT)
     save_models(models / "three", tiny_pair(K=3, seed=3), b, feature_config(), robot=ROBOT)
     for bad in ([1.0, 1.0], [1.0, -1.0, 1.0], [0.0, 0.0, 0.0], [1.0, np.nan, 1.0],
-                "0.5,0.5,1", {"two": 1.0}, [1e308, 1e308, 1e308], ["a", "b", "c"]):
+                "0.5,0.5,1", {"two": 1.0}, [1e308, 1e308, 1e308], ["a", "b", "c"],
+                ["1", "2", "3"], [True, False, True], [1, 10**400, 1]):
         with pytest.raises(UsageError, match="shares >= 0"):
             attach_members(models, ["two", "three"], bad)
     attach_members(models, ["two", "three"], [1.0, 1.0, 2.0])
@@ -295,7 +296,7 @@ def test_shares_weigh_the_members_and_another_model_count_enters_by_its_pairs_me
     # models_real_with_released): T-A is no longer T, and estimate does not say it is.
     flat = copy_models(models, tmp_path / "flat", uniform=True)
     copy_models(models / "three", flat / "own")
-    attach_members(flat, ["own"], [1.0, 1.0])
+    attach_members(flat, ["own"], [1.0, 3.0])
     mixed = estimate(flat, path, **kw)
     assert mixed["uniform_attention"] is False
     # What 1 % of a joint's torque moves T-A's answer: each folder's shift with its own
@@ -314,7 +315,7 @@ def test_shares_weigh_the_members_and_another_model_count_enters_by_its_pairs_me
     def moved(w):
         return torque_scale_sensitivity(d.A, d.tau_g, _x(ta), w, rel=0.01)[:, 0]
 
-    want = 0.5 * moved(None) + 0.5 * np.mean([moved(w) for w in w_own], axis=0)
+    want = 0.25 * moved(None) + 0.75 * np.mean([moved(w) for w in w_own], axis=0)
     np.testing.assert_allclose(ta["servo_state_sensitivity"]["mass_kg"], want, rtol=1e-6)
     assert not np.allclose(want, moved(None), rtol=1e-3)  # the member's weights count
     assert main(["estimate", "--models", str(flat), "--samples", str(path), "--set-size",

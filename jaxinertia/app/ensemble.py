@@ -57,9 +57,14 @@ def members_of(models: str | os.PathLike, config: dict) -> list[Path]:
 
 def _checked_shares(weights, n: int, where: str) -> np.ndarray:
     """``n`` shares, finite, >= 0, not all zero, normalised; else the error says so."""
-    try:  # a hand-edited record may hold anything: a string, a mapping, huge numbers
-        w = np.asarray(weights, float) if weights is not None else np.full(0, np.nan)
-    except (TypeError, ValueError):
+    # A hand-edited record may hold anything: a string, a mapping, numbers written as
+    # strings or booleans (which numpy would convert), an integer too large for a float.
+    numbers = (isinstance(weights, (list, tuple, np.ndarray))
+               and all(isinstance(v, (int, float, np.integer, np.floating))
+                       and not isinstance(v, (bool, np.bool_)) for v in weights))
+    try:
+        w = np.asarray(weights, float) if numbers else np.full(0, np.nan)
+    except OverflowError:
         w = np.full(0, np.nan)
     with np.errstate(over="ignore"):
         total = w.sum()
