@@ -15,6 +15,7 @@ from support.asserts import assert_tree_equal
 from support.synthetic import feature_config, synthetic_samples
 
 from jaxinertia.app.cli import main
+from jaxinertia.app.pipeline import adapt_objects, session_reference
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import load_models, save_models
 from jaxinertia.errors import JaxinertiaError, ModelFolderError, UsageError
@@ -174,7 +175,8 @@ def _take(path, n):
     return per_object_subset(load_samples(path)[0], n, 0)
 
 
-def test_finetuning_never_returns_worse_than_it_started_and_can_freeze_encoders(folders):
+def test_finetuning_never_returns_worse_than_it_started_and_can_freeze_encoders(folders,
+                                                                                 capsys):
     """Fine-tuned on the data it was trained on with a step far too large, every epoch is
     worse than the start: the start (epoch -1) is kept, bit for bit. With the encoders
     frozen they stay bit for bit while the head moves."""
@@ -206,6 +208,21 @@ def test_finetuning_never_returns_worse_than_it_started_and_can_freeze_encoders(
     np.testing.assert_allclose(config["session"]["current_gain"], want, rtol=1e-12)
     assert config["session"]["strength"] == 0.5 and config["training"]["session_strength"] == 0.5
     assert config["data"][0]["session_ratio"] == [1.0] * 4
+    # evaluate reads another session's file in that session at that strength, says so with
+    # the factors, and --session-strength 0 turns it off (other numbers).
+    capsys.readouterr()
+    said, answers = [], []
+    for extra in ([], ["--session-strength", "0"]):
+        js = tmp / f"evaluate{len(extra)}.json"
+        assert main(["evaluate", "--models", str(out), "--samples", str(sim), "--sets", "4",
+                     *(f"--l-max=o{i}=0.1" for i in range(3)), "--json", str(js), *extra]) == 0
+        said.append(capsys.readouterr().out)
+        answers.append(json.loads(js.read_text()))
+    _, ratios = adapt_objects(load_samples(sim)[0].by_object(), session_reference(config))
+    factors = ", ".join(f"{r:.3f}" for r in ratios[0])  # object o0's, at strength 0.5
+    assert f"o0: session: discrepancy read in the models' session, x ({factors})" in said[0]
+    assert "strength 0.5" in said[0] and "o0: session adaptation off" in said[1]
+    assert answers[0] != answers[1]
     assert min(config["best_epoch"]["torque"]) >= 0
     for j in range(4):
         assert_tree_equal(pair.torque_vars["params"][f"joint{j}"],

@@ -213,8 +213,9 @@ def _write(path, samples: Samples) -> str:
 def test_estimate_refuses_too_few_samples_and_zero_discrepancy(model_folder, tmp_path, capsys):
     d = synthetic_samples(np.random.default_rng(2), n=200, n_obj=1).without_truth()
     few = _write(tmp_path / "few.npz", d.take(np.arange(3)))
-    assert main(["estimate", "--models", str(model_folder), "--samples", few]) == 2
-    _one_line_error(capsys, "few.npz", "3 sample(s)", "--set-size 64")
+    assert main(["estimate", "--models", str(model_folder), "--samples", few,
+                 "--set-size", "64"]) == 2
+    _one_line_error(capsys, "few.npz", "3 sample(s)", "--set-size 64", "leave --set-size out")
     flat = _write(tmp_path / "flat.npz", d.replace(q_d=d.q))
     assert main(["estimate", "--models", str(model_folder), "--samples", flat]) == 2
     _one_line_error(capsys, "flat.npz", "q_d - q is zero")
@@ -253,10 +254,16 @@ def test_estimate_answers_each_object_of_a_multi_object_file(model_folder, tmp_p
     for o, name in enumerate(d.names):
         pe = res["objects"][name]["methods"]["PE"]
         assert pe["mass_kg"] == pytest.approx(d.x[o, 0], rel=1e-6), name
+        # Fewer than 128 samples: the spread over sets of half of them (sets of all of
+        # them would be one set over and over, their spread zero).
+        assert res["objects"][name]["set_size"] == S_EST // 2
+        key = f"mass_std_over_{S_EST // 2}_sample_sets_kg"
+        assert key in pe and res["objects"][name]["methods"]["Sensor"][key] > 0
     assert main(["estimate", "--models", str(model_folder), "--samples",
                  str(tmp_path / "multi.npz")]) == 0
     out = capsys.readouterr().out
-    assert all(f"{n}: {S_EST} samples" in out for n in d.names)
+    assert all(f"{n}: {S_EST} samples (the spread over {S_EST // 2}-sample sets)" in out
+               for n in d.names)
 
 
 def test_estimate_with_no_possible_answer_is_an_error(model_folder, tmp_path, capsys):

@@ -14,6 +14,7 @@ from pathlib import Path
 from jaxinertia.app import defaults
 from jaxinertia.app.arm_options import add_arm_option, arm_name, arm_of, lbipe_arm_only
 from jaxinertia.app.options import (
+    add_session_strength,
     check_outputs,
     enable_x64,
     fraction,
@@ -21,6 +22,7 @@ from jaxinertia.app.options import (
     positive_float,
     positive_int,
     seed_int,
+    session_line,
     write_json_option,
     zero_to_one,
 )
@@ -177,17 +179,20 @@ def cmd_evaluate(args) -> int:
     released = None
     if args.samples:
         res = pipeline.evaluate_samples(args.models, args.samples, n_sets=args.sets,
-                                        seed=args.seed, l_max=l_max, arm=arm_name(args))
-        objects, torque = res["objects"], res["torque"]
+                                        seed=args.seed, l_max=l_max, arm=arm_name(args),
+                                        session_strength=args.session_strength)
     else:
         lbipe_arm_only(args, "without --samples, evaluate reads")
         lbipe_dir = lbipe_dir_of(args)
         real = pipeline.sim_to_real(args.models, lbipe_dir, seed=args.seed, n_sets=args.sets,
-                                    l_max=l_max)
+                                    l_max=l_max, session_strength=args.session_strength)
         if real is None:
             raise UsageError(f"no real data at {lbipe_dir}: pass --lbipe-dir or --samples")
-        objects, torque = real["ours"]["objects"], real["ours"]["torque"]
-        released = real.get("released")
+        res, released = real["ours"], real.get("released")
+    objects, torque = res["objects"], res["torque"]
+    for name, ratio in res["session_ratio"].items():
+        print(session_line(name, res["session_strength"], ratio))
+    print()
     print(report.table1(objects, f"Table I: models {args.models}"))
     if released:
         print()
@@ -245,6 +250,7 @@ def register(sub) -> None:
     e.add_argument("--seed", type=seed_int, default=0)
     e.add_argument("--l-max", action="append", metavar="NAME=METRES",
                    help="bounding-box diagonal of an object without a built-in one")
+    add_session_strength(e)
     e.set_defaults(func=cmd_evaluate)
 
     r = sub.add_parser(

@@ -72,13 +72,26 @@ def _identifiable(obj: Samples, noise: np.ndarray, where: str) -> None:
                          "configurations that vary joints 2-4 (jaxinertia plan-poses)")
 
 
-def _refuse_unanswerable(objects, sample_file, set_size: int, noise) -> None:
+#: The spread's sets: this many samples each, or half an object's samples where it has
+#: fewer than twice as many (a short plan, ``plan-poses --n 16``), unless told.
+DEFAULT_SET_SIZE = 64
+
+
+def spread_set_size(n_samples: int, set_size: int | None) -> int:
+    """Samples per set of the spread over sample sets for an object of ``n_samples``:
+    ``set_size`` when given, else :data:`DEFAULT_SET_SIZE` or half the samples where
+    fewer (sets of all the samples would all be one set, and their spread zero)."""
+    return set_size if set_size is not None else max(1, min(DEFAULT_SET_SIZE, n_samples // 2))
+
+
+def _refuse_unanswerable(objects, sample_file, set_size: int | None, noise) -> None:
     """Refuses, object by object, samples no estimate can come from."""
     for obj in objects:
         where = f"{sample_file}" + (f" [{obj.name}]" if len(objects) > 1 else "")
-        if obj.n_samples < set_size:
-            raise UsageError(f"{where}: {obj.n_samples} sample(s); an estimate needs at least "
-                             f"one set of --set-size {set_size}")
+        if set_size is not None and obj.n_samples < set_size:
+            raise UsageError(f"{where}: {obj.n_samples} sample(s), fewer than one set of "
+                             f"--set-size {set_size} (leave --set-size out: sets of half the "
+                             "samples)")
         if np.all(obj.q_d == obj.q):
             raise UsageError(f"{where}: q_d - q is zero on every sample: no discrepancy to "
                              "read a load from (torque off, or q_d recorded as q?)")
@@ -153,7 +166,8 @@ def _uncertainty_fields(u, o: int) -> dict:
     return out
 
 
-def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_size: int = 64,
+def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *,
+             set_size: int | None = None,
              n_sets: int = 200, seed: int = 0, max_mass: float = 5.0,
              max_com: float = 0.5, max_com_se: float | None = None,
              session_strength: float | None = None, arm: str | None = None) -> dict:
@@ -161,10 +175,10 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *, set_s
     by every method, with standard errors, intervals and covariance.
 
     Per object: all its samples in one WLS (the estimate) and ``n_sets`` random sets of
-    ``set_size`` samples for a spread. A method whose estimate is singular or physically
-    impossible (mass not in (0, ``max_mass``], COM farther than ``max_com`` from the tag)
-    is reported as failed, with the reason, never as a number; an object no method can
-    estimate is an error.
+    ``set_size`` samples for a spread (None: :func:`spread_set_size`). A method whose
+    estimate is singular or physically impossible (mass not in (0, ``max_mass``], COM
+    farther than ``max_com`` from the tag) is reported as failed, with the reason, never
+    as a number; an object no method can estimate is an error.
 
     Session (:mod:`jaxinertia.session`): each object's discrepancy is first rescaled per
     joint by its own current-discrepancy slope against the model folder's (the ratio is in
@@ -227,13 +241,14 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
                        l_max=[np.nan])
         unc = uncertainty_of([obj], all_samples, pair=pair, fc=fc, baselines=baselines,
                              floor=floor)
-        sets, _ = choose_sets([obj], n_sets=n_sets, set_size=set_size, seed=seed)
+        size = spread_set_size(obj.n_samples, set_size)
+        sets, _ = choose_sets([obj], n_sets=n_sets, set_size=size, seed=seed)
         spread = evaluate([obj], sets, pair=pair, baselines=baselines, fc=fc, l_max=[np.nan])
         member_parts = [m.parts(o, all_samples, sets) for m in members]
         if members:
             _average_members(res, unc, spread, member_parts,
                              [models, *(m.path for m in members)], weights)
-        methods = {m: _method_answer(x_all, spread["estimates"][m], unc[m], set_size=set_size,
+        methods = {m: _method_answer(x_all, spread["estimates"][m], unc[m], set_size=size,
                                      max_mass=max_mass, max_com=max_com)
                    for m, x_all in res["estimates"].items()}
         _servo_state(methods, obj, [np.asarray(res["model_estimates"].weights[0]),
@@ -249,7 +264,8 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
                                 jnp.asarray(noise), jnp.asarray(x_best))
         pred_se = np.asarray(ident.se[0])
         out["objects"][obj.name] = {
-            "n_samples": obj.n_samples, "methods": methods, "session_ratio": ratio,
+            "n_samples": obj.n_samples, "set_size": size, "methods": methods,
+            "session_ratio": ratio,
             "unavailable": res["unavailable"],
             "identifiability": {"condition": float(ident.condition[0]),
                                 "predicted_mass_se_kg": float(pred_se[0]),

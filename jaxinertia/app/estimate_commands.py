@@ -11,6 +11,7 @@ from pathlib import Path
 from jaxinertia.app import defaults
 from jaxinertia.app.arm_options import add_arm_option, arm_name, arm_of
 from jaxinertia.app.options import (
+    add_session_strength,
     check_memory,
     check_outputs,
     enable_x64,
@@ -18,8 +19,8 @@ from jaxinertia.app.options import (
     positive_float,
     positive_int,
     seed_int,
+    session_line,
     write_json_option,
-    zero_to_one,
 )
 from jaxinertia.errors import UsageError
 
@@ -48,14 +49,7 @@ def cmd_estimate(args) -> int:
     floor = res["torque_error_floor"]
     for name, o in res["objects"].items():
         ident = o["identifiability"]
-        if res["session_strength"] > 0:
-            ratio = ", ".join(f"{r:.3f}" for r in o["session_ratio"])
-            print(f"{name}: session: discrepancy read in the models' session, x ({ratio}) per "
-                  f"joint (the file's own current gain against the models', strength "
-                  f"{res['session_strength']:g}; --session-strength 0: off)")
-        else:
-            print(f"{name}: session adaptation off (the models' strength 0, or "
-                  "--session-strength 0)")
+        print(session_line(name, res["session_strength"], o["session_ratio"]))
         if res.get("uniform_attention"):
             print(f"{name}: these models weight every joint alike (their attention off, as "
                   "the held-out folds chose): T-A answers as T")
@@ -74,7 +68,8 @@ def cmd_estimate(args) -> int:
                   f"{res['com_session_strength']:g}, x ({ratio}) per joint); the mass and the "
                   "baselines from the models above")
         pc = np.asarray(ident["predicted_com_se_m"]) * 1e3
-        print(f"{name}: {o['n_samples']} samples; poses: condition {ident['condition']:.1f}, "
+        print(f"{name}: {o['n_samples']} samples (the spread over {o['set_size']}-sample sets); "
+              f"poses: condition {ident['condition']:.1f}, "
               f"predicted standard error mass {ident['predicted_mass_se_kg'] * 1e3:.1f} g, "
               f"COM {pc[0]:.1f} / {pc[1]:.1f} / {pc[2]:.1f} mm "
               f"(torque error: {ident['torque_error_source']})")
@@ -207,9 +202,10 @@ def register(sub) -> None:
     m.add_argument("--samples", required=True, type=Path)
     add_arm_option(m, default=None, what="the arm the samples record; models of another "
                    "arm are refused")
-    m.add_argument("--set-size", type=positive_int, default=64,
-                   help="samples per set for the spread over sample sets (default 64); a "
-                   "file needs at least this many samples per object")
+    m.add_argument("--set-size", type=positive_int, default=None,
+                   help="samples per set for the spread over sample sets (default 64, or half "
+                   "an object's samples where it has fewer than 128); given, a file needs at "
+                   "least this many samples per object")
     m.add_argument("--max-mass", type=positive_float, default=5.0,
                    help="an estimate above this mass [kg] is reported as failed (default 5)")
     m.add_argument("--max-com", type=positive_float, default=0.5,
@@ -219,10 +215,7 @@ def register(sub) -> None:
                    help="refuse an object whose COM the poses alone determine worse than this "
                    "(predicted standard error [m] at the estimated mass; default: no limit, "
                    "a singular set of poses is always refused)")
-    m.add_argument("--session-strength", type=zero_to_one, default=None, metavar="S",
-                   help="how strongly the file's discrepancy is read in the models' recording "
-                   "session, from its own current gain (0: off, 1: fully; default: the "
-                   "model folder's)")
+    add_session_strength(m)
     m.add_argument("--json", type=Path,
                    help="write every answer here, with standard errors, 68/95 %% intervals and "
                    "the covariance of x = [m, m p]")

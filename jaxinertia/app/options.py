@@ -129,3 +129,22 @@ def write_json_option(args, obj) -> int:
         write_json(args.json, obj)
         print(f"wrote {args.json}")
     return 0
+
+
+def add_session_strength(parser) -> None:
+    """``--session-strength`` of ``estimate`` and ``evaluate``."""
+    parser.add_argument("--session-strength", type=zero_to_one, default=None, metavar="S",
+                        help="how strongly the file's discrepancy is read in the models' "
+                        "recording session, from its own current gain (0: off, 1: fully; "
+                        "default: the model folder's)")
+
+
+def session_line(name: str, strength: float, ratio) -> str:
+    """How ``estimate`` and ``evaluate`` read an object's file: in the models' session
+    (the per-joint factors), or not."""
+    if strength > 0:
+        factors = ", ".join(f"{r:.3f}" for r in ratio)
+        return (f"{name}: session: discrepancy read in the models' session, x ({factors}) "
+                f"per joint (the file's own current gain against the models', strength "
+                f"{strength:g}; --session-strength 0: off)")
+    return f"{name}: session adaptation off (the models' strength 0, or --session-strength 0)"

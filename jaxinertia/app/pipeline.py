@@ -310,8 +310,8 @@ def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
     (:mod:`jaxinertia.app.by_part`) is judged with the network methods' COM from those; one
     that names ensemble members (:mod:`jaxinertia.app.ensemble`), by their mean."""
     folder = load_models(models, robot=robot, arm=arm)
-    adapted, ratios = adapt_objects(objects, session_reference(folder.config, session_strength,
-                                                               simulated=simulated))
+    reference = session_reference(folder.config, session_strength, simulated=simulated)
+    adapted, ratios = adapt_objects(objects, reference)
     t, members = time.perf_counter(), members_of(models, folder.config)
     res = evaluate(adapted, sets, pair=folder.pair, baselines=folder.baselines,
                    fc=folder.features, l_max=l_max)
@@ -329,16 +329,18 @@ def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
     res["wall_time_s"] = time.perf_counter() - t
     res["config"] = folder.config
     res["session_ratio"] = {o.name: r for o, r in zip(adapted, ratios)}
+    res["session_strength"] = 0.0 if reference is None else reference.strength
     return res
 
 
 def evaluate_samples(models: str | os.PathLike, sample_file: str | os.PathLike | SampleFile,
                      *, n_sets: int = 1000, set_size: int = 64, seed: int = 0,
-                     l_max: dict[str, float] | None = None, arm: str | None = None) -> dict:
+                     l_max: dict[str, float] | None = None, arm: str | None = None,
+                     session_strength: float | None = None) -> dict:
     """A model folder on every object of a sample file (random sets, seed + i); ``l_max``
     gives the bounding-box diagonal of objects without a built-in one. ``sample_file``: a
     path, or a file already read (its samples at rest); ``arm``: the arm the samples must
-    come from."""
+    come from; ``session_strength``: overrides the folder's (:func:`evaluate_models`)."""
     if isinstance(sample_file, SampleFile):
         objects, meta, sample_file = (sample_file.samples.by_object(), sample_file.meta,
                                       sample_file.path)
@@ -352,7 +354,8 @@ def evaluate_samples(models: str | os.PathLike, sample_file: str | os.PathLike |
     diag = l_max_of(objects, l_max, path=sample_file)
     sets, _ = choose_sets(objects, n_sets=n_sets, set_size=set_size, seed=seed)
     return evaluate_models(models, objects, sets, l_max=diag, robot=meta.get("robot"),
-                           simulated=is_simulated(meta), arm=arm)
+                           simulated=is_simulated(meta), arm=arm,
+                           session_strength=session_strength)
 
 
 def objects_at_rest(sample_file, *, need_truth: bool) -> tuple[list[Samples], dict]:
@@ -376,16 +379,18 @@ def objects_at_rest(sample_file, *, need_truth: bool) -> tuple[list[Samples], di
 
 def sim_to_real(models: str | os.PathLike, lbipe_dir: str | os.PathLike, *, seed: int = 0,
                 n_sets: int = 1000, l_max: dict[str, float] | None = None,
-                real: RealData | None = None) -> dict | None:
+                real: RealData | None = None, session_strength: float | None = None) -> dict | None:
     """Trained models on every real test file in ``lbipe_dir``, beside the released models
-    on the same sets. None when the folder is absent. ``real``: the folder already loaded."""
+    on the same sets. None when the folder is absent. ``real``: the folder already loaded;
+    ``session_strength``: overrides the folder's (:func:`evaluate_models`)."""
     if real is None and not Path(lbipe_dir).is_dir():
         return None
     real = real or load_real(lbipe_dir, seed=seed, n_sets=n_sets, l_max=l_max)
     ours = evaluate_models(models, real.objects, real.sets, l_max=real.l_max,
-                           arm=LBIPE_ARM)
+                           arm=LBIPE_ARM, session_strength=session_strength)
     names = [o.name for o in real.objects]
-    out = {"ours": {"objects": ours["objects"], "torque": ours["torque"]},
+    out = {"ours": {k: ours[k] for k in ("objects", "torque", "session_ratio",
+                                         "session_strength")},
            "files": {n: str(p) for n, p in real.layout.test_files.items()},
            "sets": dict(zip(names, real.sources))}
     released = released_benchmark(lbipe_dir, real=real)["objects"]
