@@ -182,6 +182,11 @@ class Samples:
         fields = dict(fields)
         need = _REQUIRED + (("tau", "x") if need_truth else ())
         missing = [k for k in need if k not in fields]
+        if missing and not set(missing) - {"tau", "x"}:  # only the ground truth
+            raise FileFormatError(path, missing[0], "missing: the objects' true torques and "
+                                  "mass are unknown here (collected with --object unknown?); "
+                                  "training and evaluation need known objects, "
+                                  "`jaxinertia estimate` answers for unknown ones")
         if missing:
             raise FileFormatError(path, missing[0], f"missing (this file has "
                                   f"{sorted(fields)}); needed: {list(need)}")

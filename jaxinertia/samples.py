@@ -73,9 +73,15 @@ def read_npz(path: str | os.PathLike, *, missing_hint: str = "",
         raw = path.read_bytes()
         if digest is not None:
             digest["sha256"] = hashlib.sha256(raw).hexdigest()
+        if not raw.startswith(b"PK"):  # numpy would take it for a pickle and say so
+            raise FileFormatError(path, None, "not an .npz file (not a zip archive of arrays): "
+                                  "a sample file of jaxinertia simulate or collect, or the "
+                                  "authors' data_test_<name>.npz, is needed")
         with np.load(io.BytesIO(raw), allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
-    except Exception as e:  # zipfile/pickle/format errors all mean "unreadable"
+    except FileFormatError:
+        raise
+    except Exception as e:  # zipfile/format errors all mean "unreadable"
         raise FileFormatError(path, None, f"not a readable .npz file ({e})") from e
 
 

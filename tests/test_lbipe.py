@@ -292,11 +292,18 @@ def _garbage(d, path):
     path.write_bytes(b"this is not a zip file")
 
 
+def _torn(d, path):
+    np.savez(path, **d)
+    path.write_bytes(path.read_bytes()[:2000])  # a zip archive cut short
+
+
 @pytest.mark.parametrize(
     "edit, field, words",
     [(_drop_x, "x", "missing"), (_bad_shape, "A", "shape"), (_nan, "joint_data", "non-finite"),
-     (_direction, "joint_data", "direction"), (_garbage, None, "not a readable .npz")],
-    ids=["missing key", "wrong shape", "NaN", "bad direction", "unreadable"],
+     (_direction, "joint_data", "direction"),
+     (_garbage, None, "not an .npz file (not a zip archive of arrays)"),
+     (_torn, None, "not a readable .npz file")],
+    ids=["missing key", "wrong shape", "NaN", "bad direction", "not a zip", "torn"],
 )
 def test_malformed_test_file_gives_one_clear_error(lbipe_dir, tmp_path, capsys, edit, field,
                                                    words):
@@ -305,6 +312,7 @@ def test_malformed_test_file_gives_one_clear_error(lbipe_dir, tmp_path, capsys, 
         load_lbipe(path)
     assert e.value.path == str(path) and e.value.field == field
     assert words in str(e.value) and str(path) in str(e.value)
+    assert "allow_pickle" not in str(e.value)  # numpy's advice to load it unsafely
     assert cli_main(["lbipe-benchmark", "--lbipe-dir", str(path.parent.parent)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(path) in err[0] and (field is None or f"[{field}]" in err[0])

@@ -366,6 +366,8 @@ def _file(tmp_path, kind) -> str:
     if kind == "none at rest":
         return str(save_native(tmp_path / "s.npz", d.replace(at_rest=np.zeros(80, bool)),
                                ROBOT))
+    if kind == "unknown objects":  # collect --object unknown
+        return str(save_native(tmp_path / "s.npz", d.without_truth(), ROBOT))
     if kind == "one object timed out":
         d = _samples(n=80, n_obj=2, seed=4)
         return str(save_native(tmp_path / "s.npz", d.replace(at_rest=d.object_id == 0), ROBOT))
@@ -383,11 +385,19 @@ def _file(tmp_path, kind) -> str:
     ("evaluate", "negative mass", ["[x]", "'o0'", "must be positive"]),
     ("estimate", "zero mass with a COM", ["[x]", "must be positive"]),
     ("evaluate", "empty gripper", ["mass 0"]),
+    ("evaluate", "unknown objects", ["[tau]", "unknown here", "`jaxinertia estimate` answers"]),
 ])
 def test_sample_files_without_an_answer_are_refused(command, kind, words, tmp_path, capsys):
     f = _file(tmp_path, kind)
     assert main([command, "--models", str(tmp_path / "no-models"), "--samples", f]) == 2
     _one_line(capsys, *words)
+
+
+def test_training_on_unknown_objects_points_to_estimate(tmp_path, capsys):
+    f = _file(tmp_path, "unknown objects")
+    assert main(["train", "--data", f, "--out", str(tmp_path / "m")]) == 2
+    _one_line(capsys, "[tau]", "unknown here", "`jaxinertia estimate` answers")
+    assert not (tmp_path / "m").exists()
 
 
 def test_evaluate_names_only_its_own_options(tmp_path, capsys):

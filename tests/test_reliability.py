@@ -65,6 +65,13 @@ def test_bad_options_give_one_line_and_exit_2(argv, option, capsys, tmp_path, mo
     assert not any(tmp_path.iterdir())  # nothing written
 
 
+def test_an_unknown_option_points_to_its_commands_help(capsys):
+    assert main(["evaluate", "--models", "m", "--no-such-option"]) == 2
+    _one_line_error(capsys, "--no-such-option", "(see jaxinertia evaluate --help)")
+    assert main(["no-such-command"]) == 2
+    _one_line_error(capsys, "no-such-command", "(see jaxinertia --help)")
+
+
 def test_train_config_refuses_what_cannot_train():
     for bad in ({"torque_epochs": 0}, {"torque_lr": float("nan")}, {"n_models": -1},
                 {"val_fraction": 0.0}, {"w_mass": 0.0, "w_com": 0.0}, {"attention_batch": 1.5}):

@@ -86,6 +86,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
                 registered.add(module)
         elif name not in sub.choices:
             sub.add_parser(name, help=help_line)
+    if command in COMMANDS:  # an option no parser knows: the command's help lists them
+        p.help_hint = f"jaxinertia {command}"
     return p
 
 

@@ -45,8 +45,12 @@ SEED_MAX = 2**32 - 1
 class Parser(argparse.ArgumentParser):
     """Bad options: one line naming the option and exit code 2 (not argparse's usage block)."""
 
+    #: The help that the error points to (the command's, for options it does not know).
+    help_hint: str | None = None
+
     def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+        self.exit(2, f"{self.prog}: error: {message} (see {self.help_hint or self.prog} "
+                  "--help)\n")
 
 
 def _number(kind, test, what):

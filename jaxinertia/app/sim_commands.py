@@ -262,12 +262,17 @@ def register(sub) -> None:
         "and friction so that the simulated real plan reproduces the real baseline fits.",
     )
     c.add_argument("--lbipe-dir", type=Path, help=LBIPE_DIR_HELP)
-    c.add_argument("--iterations", type=positive_int, default=6)
+    c.add_argument("--iterations", type=positive_int, default=6,
+                   help="fixed-point iterations of the servo and friction (default 6, about "
+                   "where they converge on the real files; fewer leave the fit short of it); "
+                   "with --fit-offset, the constant torques' steps and a last simulation are "
+                   "logged as further iterations")
     c.add_argument("--seed", type=seed_int, default=0)
     c.add_argument("--out", type=Path,
                    help="parameter file to write (.json; required): the shipped "
                    "data/open_manipulator_x_sim.json is never written by a command")
-    c.add_argument("--report", type=Path, default=Path("runs/calibration"))
+    c.add_argument("--report", type=Path, default=Path("runs/calibration"),
+                   help="folder of the fit's report and plots (default runs/calibration)")
     c.add_argument("--start", type=Path, help="parameter file to start from (default: shipped)")
     c.add_argument("--overwrite", action="store_true",
                    help="replace an existing --out parameter file or --report folder")

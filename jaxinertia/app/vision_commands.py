@@ -265,7 +265,7 @@ def register(sub) -> None:
         help="write an official AprilTag image to print",
         description="Draws the tag from its family's code bits exactly as the AprilTag "
         "library's own images (the official frame: x right, y up as printed), with a white "
-        "margin. Print at 100 %% and measure the black square for --tag-size.",
+        "margin. Print at 100 % and measure the black square for --tag-size.",
     )
     g.add_argument("--id", type=_tag_id, default=DEFAULT_TAG_ID)
     g.add_argument("--family", type=_family, default="tag36h11", help=fam_help)
@@ -293,6 +293,7 @@ def register(sub) -> None:
                    help="edge of the black square [m] (default %(default)s)")
     c.add_argument("--tag-id", type=_tag_id, default=DEFAULT_TAG_ID)
     c.add_argument("--family", type=_family, default="tag36h11", help=fam_help)
-    c.add_argument("--out", type=Path, default=Path("camera_pose.json"))
+    c.add_argument("--out", type=Path, default=Path("camera_pose.json"),
+                   help="camera-pose JSON to write (default camera_pose.json)")
     c.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     c.set_defaults(func=cmd_camera_calibrate)
