@@ -4,7 +4,9 @@ simulator (issue "Sim-to-real II")."""
 
 from __future__ import annotations
 
+import hashlib
 import json
+from pathlib import Path
 from types import SimpleNamespace
 
 import jax
@@ -16,6 +18,7 @@ from support.synthetic import feature_config, synthetic_samples
 
 from jaxinertia.app.cli import main
 from jaxinertia.app.pipeline import adapt_objects, session_reference
+from jaxinertia.app.provenance import seen_by
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import load_models, save_models
 from jaxinertia.errors import JaxinertiaError, ModelFolderError, UsageError
@@ -171,6 +174,10 @@ def test_finetuning_starts_from_the_folder_keeps_its_scaling_and_improves(folder
     np.testing.assert_allclose(floor, validation_torque_error(pair, fc, val_read), rtol=1e-5)
 
 
+def sha256_of(path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
 def _take(path, n):
     return per_object_subset(load_samples(path)[0], n, 0)
 
@@ -223,6 +230,13 @@ def test_finetuning_never_returns_worse_than_it_started_and_can_freeze_encoders(
     assert f"o0: session: discrepancy read in the models' session, x ({factors})" in said[0]
     assert "strength 0.5" in said[0] and "o0: session adaptation off" in said[1]
     assert answers[0] != answers[1]
+    # Both files are ones the folder was fitted on (sim: its start was trained on it; real:
+    # it was fine-tuned on it): said, never passed off as held out.
+    for o in ("o0", "o1", "o2"):
+        assert (f"{o}: NOT HELD OUT: 1 of 1 folder(s) answering the mass were calibrated, "
+                "trained or fine-tuned on this file") in said[0]
+    assert seen_by(out, "0" * 64) == {} and seen_by(tmp / "m0", sha256_of(real)) == {}
+    assert seen_by(tmp / "m0", sha256_of(sim)) == {"mass": (1, 1)}
     assert min(config["best_epoch"]["torque"]) >= 0
     for j in range(4):
         assert_tree_equal(pair.torque_vars["params"][f"joint{j}"],

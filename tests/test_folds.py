@@ -24,6 +24,7 @@ from jaxinertia.app.folds import FoldScale, run_folds
 from jaxinertia.app.models_real import models_from_folds
 from jaxinertia.app.pipeline import evaluate_models, load_real, train
 from jaxinertia.app.programs import folds_side_by_side
+from jaxinertia.app.provenance import seen_by
 from jaxinertia.app.report import format_folds
 from jaxinertia.checkpoints import load_models
 from jaxinertia.errors import UsageError, WeightsError
@@ -208,6 +209,14 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
             assert got.config["session"]["current_gain"] == want.config["session"][
                 "current_gain"]  # each member keeps its own fold's session
             assert got.config.get("uniform_attention", False) == (part == "mass")
+            fit = real.files[[o.name for o in real.objects].index(src.split("/")[1][4:])]
+            assert got.config["fitted_on_real"] == [{"file": fit.path.name,
+                                                     "sha256": fit.meta["sha256"]}]
+    # evaluate and estimate say how many of them saw a file: every fold saw one of the two.
+    sha = {o.name: f.meta["sha256"] for o, f in zip(real.objects, real.files)}
+    n = len(sources["mass"])
+    for name in ("cube", "white"):
+        assert seen_by(dst, sha[name]) == {"mass": (n // 2, n), "com": (1, 2)}
     # Its answer on a file is the mean of the fold folders' own, each read at the recipe's
     # strength in its own session, the mass's without the attention (T-A answers as T).
     i = [o.name for o in real.objects].index("white")

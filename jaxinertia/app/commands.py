@@ -190,8 +190,13 @@ def cmd_evaluate(args) -> int:
             raise UsageError(f"no real data at {lbipe_dir}: pass --lbipe-dir or --samples")
         res, released = real["ours"], real.get("released")
     objects, torque = res["objects"], res["torque"]
+    from jaxinertia.app.provenance import not_held_out_line, seen_by  # (as above)
+
     for name, ratio in res["session_ratio"].items():
         print(session_line(name, res["session_strength"], ratio))
+        sha = res["sha256"].get(name) if isinstance(res["sha256"], dict) else res["sha256"]
+        if line := not_held_out_line(name, seen_by(args.models, sha)):
+            print(line)
     print()
     print(report.table1(objects, f"Table I: models {args.models}"))
     if released:

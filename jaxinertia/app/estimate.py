@@ -231,7 +231,7 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
     noise_source = ("torque models' validation error" if floor is not None else
                     f"nominal {DEFAULT_TORQUE_NOISE_NM * 1e3:.0f} N mm per joint")
     _refuse_unanswerable(objects, sample_file, set_size, noise)  # before any estimate
-    out: dict = {"file": str(sample_file), "objects": {},
+    out: dict = {"file": str(sample_file), "sha256": meta.get("sha256"), "objects": {},
                  "session_strength": 0.0 if reference is None else reference.strength,
                  "torque_error_floor": {"Nm": None if floor is None else floor.tolist(),
                                         "source": floor_source}}

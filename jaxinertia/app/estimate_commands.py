@@ -47,9 +47,14 @@ def cmd_estimate(args) -> int:
                    max_com=args.max_com, max_com_se=args.max_com_se,
                    session_strength=args.session_strength, arm=arm_name(args))
     floor = res["torque_error_floor"]
+    from jaxinertia.app.provenance import not_held_out_line, seen_by  # (as above)
+
+    seen = seen_by(args.models, res.get("sha256"))  # the models fitted on this file?
     for name, o in res["objects"].items():
         ident = o["identifiability"]
         print(session_line(name, res["session_strength"], o["session_ratio"]))
+        if line := not_held_out_line(name, seen):
+            print(line)
         if res.get("uniform_attention"):
             print(f"{name}: these models weight every joint alike (their attention off, as "
                   "the held-out folds chose): T-A answers as T")
@@ -104,6 +109,7 @@ def cmd_estimate(args) -> int:
     print(f"torque error floor: {floor['source']}" + (
         "" if floor["Nm"] is None else
         " (" + ", ".join(f"{v * 1e3:.0f}" for v in floor["Nm"]) + " N mm per joint)"))
+    res["fitted_on_this_file"] = {p: {"folders": k, "of": n} for p, (k, n) in seen.items()}
     return write_json_option(args, res)
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 from jaxinertia.app.by_part import attach_com_models
 from jaxinertia.app.ensemble import attach_members
 from jaxinertia.app.pipeline import RealData, copy_models, evaluate_models, train
+from jaxinertia.app.provenance import record_fitted_on
 from jaxinertia.app.recipe import candidate_of_folder
 from jaxinertia.fileio import replacing_dir
 from jaxinertia.open_manipulator_x import load_sim_fit
@@ -25,7 +26,7 @@ from jaxinertia.session import ServoSession, servo_session
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
 
 __all__ = ["DEFAULT_RECIPE", "models_from_folds", "models_real", "recipe_of",
-           "sim_fit_session"]
+           "sim_fit_files", "sim_fit_session"]
 
 #: The recipe for the models of a new real object when no held-out folds chose one: the
 #: physical model fine-tuned on every real file, sessions adapted.
@@ -38,9 +39,20 @@ def sim_fit_session(real: RealData | None) -> ServoSession | None:
     """The session of the real files the shipped simulator fit was fitted on (its
     ``link_gravity.source``), pooled, when the folder has them: the servo state that the
     simulated data imitate, the reference of models trained on them."""
-    names = set(load_sim_fit()["link_gravity"].get("source", ()))
-    used = [o for o in (real.objects if real else ()) if o.name in names]
+    used = [o for o, _ in _sim_fit_files(real)]
     return servo_session(used) if used else None
+
+
+def sim_fit_files(real: RealData | None) -> list[dict]:
+    """Those files, as a model folder records what it was fitted on
+    (:func:`jaxinertia.app.provenance.record_fitted_on`)."""
+    return [{"file": f.path.name, "sha256": f.meta.get("sha256")}
+            for _, f in _sim_fit_files(real)]
+
+
+def _sim_fit_files(real: RealData | None) -> list:
+    names = set(load_sim_fit()["link_gravity"].get("source", ()))
+    return [(o, f) for o, f in zip(real.objects, real.files) if o.name in names] if real else []
 
 
 def recipe_of(folds: dict | None, scale) -> dict:
@@ -106,6 +118,9 @@ def models_from_folds(out: Path, folds: dict, real: RealData, recipe: dict) -> d
                     found[candidate_of_folder(p.name)] = p
         by_candidate.append(found)
     parts = {"mass": recipe, "com": recipe["com"]} if recipe.get("com") else {"mass": recipe}
+    # The real file each fold was calibrated, trained and fine-tuned on, for every copy.
+    seen = {f"fit_{o.name}": {"file": f.path.name, "sha256": f.meta.get("sha256")}
+            for o, f in zip(real.objects, real.files)}
     made = {}
     # Written beside and put in place once complete: an interrupted run leaves the previous
     # models_real (or none), never one that answers without its members or COM part.
@@ -125,6 +140,7 @@ def models_from_folds(out: Path, folds: dict, real: RealData, recipe: dict) -> d
                 copy_models(src, where[part] / name,
                             session_strength=float(r["session_strength"]),
                             uniform=not r.get("attention", True))
+                record_fitted_on(where[part] / name, [seen[src.parent.name]])
             if len(names) > 1:
                 attach_members(where[part], names[1:])
             made[part] = [str(s.relative_to(out)) for s in sources]

@@ -56,10 +56,8 @@ from jaxinertia.training import (
 from jaxinertia.uncertainty import validation_torque_error
 
 __all__ = ["UNIFORM_ATTENTION", "RealData", "adapt_objects", "copy_models", "evaluate_models",
-           "objects_at_rest",
-           "evaluate_samples", "is_simulated", "load_real", "released_benchmark",
-           "session_reference",
-           "sim_to_real", "train"]
+           "evaluate_samples", "is_simulated", "load_real", "objects_at_rest",
+           "released_benchmark", "session_reference", "sim_to_real", "train"]
 
 
 def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.PathLike,
@@ -353,9 +351,9 @@ def evaluate_samples(models: str | os.PathLike, sample_file: str | os.PathLike |
                          "COM errors need a held object; leave it out of the file")
     diag = l_max_of(objects, l_max, path=sample_file)
     sets, _ = choose_sets(objects, n_sets=n_sets, set_size=set_size, seed=seed)
-    return evaluate_models(models, objects, sets, l_max=diag, robot=meta.get("robot"),
-                           simulated=is_simulated(meta), arm=arm,
-                           session_strength=session_strength)
+    return {**evaluate_models(models, objects, sets, l_max=diag, robot=meta.get("robot"),
+                              simulated=is_simulated(meta), arm=arm,
+                              session_strength=session_strength), "sha256": meta.get("sha256")}
 
 
 def objects_at_rest(sample_file, *, need_truth: bool) -> tuple[list[Samples], dict]:
@@ -389,8 +387,9 @@ def sim_to_real(models: str | os.PathLike, lbipe_dir: str | os.PathLike, *, seed
     ours = evaluate_models(models, real.objects, real.sets, l_max=real.l_max,
                            arm=LBIPE_ARM, session_strength=session_strength)
     names = [o.name for o in real.objects]
-    out = {"ours": {k: ours[k] for k in ("objects", "torque", "session_ratio",
-                                         "session_strength")},
+    ours["sha256"] = {o.name: f.meta.get("sha256") for o, f in zip(real.objects, real.files)}
+    out = {"ours": {k: ours[k] for k in ("objects", "torque", "session_ratio", "session_strength",
+                                         "sha256")},
            "files": {n: str(p) for n, p in real.layout.test_files.items()},
            "sets": dict(zip(names, real.sources))}
     released = released_benchmark(lbipe_dir, real=real)["objects"]

@@ -29,6 +29,7 @@ from jaxinertia.app.models_real import (
     models_from_folds,
     models_real,
     recipe_of,
+    sim_fit_files,
     sim_fit_session,
 )
 from jaxinertia.app.pipeline import (
@@ -41,6 +42,7 @@ from jaxinertia.app.pipeline import (
     train,
 )
 from jaxinertia.app.programs import side_by_side
+from jaxinertia.app.provenance import record_fitted_on
 from jaxinertia.app.report import reproduce_report
 from jaxinertia.app.simdata import cached, params_digest, simulate_files
 from jaxinertia.app.with_released import (
@@ -321,6 +323,7 @@ def _simulated_stages(out: Path, scale: Scale, arm: Arm, real: RealData | None,
         # beside their trainings.
         info = train(train_files, out / "models", scale.train.replace(seed=seed), overwrite=True,
                      progress=progress, session=session, arm=arm.name)
+        record_fitted_on(out / "models", sim_fit_files(real))  # the simulator's real files
     with stage("simulate continuous"):
         cont_file = _continuous(params, data_dir / "continuous.npz", scale, seed, arm)
     with stage("evaluate"):
