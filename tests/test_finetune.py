@@ -17,8 +17,9 @@ from support.asserts import assert_tree_equal
 from support.synthetic import feature_config, synthetic_samples
 
 from jaxinertia.app.cli import main
+from jaxinertia.app.estimate import estimate
 from jaxinertia.app.pipeline import adapt_objects, session_reference
-from jaxinertia.app.provenance import seen_by
+from jaxinertia.app.provenance import FITTED_ON, fitted_on, seen_by
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import load_models, save_models
 from jaxinertia.errors import JaxinertiaError, ModelFolderError, UsageError
@@ -237,12 +238,26 @@ def test_finetuning_never_returns_worse_than_it_started_and_can_freeze_encoders(
                 "trained or fine-tuned on this file") in said[0]
     assert seen_by(out, "0" * 64) == {} and seen_by(tmp / "m0", sha256_of(real)) == {}
     assert seen_by(tmp / "m0", sha256_of(sim)) == {"mass": (1, 1)}
+    # A fine-tuning carries its start's record forward (a chain of them loses nothing).
+    assert config[FITTED_ON] == [{"sha256": sha256_of(sim)}]
+    answer = estimate(out, real, n_sets=4, max_mass=1e3, max_com=1e3)
+    assert answer["fitted_on_this_file"] == {"mass": {"folders": 1, "of": 1}}
+
     assert min(config["best_epoch"]["torque"]) >= 0
     for j in range(4):
         assert_tree_equal(pair.torque_vars["params"][f"joint{j}"],
                           pair0.torque_vars["params"][f"joint{j}"], what=f"joint{j} frozen")
     assert not np.allclose(pair.torque_vars["params"]["out"]["kernel"],
                            pair0.torque_vars["params"]["out"]["kernel"])
+
+
+def test_what_a_folder_was_fitted_on_is_read_from_its_record_whatever_it_holds():
+    config = {FITTED_ON: [{"file": "a.npz", "sha256": "a"}, "junk", {"sha256": 3}],
+              "data": [{"sha256": "b", "source": "simulator"}, {"file": "c.npz"}, "x.npz"],
+              "fine_tuned_from": {"data": [{"sha256": "d"}], "folder": "m0"}}
+    assert fitted_on(config) == {"a", "b", "d"}
+    for junk in ({"data": "x.npz"}, {"fine_tuned_from": "m0"}, {FITTED_ON: {"sha256": "a"}}):
+        assert fitted_on(junk) == set()
 
 
 def test_finetuning_refuses_what_cannot_fit(folders, capsys):

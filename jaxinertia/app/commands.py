@@ -194,6 +194,9 @@ def cmd_evaluate(args) -> int:
 
     for name, ratio in res["session_ratio"].items():
         print(session_line(name, res["session_strength"], ratio))
+        if com := res.get("com_session"):  # the COM's models, in their own session
+            print(session_line(name, com["strength"], com["ratio"][name]).replace(
+                f"{name}: ", f"{name}: the COM's models ({res['com_models']}): ", 1))
         sha = res["sha256"].get(name) if isinstance(res["sha256"], dict) else res["sha256"]
         if line := not_held_out_line(name, seen_by(args.models, sha)):
             print(line)

@@ -59,7 +59,7 @@ def _checked_shares(weights, n: int, where: str) -> np.ndarray:
     """``n`` shares, finite, >= 0, not all zero, normalised; else the error says so."""
     # A hand-edited record may hold anything: a string, a mapping, numbers written as
     # strings or booleans (which numpy would convert), an integer too large for a float.
-    numbers = (isinstance(weights, (list, tuple, np.ndarray))
+    numbers = (isinstance(weights, (list, tuple, np.ndarray)) and np.ndim(weights) == 1
                and all(isinstance(v, (int, float, np.integer, np.floating))
                        and not isinstance(v, (bool, np.bool_)) for v in weights))
     try:

@@ -25,6 +25,7 @@ from jaxinertia.app.pipeline import (
     objects_at_rest,
     session_reference,
 )
+from jaxinertia.app.provenance import seen_by
 from jaxinertia.checkpoints import load_models
 from jaxinertia.errors import UsageError
 from jaxinertia.evaluation import choose_sets, evaluate
@@ -92,16 +93,19 @@ def _refuse_unanswerable(objects, sample_file, set_size: int | None, noise) -> N
             raise UsageError(f"{where}: {obj.n_samples} sample(s), fewer than one set of "
                              f"--set-size {set_size} (leave --set-size out: sets of half the "
                              "samples)")
+        if set_size is None and obj.n_samples < 2:
+            raise UsageError(f"{where}: {obj.n_samples} sample(s): an answer and its spread "
+                             "over sample sets need at least 2 (collect more)")
         if np.all(obj.q_d == obj.q):
             raise UsageError(f"{where}: q_d - q is zero on every sample: no discrepancy to "
                              "read a load from (torque off, or q_d recorded as q?)")
         _identifiable(obj, noise, where)
 
 
-def _method_answer(x_all, x_sets, unc, *, set_size: int, max_mass: float,
-                   max_com: float) -> dict:
+def _method_answer(x_all, x_sets, unc, *, max_mass: float, max_com: float) -> dict:
     """One method's answer for one object: from all its samples (``x_all``, per model
-    pair), the spread over the random sets (``x_sets``), the uncertainty; or why not."""
+    pair), the spread over the random sets (``x_sets``, of the object's ``set_size``), the
+    uncertainty; or why not."""
     x_models = np.asarray(x_all).reshape(-1, 4)  # (K, 4) or (1, 4)
     x = np.mean(x_models, axis=0)
     why = _gate(x, max_mass=max_mass, max_com=max_com)
@@ -113,8 +117,8 @@ def _method_answer(x_all, x_sets, unc, *, set_size: int, max_mass: float,
         "ok": True, "mass_kg": float(x[0]), "com_tag_m": (x[1:] / x[0]).tolist(),
         **_uncertainty_fields(unc, 0),
         "mass_std_across_models_kg": float(np.std(x_models[:, 0])),
-        f"mass_std_over_{set_size}_sample_sets_kg": float(np.std(xs[good, 0])),
-        f"com_std_over_{set_size}_sample_sets_m":
+        "mass_std_over_sample_sets_kg": float(np.std(xs[good, 0])),
+        "com_std_over_sample_sets_m":
             np.std(xs[good, 1:] / xs[good, :1], axis=0).tolist(),
         "failed_sets": int(np.sum(~good)), "n_sets": int(len(xs)),
     }
@@ -202,12 +206,14 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *,
               arm=arm)
     out, config = _estimate(models, sample_file, **kw)
     com = com_models_of(models, config)
-    if com is None:
-        return out
-    com_out = _estimate(com, sample_file, **kw)[0]
-    merged = merge_answers(out, com_out)
-    merged.update(com_models=str(com), com_session_strength=com_out["session_strength"])
-    return merged
+    if com is not None:
+        com_out = _estimate(com, sample_file, **kw)[0]
+        out = merge_answers(out, com_out)
+        out.update(com_models=str(com), com_session_strength=com_out["session_strength"])
+    # Were the models fitted on this very file? (Then its answer is no held-out number.)
+    out["fitted_on_this_file"] = {p: {"folders": k, "of": n}
+                                  for p, (k, n) in seen_by(models, out["sha256"]).items()}
+    return out
 
 
 def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com, max_com_se,
@@ -248,7 +254,7 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
         if members:
             _average_members(res, unc, spread, member_parts,
                              [models, *(m.path for m in members)], weights)
-        methods = {m: _method_answer(x_all, spread["estimates"][m], unc[m], set_size=size,
+        methods = {m: _method_answer(x_all, spread["estimates"][m], unc[m],
                                      max_mass=max_mass, max_com=max_com)
                    for m, x_all in res["estimates"].items()}
         _servo_state(methods, obj, [np.asarray(res["model_estimates"].weights[0]),

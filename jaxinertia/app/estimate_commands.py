@@ -47,9 +47,9 @@ def cmd_estimate(args) -> int:
                    max_com=args.max_com, max_com_se=args.max_com_se,
                    session_strength=args.session_strength, arm=arm_name(args))
     floor = res["torque_error_floor"]
-    from jaxinertia.app.provenance import not_held_out_line, seen_by  # (as above)
+    from jaxinertia.app.provenance import not_held_out_line  # (as above)
 
-    seen = seen_by(args.models, res.get("sha256"))  # the models fitted on this file?
+    seen = {p: (v["folders"], v["of"]) for p, v in res["fitted_on_this_file"].items()}
     for name, o in res["objects"].items():
         ident = o["identifiability"]
         print(session_line(name, res["session_strength"], o["session_ratio"]))
@@ -109,7 +109,6 @@ def cmd_estimate(args) -> int:
     print(f"torque error floor: {floor['source']}" + (
         "" if floor["Nm"] is None else
         " (" + ", ".join(f"{v * 1e3:.0f}" for v in floor["Nm"]) + " N mm per joint)"))
-    res["fitted_on_this_file"] = {p: {"folders": k, "of": n} for p, (k, n) in seen.items()}
     return write_json_option(args, res)
 
 

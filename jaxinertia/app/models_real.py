@@ -83,6 +83,7 @@ def models_real(out: Path, train_files: list[Path], real: RealData, scale,
     start = out / "models_physical"
     train(train_files, start, scale.train.replace(seed=seed, torque_model="physical"),
           overwrite=True, progress=progress, session=session)
+    record_fitted_on(start, sim_fit_files(real))  # its simulator's real files, passed on
     n = recipe.get("finetune_samples") or scale.real_finetune_samples
     tuned = out / f"models_real_finetuned_{n}"
     info = train(real.files, tuned, TrainConfig(**FINETUNE_DEFAULTS, seed=seed,

@@ -23,6 +23,7 @@ from jaxinertia.app.arm_options import LBIPE_ARM, samples_arm
 from jaxinertia.app.by_part import COM_MODELS, com_models_of, merge_evaluations
 from jaxinertia.app.ensemble import ENSEMBLE_KEYS, mean_evaluation, members_of, weights_of
 from jaxinertia.app.fit import EarlyStart, fit_pairs
+from jaxinertia.app.provenance import FITTED_ON, fitted_on
 from jaxinertia.checkpoints import (
     UNIFORM_ATTENTION,
     copy_folder,
@@ -61,10 +62,8 @@ __all__ = ["UNIFORM_ATTENTION", "RealData", "adapt_objects", "copy_models", "eva
 
 
 def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.PathLike,
-          cfg: TrainConfig,
-          *, progress: bool = True, overwrite: bool = False,
-          init: str | os.PathLike | None = None,
-          samples_per_object: int | None = None,
+          cfg: TrainConfig, *, progress: bool = True, overwrite: bool = False,
+          init: str | os.PathLike | None = None, samples_per_object: int | None = None,
           session: ServoSession | None = None, arm: str | None = None,
           early: EarlyStart | None = None) -> dict:
     """Trains K model pairs and fits the baselines; writes the model folder ``out``
@@ -150,6 +149,7 @@ def _train(sample_files, out, cfg: TrainConfig, *, progress, overwrite, init,
         info["fine_tuned_from"] = {"folder": str(Path(init).resolve()),
                                    "data": start.config.get("data"),
                                    "training": start.config.get("training")}
+        info[FITTED_ON] = [{"sha256": s} for s in sorted(fitted_on(start.config))]
     pair, baselines, torque, attention, t1 = fit_pairs(
         cfg, fc, train_set, val_set, None if start is None else start.pair, progress,
         early and (lambda t: early.torque_trained(t, fc, {"robot": robot, **info})))
@@ -320,10 +320,10 @@ def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
             weights_of(folder.config, models))
     com = com_models_of(models, folder.config)
     if com is not None:
-        res = merge_evaluations(res, evaluate_models(
-            com, objects, sets, l_max=l_max, robot=robot, session_strength=session_strength,
-            simulated=simulated, arm=arm))
-        res["com_models"] = str(com)
+        part = evaluate_models(com, objects, sets, l_max=l_max, robot=robot,
+                               session_strength=session_strength, simulated=simulated, arm=arm)
+        res = {**merge_evaluations(res, part), "com_models": str(com), "com_session": {
+            "strength": part["session_strength"], "ratio": part["session_ratio"]}}
     res["wall_time_s"] = time.perf_counter() - t
     res["config"] = folder.config
     res["session_ratio"] = {o.name: r for o, r in zip(adapted, ratios)}
@@ -389,7 +389,7 @@ def sim_to_real(models: str | os.PathLike, lbipe_dir: str | os.PathLike, *, seed
     names = [o.name for o in real.objects]
     ours["sha256"] = {o.name: f.meta.get("sha256") for o, f in zip(real.objects, real.files)}
     out = {"ours": {k: ours[k] for k in ("objects", "torque", "session_ratio", "session_strength",
-                                         "sha256")},
+                                         "sha256", "com_models", "com_session") if k in ours},
            "files": {n: str(p) for n, p in real.layout.test_files.items()},
            "sets": dict(zip(names, real.sources))}
     released = released_benchmark(lbipe_dir, real=real)["objects"]

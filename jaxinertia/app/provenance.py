@@ -28,12 +28,15 @@ FITTED_ON = "fitted_on_real"
 
 def fitted_on(config: dict) -> set[str]:
     """The SHA-256 of every file a folder (its ``config``) was fitted on, as far as its
-    record tells: :data:`FITTED_ON`, its training data, and that of the folder it was
-    fine-tuned from (``fine_tuned_from``, recursively)."""
-    files = [*(config.get(FITTED_ON) or ()), *(config.get("data") or ())]
-    start = config.get("fine_tuned_from") or {}
-    return {f["sha256"] for f in files if f.get("sha256")} | (
-        fitted_on(start) if start else set())
+    record tells: :data:`FITTED_ON` (a fine-tuning carries its start's there), its
+    training data, and that of the folder it was fine-tuned from (``fine_tuned_from``)."""
+    def entries(key, within=config) -> list:  # a hand-edited record may hold anything
+        v = within.get(key) if isinstance(within, dict) else None
+        return [f for f in v if isinstance(f, dict)] if isinstance(v, list) else []
+
+    start = config.get("fine_tuned_from")
+    files = entries(FITTED_ON) + entries("data") + entries("data", start)
+    return {f["sha256"] for f in files if isinstance(f.get("sha256"), str)}
 
 
 def record_fitted_on(models: str | os.PathLike, files: list[dict]) -> None:
