@@ -79,7 +79,7 @@ def not_held_out_line(name: str, seen: dict[str, tuple[int, int]]) -> str | None
     were fitted on (None: none was)."""
     if not seen:
         return None
-    what = " and ".join(f"{k} of {n} folder(s) answering the {part}"
+    what = " and ".join(f"{k} of {n} folder(s) answering the {'COM' if part == 'com' else part}"
                         for part, (k, n) in seen.items())
     return (f"{name}: NOT HELD OUT: {what} were calibrated, trained or fine-tuned on this "
             "file; judge models on files they did not see")
