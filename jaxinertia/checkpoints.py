@@ -224,8 +224,8 @@ def load_models(directory: str | os.PathLike, *, robot: str | None = None,
         theirs = arm or robot
         raise RobotMismatchError(
             f"{directory}: models trained for robot {config.get('robot')!r} (arm {trained!r}), "
-            f"the samples come from the arm {theirs!r}: use models trained on that arm's "
-            f"samples (train with `arm` {theirs})")
+            f"the samples come from the arm {theirs!r} (as their file, or else `arm`, says): "
+            f"use models trained on that arm's samples (train with `arm` {theirs})")
     try:
         arch = dict(config["torque_model"])
         kind = arch.pop("kind", "paper")  # folders before the option: the paper's network
