@@ -24,7 +24,7 @@ from jaxinertia.app.folds import FoldScale, run_folds
 from jaxinertia.app.models_real import models_from_folds
 from jaxinertia.app.pipeline import evaluate_models, load_real, train
 from jaxinertia.app.programs import folds_side_by_side
-from jaxinertia.app.provenance import seen_by
+from jaxinertia.app.provenance import fitted_on, seen_by
 from jaxinertia.app.report import format_folds
 from jaxinertia.checkpoints import load_models
 from jaxinertia.errors import UsageError, WeightsError
@@ -193,6 +193,7 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
               "com": R._recipe("physical, simulator only", 1.0)}
     made = models_from_folds(tmp_path, res, real, chosen)
     dst = tmp_path / "models_real"
+    sha = {o.name: f.meta["sha256"] for o, f in zip(real.objects, real.files)}
     folder_of = {R.candidate_of_folder(n): n for n in ens["members"]}
     sources = {"mass": [f"folds/fit_{f}/{folder_of[n]}" for n in names
                         for f in ("cube", "white")],
@@ -209,11 +210,12 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
             assert got.config["session"]["current_gain"] == want.config["session"][
                 "current_gain"]  # each member keeps its own fold's session
             assert got.config.get("uniform_attention", False) == (part == "mass")
-            fit = real.files[[o.name for o in real.objects].index(src.split("/")[1][4:])]
-            assert got.config["fitted_on_real"] == [{"file": fit.path.name,
-                                                     "sha256": fit.meta["sha256"]}]
+            fit = src.split("/")[1][4:]  # the fold's own real file, and not the other's
+            for o, f in zip(real.objects, real.files):
+                assert (f.meta["sha256"] in fitted_on(got.config)) == (o.name == fit)
+            assert {"file": f"data_test_{fit}.npz", "sha256": sha[fit]} in got.config[
+                "fitted_on_real"]
     # evaluate and estimate say how many of them saw a file: every fold saw one of the two.
-    sha = {o.name: f.meta["sha256"] for o, f in zip(real.objects, real.files)}
     n = len(sources["mass"])
     for name in ("cube", "white"):
         assert seen_by(dst, sha[name]) == {"mass": (n // 2, n), "com": (1, 2)}

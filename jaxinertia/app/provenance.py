@@ -43,8 +43,10 @@ def record_fitted_on(models: str | os.PathLike, files: list[dict]) -> None:
     """Adds ``files`` (``{"file": name, "sha256": ...}``) to a written folder's
     :data:`FITTED_ON` record."""
     config = read_config(models)
-    known = config.get(FITTED_ON) or []
-    config[FITTED_ON] = known + [f for f in files if f not in known]
+    new = {f.get("sha256"): f for f in files}  # one entry per file, the fuller one
+    config[FITTED_ON] = [f for f in config.get(FITTED_ON) or ()
+                         if not isinstance(f, dict) or f.get("sha256") not in new] + list(
+        new.values())
     write_json(Path(models) / CONFIG, config)
 
 
