@@ -197,8 +197,7 @@ def cmd_evaluate(args) -> int:
         if com := res.get("com_session"):  # the COM's models, in their own session
             print(session_line(name, com["strength"], com["ratio"][name]).replace(
                 f"{name}: ", f"{name}: the COM's models ({res['com_models']}): ", 1))
-        sha = res["sha256"].get(name) if isinstance(res["sha256"], dict) else res["sha256"]
-        if line := not_held_out_line(name, seen_by(args.models, sha)):
+        if line := not_held_out_line(name, seen_by(args.models, res["sha256"][name])):
             print(line)
     print()
     print(report.table1(objects, f"Table I: models {args.models}"))

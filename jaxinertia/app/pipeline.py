@@ -353,7 +353,8 @@ def evaluate_samples(models: str | os.PathLike, sample_file: str | os.PathLike |
     sets, _ = choose_sets(objects, n_sets=n_sets, set_size=set_size, seed=seed)
     return {**evaluate_models(models, objects, sets, l_max=diag, robot=meta.get("robot"),
                               simulated=is_simulated(meta), arm=arm,
-                              session_strength=session_strength), "sha256": meta.get("sha256")}
+                              session_strength=session_strength),
+            "sha256": {o.name: meta.get("sha256") for o in objects}}  # (each object's file)
 
 
 def objects_at_rest(sample_file, *, need_truth: bool) -> tuple[list[Samples], dict]:
