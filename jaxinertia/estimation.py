@@ -6,7 +6,7 @@ float32 (as trained); identification runs in the dtype of ``A`` (float64 by defa
 
 from __future__ import annotations
 
-from functools import cache, partial, wraps
+from functools import partial
 from typing import NamedTuple
 
 import flax.linen as nn
@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from jaxinertia.compile_options import run_once_jit
 from jaxinertia.identification import (
     DEFAULT_MAX_CONDITION,
     WLSResult,
@@ -22,7 +23,7 @@ from jaxinertia.identification import (
 )
 
 __all__ = ["Estimates", "ModelPair", "estimate_sets", "predict_torques",
-           "predict_torques_stacked", "predict_weights", "run_once_jit"]
+           "predict_torques_stacked", "predict_weights"]
 
 
 @struct.dataclass
@@ -43,28 +44,6 @@ class ModelPair:
 def predict_torques(model: nn.Module, variables: dict, features, tau_scale) -> jnp.ndarray:
     """Joint torques [N m] (..., N) from features (..., N, 4) for one parameter set."""
     return model.apply(variables, features) * jnp.asarray(tau_scale, features.dtype)
-
-
-def run_once_jit(fn, **jit_kwargs):
-    """``jax.jit(fn)`` for a program that runs once where it is called (an initialisation, the
-    predictions over a validation split), built at its first call: on a GPU compiled without
-    XLA's autotuner, which times candidate kernels on the device for seconds of compile
-    that one run never pays back (in ``reproduce --full`` such programs, compiled with it,
-    waited on the folds' critical path: docs/benchmarks.md, "Session 27"). A CPU has no
-    autotuner: the plain jit."""
-    built = cache(lambda gpu: jax.jit(fn, **jit_kwargs, compiler_options=(
-        {"xla_gpu_autotune_level": 0} if gpu else None)))
-
-    @wraps(fn)
-    def call(*args, **kwargs):
-        if any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves((args,
-                                                                                  kwargs))):
-            # Called inside another program being traced: part of it (compiler options
-            # belong to the top-level program alone; JAX refuses them on a nested jit).
-            return fn(*args, **kwargs)
-        return built(jax.default_backend() == "gpu")(*args, **kwargs)
-
-    return call
 
 
 def _predict_stacked(model: nn.Module, variables: dict, features, tau_scale) -> jnp.ndarray:

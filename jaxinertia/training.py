@@ -40,8 +40,9 @@ import numpy as np
 import optax
 from flax import struct
 
+from jaxinertia.compile_options import run_once_jit
 from jaxinertia.errors import UsageError
-from jaxinertia.estimation import predict_torques_stacked, run_once_jit
+from jaxinertia.estimation import predict_torques_stacked
 from jaxinertia.features import FeatureConfig, featurize
 from jaxinertia.identification import solve_normal
 from jaxinertia.linalg import gram_statistics
@@ -93,7 +94,7 @@ def _init_stacked_fn(model, keys, example):
 
 # One program per architecture and shape (eager, every layer's initialiser compiled op by
 # op: dozens of small programs per training); run once per training, so on a GPU compiled
-# without the autotuner (``estimation.run_once_jit``).
+# without the autotuner (``compile_options.run_once_jit``).
 _init_stacked = run_once_jit(_init_stacked_fn, static_argnums=0)
 
 

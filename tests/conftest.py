@@ -19,15 +19,18 @@ import pytest
 # virtual-robot subprocesses the tests start inherit it; what the tests check (numbers
 # against MuJoCo, the real data, golden files, within their tolerances) does not depend
 # on which emitter wrote the machine code.
-# Likewise LLVM without its expensive passes and at optimisation level 1 (of 0-3; 0 made
-# the simulator's tests run slower): test_sim + test_learning 135 -> 121 s, 216 -> 185 CPU
-# seconds (session 14, idle 2-core VM), the simulator's tests run no slower.
+# Likewise LLVM without its expensive passes and at optimisation level 0 (of 0-3): most of
+# the suite's programs are compiled for a few calls, and at level 0 they compile in about
+# half the time (session 36, 2-core VM: the whole suite 9:13 -> 6:49, XLA compiling 533 ->
+# 243 s summed over the tests). The programs that loop for long, the simulator's stepping,
+# keep level 1 whatever this says (jaxinertia.compile_options.stepping_options): at level 0
+# the calibration's and identification's tests ran twice as long (test_real_fit 49 -> 99 s).
 # And one thread per process for XLA's compiler (the LLVM module compiled in one piece, not
 # split over threads) and for its Eigen kernels: the two workers already keep both cores
 # busy, and the threads only contended (session 16, 2-core VM: test_sim + test_learning +
 # test_identify 225 -> 210 CPU seconds; the whole suite 364 -> 358 s).
 for _flag in ("--xla_cpu_use_fusion_emitters=false", "--xla_llvm_disable_expensive_passes=true",
-              "--xla_backend_optimization_level=1", "--xla_cpu_multi_thread_eigen=false",
+              "--xla_backend_optimization_level=0", "--xla_cpu_multi_thread_eigen=false",
               "--xla_cpu_parallel_codegen_split_count=1"):
     if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _flag).strip()

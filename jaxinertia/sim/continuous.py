@@ -28,6 +28,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from jaxinertia.arm import Arm
+from jaxinertia.compile_options import stepping_jit
 from jaxinertia.objects import HeldObject, resolve
 from jaxinertia.open_manipulator_x import ARM as OMX_ARM
 from jaxinertia.plans import continuous_plan, switching_schedule
@@ -105,7 +106,7 @@ def simulate_continuous(
     xs = (prev[idx], q_d[idx], np.asarray(schedule)[idx], np.asarray(direction)[idx], keys,
           live)
     state = jax.vmap(SimState.at_rest)(jnp.asarray(prev[idx[:, 0]]))
-    run = jax.jit(jax.vmap(lambda state, xs: jax.lax.scan(per_sample, state, xs)))
+    run = stepping_jit(jax.vmap(lambda state, xs: jax.lax.scan(per_sample, state, xs)))
     out = []
     # The bar counts the samples stepped, warm-ups included (their work is the same).
     with tqdm(total=int(live.sum()), desc=desc, unit="sample", disable=not progress) as bar:

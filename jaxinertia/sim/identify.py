@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxinertia.compile_options import stepping_jit
 from jaxinertia.errors import UsageError
 from jaxinertia.objects import HeldObject
 from jaxinertia.sim.sampling import Record, simulate_samples
@@ -159,10 +160,12 @@ def replay(thetas, base: SimParams, obj: HeldObject, q_d, direction, key) -> Rec
                    jnp.asarray(direction, dtype), key)
 
 
-@jax.jit
-def _replay(thetas, base, obj, q_d, direction, key) -> Record:
+def _replay_fn(thetas, base, obj, q_d, direction, key) -> Record:
     return jax.vmap(lambda th: simulate_samples(apply_theta(base, th), obj, q_d, direction,
                                                 key))(thetas)
+
+
+_replay = stepping_jit(_replay_fn)
 
 
 @jax.jit

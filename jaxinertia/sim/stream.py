@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from jaxinertia.compile_options import stepping_options
 from jaxinertia.objects import HeldObject
 from jaxinertia.sim import lanes as lane_program
 from jaxinertia.sim.sampling import Record
@@ -164,13 +165,15 @@ class Compiler:
         against the stream slowed both ~2x on an H100) and that run little.
         """
         out: Future = Future()
-        options = {"xla_gpu_autotune_level": 0} if untimed and _on_gpu() else None
+        # Every program of the stream steps or serves the stepping: compiled as such.
+        options = stepping_options() | ({"xla_gpu_autotune_level": 0} if untimed and _on_gpu()
+                                        else {})
         name = getattr(fn, "__name__", str(fn))
 
         def compile_(lowered, t_lowered):
             try:
                 t0 = time.perf_counter()
-                out.set_result(lowered.compile(compiler_options=options))
+                out.set_result(lowered.compile(compiler_options=options or None))
                 _log.debug("stream: %s lowered in %.2f s, compiled in %.2f s (done at %.2f s)",
                            name, t_lowered, time.perf_counter() - t0,
                            time.perf_counter() - self._t0)
