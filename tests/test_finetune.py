@@ -230,7 +230,15 @@ def test_finetuning_never_returns_worse_than_it_started_and_can_freeze_encoders(
     factors = ", ".join(f"{r:.3f}" for r in ratios[0])  # object o0's, at strength 0.5
     assert f"o0: session: discrepancy read in the models' session, x ({factors})" in said[0]
     assert "strength 0.5" in said[0] and "o0: session adaptation off" in said[1]
-    assert answers[0] != answers[1]
+    assert [a["o0"]["T-A"] for a in answers][0] != answers[1]["o0"]["T-A"]
+    # --json: beside each object's tables (lbipe-benchmark schema), its file, the session
+    # it was read in and whether the models were fitted on it.
+    for a, strength in zip(answers, (0.5, 0.0)):
+        o0 = a["o0"]
+        assert {"T", "T-A", "mean_attention_weight"} <= set(o0)
+        assert o0["sha256"] == sha256_of(sim) and o0["session"]["strength"] == strength
+        assert o0["fitted_on_this_file"] == {"mass": {"folders": 1, "of": 1}}
+    np.testing.assert_allclose(answers[0]["o0"]["session"]["ratio"], ratios[0], rtol=1e-12)
     # Both files are ones the folder was fitted on (sim: its start was trained on it; real:
     # it was fine-tuned on it): said, never passed off as held out.
     for o in ("o0", "o1", "o2"):

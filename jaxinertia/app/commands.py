@@ -169,6 +169,10 @@ def cmd_train(args) -> int:
     return 0
 
 
+def _floats(values) -> list[float] | None:
+    return None if values is None else [float(v) for v in values]
+
+
 def cmd_evaluate(args) -> int:
     check_outputs(args, "--json")
     l_max = _parse_l_max(args.l_max)
@@ -192,12 +196,21 @@ def cmd_evaluate(args) -> int:
     objects, torque = res["objects"], res["torque"]
     from jaxinertia.app.provenance import not_held_out_line, seen_by  # (as above)
 
+    about = {}  # per object, beside its tables in --json: its file, session, provenance
     for name, ratio in res["session_ratio"].items():
         print(session_line(name, res["session_strength"], ratio))
+        about[name] = {"sha256": res["sha256"][name], "session": {
+            "strength": res["session_strength"], "ratio": _floats(ratio)}}
         if com := res.get("com_session"):  # the COM's models, in their own session
             print(session_line(name, com["strength"], com["ratio"][name]).replace(
                 f"{name}: ", f"{name}: the COM's models ({res['com_models']}): ", 1))
-        if line := not_held_out_line(name, seen_by(args.models, res["sha256"][name])):
+            about[name]["com_session"] = {"models": str(res["com_models"]),
+                                          "strength": com["strength"],
+                                          "ratio": _floats(com["ratio"][name])}
+        seen = seen_by(args.models, res["sha256"][name])
+        about[name]["fitted_on_this_file"] = {p: {"folders": k, "of": n}
+                                              for p, (k, n) in seen.items()}
+        if line := not_held_out_line(name, seen):
             print(line)
     print()
     print(report.table1(objects, f"Table I: models {args.models}"))
@@ -208,7 +221,8 @@ def cmd_evaluate(args) -> int:
     print(report.table2(torque, "Table II: joint torque"))
     print()
     print(report.table3(objects, "Table III: mean attention weights"))
-    return write_json_option(args, objects)
+    return write_json_option(args, {name: {**tables, **about.get(name, {})}
+                                    for name, tables in objects.items()})
 
 
 def cmd_reproduce(args) -> int:
@@ -250,7 +264,9 @@ def register(sub) -> None:
     e.add_argument("--lbipe-dir", type=Path, help=LBIPE_DIR_HELP)
     e.add_argument("--samples", type=Path,
                    help="a sample file of known objects instead (native or the authors' layout)")
-    e.add_argument("--json", type=Path, help="write Table I/III (lbipe-benchmark schema)")
+    e.add_argument("--json", type=Path, help="write Table I/III (lbipe-benchmark schema) and "
+                   "per object its file's SHA-256, the session ratios it was read with and how "
+                   "many of the folders answering were fitted on it (fitted_on_this_file)")
     e.add_argument("--sets", type=positive_int, default=1000,
                    help="random sets per object (no golden)")
     e.add_argument("--overwrite", action="store_true", help="replace an existing --json")
