@@ -27,8 +27,10 @@ import jax
 __all__ = ["CPU_STEPPING_LEVEL", "jit_for_backend", "run_once_jit", "stepping_jit",
            "stepping_options"]
 
-#: LLVM's optimisation level (0-3) of the simulator's stepping programs on a CPU. Level 1
-#: ran them as fast as XLA's default (3) and compiled them sooner (session 14).
+#: LLVM's optimisation level (0-3) of the simulator's stepping programs on a CPU. Against
+#: XLA's default (3), ``jaxinertia simulate`` on the 2-core VM, compile included, took 24-26 s
+#: instead of 27-28 s (2,000 random samples per load) and 20-22 s instead of 25-33 s (a
+#: continuous run of 2,048), the samples the same (docs/benchmarks.md, "Session 36").
 CPU_STEPPING_LEVEL = 1
 
 
