@@ -117,6 +117,8 @@ SERVO_PARAMS = ("stiffness", "offset", "friction", "load_friction")
 
 
 def _is_trainable(path, trainable: str) -> bool:
+    if trainable == "none":
+        return False
     keys = [str(getattr(k, "key", "")) for k in path]
     if trainable == "head":
         return not any(k.startswith("joint") for k in keys)
@@ -128,9 +130,11 @@ def _is_trainable(path, trainable: str) -> bool:
 def _part_trainable(trainable: str, part: str) -> str:
     """What ``trainable`` (:class:`TrainConfig`) leaves trainable in the torque model
     (``part="torque"``) or the attention model (``"attention"``), as one of "all",
-    "head", "servo"."""
+    "head", "servo", "none"."""
     if trainable == "servo+attention":
         return "servo" if part == "torque" else "all"
+    if trainable == "attention":
+        return "none" if part == "torque" else "all"
     return trainable
 
 
@@ -320,6 +324,10 @@ def train_torque_models(
     if trainable == "servo" and not isinstance(model, PhysicalTorqueModel):
         raise UsageError(f"trainable {cfg.trainable!r} needs the physical torque model (the "
                          "paper's network has no servo parameters)")
+    if init is not None and not _any_trainable(init, trainable):
+        # ``trainable="attention"``: the start's torque models as they are, no epoch run.
+        return TrainedTorque(model, init, np.zeros((0, 2, cfg.n_models), np.float32),
+                             np.full(cfg.n_models, -1, np.int32))
     X, Xv = _features(fc, train), _features(fc, val)
     scale = jnp.asarray(fc.tau_scale, jnp.float32)
     Y = jnp.asarray(train.tau, jnp.float32) / scale
@@ -381,27 +389,41 @@ def _torque_epoch(model, lr: float, trainable: str, batch: int,
 @shared_cache
 def _attention_epoch(model, lr: float, trainable: str, batch: int, w_mass: float,
                      w_com: float, compiler_options: tuple = (), stacked: bool = False,
-                     flat: bool = False) -> Epoch:
+                     flat: bool = False, torque_spread: float = 0.0) -> Epoch:
     """Minibatches of ``batch`` of the sets; ``shared`` is (features, A, x per sample,
     sets), each model's own data its torque model's ``tau_hat - tau_g``; ``stacked`` and
-    ``flat``: :func:`accelerated_epochs`."""
+    ``flat``: :func:`accelerated_epochs`. ``torque_spread`` > 0
+    (``TrainConfig.attention_torque_spread``): ``shared`` also holds ``tau_g`` per sample
+    and the validation sets' fixed factors (V, N); each training set's ``tau_hat`` is
+    scaled per joint by ``1 + torque_spread * z``, ``z`` drawn with the minibatch."""
     model = model.clone(stacked_joints=stacked)
 
-    def loss(p, shared, y, idx):
-        feats, A, x_obj, _ = shared
+    def loss(p, shared, y, batch_):
+        feats, A, x_obj = shared[:3]
+        idx, factors = batch_ if torque_spread > 0 else (batch_, None)
+        y_b = y[idx]
+        if factors is not None:  # (B, N): tau_hat * f - tau_g = y + (f - 1) tau_hat
+            y_b = y_b + (factors[:, None, :] - 1) * (y_b + shared[4][idx])
         w = model.apply(p, feats[idx])
-        value, _ = attention_loss(w, A[idx], y[idx], x_obj[idx[:, 0]], w_mass=w_mass,
+        value, _ = attention_loss(w, A[idx], y_b, x_obj[idx[:, 0]], w_mass=w_mass,
                                   w_com=w_com)
         return value
 
     def batches(k, shared):
         sets = shared[3]
         perm = jax.random.permutation(k, sets.shape[0])[: sets.shape[0] // batch * batch]
-        return sets[perm].reshape(-1, batch, sets.shape[1])
+        idx = sets[perm].reshape(-1, batch, sets.shape[1])
+        if torque_spread == 0:
+            return idx
+        n = shared[0].shape[1]  # the same minibatches as without the spread, and factors
+        z = jax.random.normal(jax.random.fold_in(k, 1), idx.shape[:2] + (n,), shared[1].dtype)
+        return idx, 1 + torque_spread * z
+
+    def val_fn(p, shared, y):
+        return loss(p, shared, y, (shared[3], shared[5]) if torque_spread > 0 else shared[3])
 
     return make_epoch(optimizer(lr, trainable=trainable, flat=flat), loss, batches,
-                      val_fn=lambda p, shared, y: loss(p, shared, y, shared[3]),
-                      compiler_options=compiler_options)
+                      val_fn=val_fn, compiler_options=compiler_options)
 
 
 def attention_loss(weights, A, y, x_true, *, w_mass: float, w_com: float):
@@ -482,6 +504,7 @@ def train_attention_models(
                 jnp.asarray(d.x, dtype)[jnp.asarray(d.object_id)])
 
     (feats, A, y, x_obj), (vf, vA, vy, vx) = arrays(train), arrays(val)
+    spread = float(cfg.attention_torque_spread)
     batch = min(cfg.attention_batch, sets.shape[0])
     steps = sets.shape[0] // batch
     # Without the GPU's autotuner, however long (as a short training's): in the folds it
@@ -490,8 +513,14 @@ def train_attention_models(
     # instead of 8 on an H100, but its 14 s compile leaves the critical path: the
     # attention's stage 21 s instead of 33 (docs/benchmarks.md, "Session 30").
     epoch = _attention_epoch(model, cfg.attention_lr, trainable, batch, cfg.w_mass,
-                             cfg.w_com, epoch_compiler_options(0), **accelerated_epochs())
+                             cfg.w_com, epoch_compiler_options(0), **accelerated_epochs(),
+                             **({"torque_spread": spread} if spread > 0 else {}))
     data, val_data = ((feats, A, x_obj, sets), y), ((vf, vA, vx, vsets), vy)
+    if spread > 0:  # the validation sets' sessions drawn once: one loss to select by
+        v_factors = 1 + spread * jax.random.normal(jax.random.key(cfg.seed + 2),
+                                                   (vsets.shape[0], vf.shape[1]), dtype)
+        data = ((feats, A, x_obj, sets, jnp.asarray(train.tau_g, dtype)), y)
+        val_data = ((vf, vA, vx, vsets, jnp.asarray(val.tau_g, dtype), v_factors), vy)
     state = epoch.init(_start(model, k_init, K, feats[:1], init), dtype,
                        None if init is None else val_data)
     state, hist = run_epochs(epoch, state, data, val_data, cfg.attention_epochs, k_epochs,

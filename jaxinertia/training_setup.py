@@ -21,7 +21,7 @@ __all__ = ["FINETUNE_DEFAULTS", "TRAINABLE", "TrainConfig", "draw_sets", "featur
 
 
 #: What fine-tuning may change (``TrainConfig.trainable``).
-TRAINABLE = ("all", "head", "servo", "servo+attention")
+TRAINABLE = ("all", "head", "servo", "servo+attention", "attention")
 
 
 @dataclass(frozen=True)
@@ -46,7 +46,8 @@ class TrainConfig:
     val_fraction: float = 0.1
     #: What training may change (fine-tuning): "all"; "head" (the per-joint encoders
     #: fixed); "servo" (only the physical model's servo parameters; the attention fixed);
-    #: "servo+attention" (the servo parameters and every attention parameter).
+    #: "servo+attention" (the servo parameters and every attention parameter); "attention"
+    #: (every attention parameter; the torque models fixed).
     trainable: str = "all"
     torque_model: str = "paper"  # or "physical" (networks.TORQUE_MODELS)
     #: Each training file is a recording session: its discrepancy is rescaled towards the
@@ -60,6 +61,12 @@ class TrainConfig:
     #: its discrepancy fitted from its known torques and centred over the files
     #: (:mod:`jaxinertia.session_terms`); the shared servo learns what the files share.
     session_terms: bool = False
+    #: The attention's training sets with a recording session the torque models do not
+    #: know: each set's predicted torques of joint j scaled by ``1 + spread * z`` (``z`` a
+    #: standard normal, drawn per set and joint at every step; fixed for the validation
+    #: sets), so that the attention learns weights whose answer a few per cent of one
+    #: joint's torque does not move (docs/results.md). 0: the paper's training.
+    attention_torque_spread: float = 0.0
 
     def __post_init__(self):
         positive = ("n_models", "torque_epochs", "torque_batch", "attention_epochs",
@@ -78,6 +85,9 @@ class TrainConfig:
                 raise UsageError(f"{name} must be a finite number >= 0, got {v!r}")
         if not (np.isfinite(self.session_strength) and 0 <= self.session_strength <= 1):
             raise UsageError(f"session_strength must be in [0, 1], got {self.session_strength!r}")
+        if not (np.isfinite(self.attention_torque_spread) and self.attention_torque_spread >= 0):
+            raise UsageError("attention_torque_spread must be a finite number >= 0, got "
+                             f"{self.attention_torque_spread!r}")
         if self.w_mass + self.w_com <= 0:
             raise UsageError("w_mass and w_com are both zero: the attention loss would be zero")
         if not 0.0 < self.val_fraction < 1.0:

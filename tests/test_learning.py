@@ -98,6 +98,39 @@ def test_attention_loss_is_zero_for_exact_torques_and_flags_singular_sets():
     assert np.isfinite(e_m[0]) and np.isnan(e_m[1]) and np.isnan(e_p[1])
 
 
+def test_the_attentions_torque_spread_scales_the_predicted_torques_not_the_objects():
+    """``TrainConfig.attention_torque_spread``: a set's validation loss is the attention
+    loss of the predicted torques scaled per joint, ``tau_hat * f - tau_g``, written here
+    from its definition (the epoch adds ``(f - 1) tau_hat`` to ``tau_hat - tau_g``)."""
+    from jaxinertia.networks import AttentionModel
+    from jaxinertia.training import _attention_epoch
+
+    rng = np.random.default_rng(7)
+    S, N, V, M = 40, 4, 3, 16
+    feats = jnp.asarray(rng.normal(size=(S, N, 3)))
+    A = jnp.asarray(rng.normal(size=(S, N, 4)))
+    x_obj = jnp.asarray(np.tile([0.08, 1e-3, -2e-3, 4e-3], (S, 1)))
+    tau_g = jnp.asarray(rng.normal(size=(S, N)) * 0.5)  # the arm's own: large
+    y = jnp.einsum("snp,sp->sn", A, x_obj) + 0.01 * rng.normal(size=(S, N))  # tau_hat - tau_g
+    vsets = jnp.asarray(rng.choice(S, size=(V, M)))
+    f = jnp.asarray(1 + 0.05 * rng.normal(size=(V, N)))
+    model = AttentionModel(n_joints=N)
+    params = jax.vmap(lambda k: model.init(k, feats[:1]))(jax.random.split(jax.random.key(0), 1))
+    epoch = _attention_epoch(model, 1e-3, "all", 2, 1.0, 0.3, torque_spread=0.05)
+    got = epoch.init(params, jnp.float64,
+                     ((feats, A, x_obj, vsets, tau_g, f), y[None])).best_loss  # (K,)
+
+    p0 = jax.tree.map(lambda a: a[0], params)
+    tau_hat = y + tau_g
+    want = attention_loss(model.apply(p0, feats[vsets]), A[vsets],
+                          tau_hat[vsets] * f[:, None, :] - tau_g[vsets], x_obj[vsets[:, 0]],
+                          w_mass=1.0, w_com=0.3)[0]
+    plain = attention_loss(model.apply(p0, feats[vsets]), A[vsets], y[vsets],
+                           x_obj[vsets[:, 0]], w_mass=1.0, w_com=0.3)[0]
+    np.testing.assert_allclose(got[0], want, rtol=1e-9)
+    assert abs(float(want) / float(plain) - 1) > 0.1  # the factors matter here
+
+
 def test_torque_training_learns_and_keeps_the_best_validation_epoch():
     d = _synthetic(np.random.default_rng(3), n=1200)
     train, val = split_validation(d, 0.2, 0)

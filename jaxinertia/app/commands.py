@@ -306,12 +306,20 @@ def _register_train(sub) -> None:
                                for k, v in defaults.FINETUNE.items()))
     t.add_argument("--samples-per-object", type=positive_int, metavar="N",
                    help="use at most N samples of each object (seeded random choice)")
-    t.add_argument("--trainable", choices=["all", "head", "servo", "servo+attention"],
+    t.add_argument("--trainable", choices=["all", "head", "servo", "servo+attention",
+                                           "attention"],
                    default=None,
                    help="what fine-tuning may change: all (default), head (the per-joint "
                    "encoders fixed), servo (only the physical torque model's stiffness, "
-                   "offset and friction; the attention model fixed) or servo+attention "
-                   "(those and the attention model)")
+                   "offset and friction; the attention model fixed), servo+attention "
+                   "(those and the attention model) or attention (the attention model "
+                   "alone; the torque models fixed)")
+    t.add_argument("--attention-torque-spread", type=nonnegative_float, default=None,
+                   metavar="S",
+                   help="train the attention on sets whose predicted torques carry a "
+                   "recording session the torque models do not know: each set's torque of "
+                   "each joint scaled by 1 + S z, z standard normal (e.g. 0.02; default "
+                   f"{defaults.TRAIN['attention_torque_spread']:g}: the paper's training)")
     t.add_argument("--session-strength", type=zero_to_one, default=None, metavar="S",
                    help="each real file's discrepancy read in the models' recording session "
                    "from its own current gain, this strongly (0: off; default "

@@ -17,7 +17,7 @@ TRAIN = {"n_models": 10, "seed": 0, "torque_epochs": 300, "torque_batch": 256,
          "attention_lr": 1e-4, "set_size": 64, "attention_sets": 1000,
          "attention_val_sets": 200, "w_mass": 1.0, "w_com": 0.3, "val_fraction": 0.1,
          "trainable": "all", "torque_model": "paper", "session_strength": 1.0,
-         "current_input": False, "session_terms": False}
+         "current_input": False, "session_terms": False, "attention_torque_spread": 0.0}
 
 #: ``training.FINETUNE_DEFAULTS`` (``train --init``).
 FINETUNE = {"torque_epochs": 200, "torque_batch": 64, "torque_lr": 1e-4,
