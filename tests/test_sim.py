@@ -459,28 +459,46 @@ def test_continuous_run_switches_objects_and_keeps_the_statics_of_each():
         assert np.corrcoef(np.diff(f["q"][:, j]), np.diff(q_plan[:, j]))[0, 1] > 0.8, j
 
 
-def test_continuous_walk_in_lanes_is_the_single_walk():
+def test_continuous_walk_in_lanes_is_the_single_walk(monkeypatch):
     """The walk cut into 3 segments stepped side by side (each starting 2 samples early, at
     rest) gives the single walk's samples: segment 0 exactly (it is the same arithmetic),
     the others within a small fraction of an encoder tick of the true position (the
     friction's stick point keeps a trace of where the arm came from). Without the warm-up
-    a segment's first sample starts from rest instead of from the walk: ~8x further off."""
+    a segment's first sample starts from rest instead of from the walk: ~8x further off.
+    The lanes step in calls of at most 4 samples (the state carried from call to call), as
+    even as their count allows; a walk shorter than a call is one call of its length."""
+    from jaxinertia.sim import continuous
+
+    calls, stepping_jit = [], continuous.stepping_jit
+
+    def recording(fn, **kw):
+        run = stepping_jit(fn, **kw)
+
+        def call(state, xs):
+            calls.append(np.shape(xs[0])[:2])  # (lanes, steps)
+            return run(state, xs)
+        return call
+
+    monkeypatch.setattr(continuous, "stepping_jit", recording)
     kw = dict(n=24, objects=["empty", "cube", "white"], switch_every=8, seed=3,
               progress=False)
     params = default_sim_params()
     one, _ = simulate_continuous_run(params, **kw)
+    assert calls == [(1, 26)]  # one call: the 24 samples after 2 warm-up steps, no padding
     tick = 2 * np.pi / 4096
 
     def lanes(warmup):
+        calls.clear()
         objs = jax.tree.map(lambda *a: jnp.stack(a), *[objects.resolve(o, **TAG) for o in
                                                        kw["objects"]])
         q, d = continuous_plan(24, 3, **WS)
         rec = simulate_continuous(params, objs, np.repeat([0, 1, 2], 8), q, d,
                                   jax.random.key(3 + 99), lanes=3, warmup=warmup,
-                                  progress=False)
+                                  chunk=4, progress=False)
         return rec._asdict()
 
     three = lanes(2)
+    assert calls == [(3, 4)] * 3  # 10 steps a lane: 3 calls of 4, 2 steps padded
     for k in ("q_true", "q", "current_tau", "servo_tau"):
         np.testing.assert_allclose(three[k][:8], one[k][:8], rtol=0, atol=1e-12, err_msg=k)
     off = np.abs(three["q_true"] - one["q_true"]).max(axis=1) / tick
@@ -489,6 +507,7 @@ def test_continuous_walk_in_lanes_is_the_single_walk():
     assert np.abs(np.round((three["q"] - one["q"]) / tick)).max() <= 1
     np.testing.assert_array_equal(three["q_d"], one["q_d"])
     cold = np.abs(lanes(0)["q_true"] - one["q_true"]).max(axis=1) / tick
+    assert calls == [(3, 4)] * 2  # 8 steps a lane: 2 calls of 4
     assert max(cold[8], cold[16]) > 4 * max(off[8], off[16]), (cold, off)
 
 

@@ -69,8 +69,8 @@ def simulate_continuous(
     """Simulates the trajectory; ``objects`` is a stacked HeldObject (leading axis O; a
     zero mass is the empty gripper) and ``schedule`` (S,) picks the one held per sample.
     ``lanes`` segments side by side, each starting ``warmup`` samples early (see the
-    module docstring); ``chunk`` samples per lane per compiled call (the progress bar's
-    step). Runs on the default device."""
+    module docstring); at most ``chunk`` samples per lane per compiled call (the progress
+    bar's step), the calls as even as their count allows. Runs on the default device."""
     q_d = np.asarray(q_d, np.float64)
     S = len(q_d)
     prev = np.concatenate([q_d[:1], q_d[:-1]])
@@ -99,7 +99,10 @@ def simulate_continuous(
     idx, live, seg = lane_indices(S, lanes, warmup)
     W = idx.shape[1]
     n_chunks = -(-W // chunk)
-    pad = n_chunks * chunk - W  # steps that are no sample: not live
+    # The calls' steps as even as their count allows: padding a lane of 34 steps (4,096
+    # samples in 128 lanes) to a whole chunk of 128 stepped the arm 3.8 times over.
+    chunk = -(-W // n_chunks)
+    pad = n_chunks * chunk - W  # steps that are no sample: not live (fewer than n_chunks)
     idx = np.pad(idx, ((0, 0), (0, pad)), mode="edge")
     live = np.pad(live, ((0, 0), (0, pad)))
     keys = jax.random.split(key, S)[idx]
