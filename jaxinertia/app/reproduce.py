@@ -124,23 +124,27 @@ def _machine() -> str:
 CONTINUOUS_OBJECTS = ["empty", "cube", "white", "black"]
 
 
-#: Lanes of the continuous run on an accelerator (``jaxinertia.sim.continuous``): the
-#: 4,096-sample walk as 128 segments of 32 samples (+2 warm-up samples each).
-ACCELERATOR_CONTINUOUS_LANES = 128
+#: Lanes of the continuous run (``jaxinertia.sim.continuous``): the 4,096-sample walk as
+#: 128 segments of 32 samples (+2 warm-up samples each).
+CONTINUOUS_LANES = 128
 
 
-def continuous_lanes() -> int:
-    """Segments of the continuous walk stepped side by side: one on a CPU (where the single
-    sequence is fastest: 5.4 s for 512 samples against 7.3 s in 8 lanes and 12.5 s in 32,
-    2-core machine), many on an accelerator, where one arm stepped alone is latency-bound
-    (kernel launches every servo period)."""
-    return 1 if jax.default_backend() == "cpu" else ACCELERATOR_CONTINUOUS_LANES
+def continuous_lanes(n: int) -> int:
+    """Segments of an ``n``-sample continuous walk stepped side by side: up to
+    :data:`CONTINUOUS_LANES`, each of at least 16 samples (the 2 warm-up samples a segment
+    steps again stay a small part of it). On an accelerator one arm stepped alone is
+    latency-bound (kernel launches every servo period); on a CPU the lanes are vectorised:
+    2,048 samples in 64 or 128 lanes took 12-13 s against 24-26 s for the single sequence
+    (2-core machine, session 37; before a short lane was padded to a whole call of 128
+    samples, the single sequence was the faster)."""
+    return max(1, min(CONTINUOUS_LANES, n // 16))
 
 
 def _continuous(params, path: Path, scale: Scale, seed: int,
                 arm: Arm | None = None) -> SampleFile:
     kw = dict(n=scale.continuous_samples, objects=CONTINUOUS_OBJECTS,
-              switch_every=scale.switch_every, seed=seed, lanes=continuous_lanes())
+              switch_every=scale.switch_every, seed=seed,
+              lanes=continuous_lanes(scale.continuous_samples))
     other = {} if arm is None or arm.name == DEFAULT_ARM else {"arm": arm.name}
 
     def make():
