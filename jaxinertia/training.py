@@ -324,6 +324,9 @@ def train_torque_models(
     if trainable == "servo" and not isinstance(model, PhysicalTorqueModel):
         raise UsageError(f"trainable {cfg.trainable!r} needs the physical torque model (the "
                          "paper's network has no servo parameters)")
+    if trainable == "none" and init is None:
+        raise UsageError(f"trainable {cfg.trainable!r} keeps the torque models it starts "
+                         "from: give them (init)")
     if init is not None and not _any_trainable(init, trainable):
         # ``trainable="attention"``: the start's torque models as they are, no epoch run.
         return TrainedTorque(model, init, np.zeros((0, 2, cfg.n_models), np.float32),

@@ -131,6 +131,13 @@ def test_the_attentions_torque_spread_scales_the_predicted_torques_not_the_objec
     assert abs(float(want) / float(plain) - 1) > 0.1  # the factors matter here
 
 
+def test_attention_alone_needs_torque_models_to_keep():
+    d = _synthetic(np.random.default_rng(3), n=40)
+    with pytest.raises(UsageError, match="keeps the torque models"):
+        train_torque_models(TrainConfig(n_models=1, trainable="attention"),
+                            feature_config_from(d), d, d, jax.random.key(0), progress=False)
+
+
 def test_torque_training_learns_and_keeps_the_best_validation_epoch():
     d = _synthetic(np.random.default_rng(3), n=1200)
     train, val = split_validation(d, 0.2, 0)

@@ -414,6 +414,8 @@ def test_evaluate_names_only_its_own_options(tmp_path, capsys):
     (["train", "--data", "D", "COPY", "--out", "m"], ["--data", "same file"]),
     (["train", "--data", "D", "--init", "PAPER", "--torque-model", "physical", "--out", "m"],
      ["--torque-model physical", "'paper'"]),
+    (["train", "--data", "D", "--trainable", "attention", "--out", "m"],
+     ["--trainable attention", "--init"]),
     (["plan-poses", "--n", "1", "--out", "p.json"], ["--n", "at least 2"]),
     (["simulate", "--scenario", "test", "--n", "200000000", "--out", "x.npz"],
      ["--n 200000000", "JAXINERTIA_MAX_MEMORY_GB"]),
@@ -432,7 +434,8 @@ def test_evaluate_names_only_its_own_options(tmp_path, capsys):
     (["tag-pose", "--image", "caf\udce9.png", "--intrinsics", "i.json"],
      ["i.json", "no such intrinsics file"]),
 ], ids=["--data f f", "--data f copy", "--init paper --torque-model physical",
-        "plan-poses --n 1", "simulate --n 2e8", "plan-poses --step-deg 0.05", "collect --n 1e9",
+        "--trainable attention without --init", "plan-poses --n 1", "simulate --n 2e8",
+        "plan-poses --step-deg 0.05", "collect --n 1e9",
         "calibration 5", "calibration latin-1", "plan latin-1", "non-UTF-8 path"])
 def test_requests_refused_before_the_work(argv, words, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)

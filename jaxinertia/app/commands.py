@@ -103,7 +103,11 @@ def cmd_lbipe_benchmark(args) -> int:
 
 def _check_train_data(args) -> None:
     """``--data`` names each file once (by path or by content: a copy of a training file
-    would land in the validation split) and ``--torque-model`` agrees with ``--init``."""
+    would land in the validation split), ``--torque-model`` agrees with ``--init`` and
+    ``--trainable attention`` has torque models to keep."""
+    if args.trainable == "attention" and args.init is None:
+        raise UsageError("--trainable attention keeps the torque models of --init: give the "
+                         "model folder to start from")
     seen: dict[tuple, Path] = {}
     for f in args.data:
         try:
