@@ -511,6 +511,30 @@ def test_continuous_walk_in_lanes_is_the_single_walk(monkeypatch):
     assert max(cold[8], cold[16]) > 4 * max(off[8], off[16]), (cold, off)
 
 
+def test_simulate_walks_in_the_lanes_reproduce_uses(tmp_path, monkeypatch):
+    """``simulate --scenario continuous`` and ``reproduce`` cut the walk alike
+    (``walk_lanes``): up to 128 segments of at least 16 samples each."""
+    from jaxinertia.sim import continuous
+
+    assert [continuous.walk_lanes(n) for n in (1, 31, 32, 2048, 4096, 10**6)] == \
+        [1, 1, 2, 128, 128, 128]
+    asked = {}
+
+    class Asked(Exception):
+        pass
+
+    def walk(params, **kw):  # what the command asks for; no simulation
+        asked.update(kw)
+        raise Asked
+
+    monkeypatch.setattr(continuous, "simulate_continuous_run", walk)
+    for n, want in ((None, 128), ("40", 2)):
+        with pytest.raises(Asked):
+            cli_main(["simulate", "--scenario", "continuous", "--out", str(tmp_path / "c.npz"),
+                      *(["--n", n] if n else [])])
+        assert (asked["n"], asked["lanes"]) == (int(n or 2048), want)
+
+
 def _read_npz(path) -> tuple[dict, dict]:
     """A native sample file as written: its arrays and its metadata (read raw, so that the
     stored dtypes are what is checked)."""

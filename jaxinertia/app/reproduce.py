@@ -57,7 +57,7 @@ from jaxinertia.evaluation import choose_sets, continuous_force
 from jaxinertia.fileio import replacing, write_json, write_text
 from jaxinertia.lbipe import default_lbipe_dir
 from jaxinertia.samples import SampleFile
-from jaxinertia.sim.continuous import simulate_continuous_run
+from jaxinertia.sim.continuous import simulate_continuous_run, walk_lanes
 from jaxinertia.sim.params import arm_sim_params
 from jaxinertia.training import TrainConfig
 from jaxinertia.uncertainty import (
@@ -124,27 +124,11 @@ def _machine() -> str:
 CONTINUOUS_OBJECTS = ["empty", "cube", "white", "black"]
 
 
-#: Lanes of the continuous run (``jaxinertia.sim.continuous``): the 4,096-sample walk as
-#: 128 segments of 32 samples (+2 warm-up samples each).
-CONTINUOUS_LANES = 128
-
-
-def continuous_lanes(n: int) -> int:
-    """Segments of an ``n``-sample continuous walk stepped side by side: up to
-    :data:`CONTINUOUS_LANES`, each of at least 16 samples (the 2 warm-up samples a segment
-    steps again stay a small part of it). On an accelerator one arm stepped alone is
-    latency-bound (kernel launches every servo period); on a CPU the lanes are vectorised:
-    2,048 samples in 64 or 128 lanes took 12-13 s against 24-26 s for the single sequence
-    (2-core machine, session 37; before a short lane was padded to a whole call of 128
-    samples, the single sequence was the faster)."""
-    return max(1, min(CONTINUOUS_LANES, n // 16))
-
-
 def _continuous(params, path: Path, scale: Scale, seed: int,
                 arm: Arm | None = None) -> SampleFile:
     kw = dict(n=scale.continuous_samples, objects=CONTINUOUS_OBJECTS,
               switch_every=scale.switch_every, seed=seed,
-              lanes=continuous_lanes(scale.continuous_samples))
+              lanes=walk_lanes(scale.continuous_samples))
     other = {} if arm is None or arm.name == DEFAULT_ARM else {"arm": arm.name}
 
     def make():

@@ -65,10 +65,11 @@ def cmd_simulate(args) -> int:
     arm = get_arm(args.arm)
     params = arm_sim_params(arm, args.calibration)
     if args.scenario == "continuous":
+        n = args.n or 2048
         fields, meta = continuous.simulate_continuous_run(
-            params, n=args.n or 2048, objects=args.objects or ["empty", "cube", "white",
-                                                               "black"],
-            switch_every=args.switch_every, seed=args.seed, arm=arm)
+            params, n=n, objects=args.objects or ["empty", "cube", "white", "black"],
+            switch_every=args.switch_every, seed=args.seed, arm=arm,
+            lanes=continuous.walk_lanes(n))  # as reproduce walks it
         meta["version"] = __version__
         data = samples.Samples.from_fields(fields, meta["objects"], need_truth=True)
         path = samples.save_native(args.out, data, meta)
