@@ -25,6 +25,16 @@ discrepancy per joint, ``e' = e (g_file / g_ref) ** strength`` (``strength`` 1: 
 current tracks the torque fully; 0: no adaptation). :func:`adapt` does it on a
 :class:`~jaxinertia.samples.Samples` record, so training, evaluation and estimation see one
 door, and everything past it (networks, baselines) is unchanged.
+
+Where the samples carry the servos' own Present Input Voltage and Present Temperature (the
+fields ``voltage`` [V] and ``temperature`` [deg C] of ``jaxinertia collect``'s files), the
+session records them too, and so does a model folder trained on such files:
+:func:`servo_state_change` compares a file's with the folder's. They are reported, not
+used to rescale: at rest the torque per tick is ``k_t KP e V / (885 R)``, so the supply
+``V`` moves the current and the torque alike and the current gain already carries it
+(rescaling by the voltage as well would count it twice); the winding's temperature moves
+``R`` (seen by the current) and ``k_t`` (not seen), by a law no real file here can check
+(the authors' files record neither).
 """
 
 from __future__ import annotations
@@ -39,7 +49,7 @@ from jaxinertia.fileio import nan_to_null, null_to_nan
 from jaxinertia.samples import Samples
 
 __all__ = ["DEAD_BAND_GRID", "ServoSession", "SessionReference", "adapt", "dead_band_fit",
-           "servo_session"]
+           "servo_session", "servo_state_change"]
 
 
 @struct.dataclass
@@ -54,6 +64,12 @@ class ServoSession:
     n_samples: int = struct.field(pytree_node=False, default=0)
     #: The dead band fitted with it, per joint [rad] (None: not fitted).
     dead_band: np.ndarray | None = None
+    #: Each servo's Present Input Voltage, the median over the samples [V] (None: the
+    #: samples do not record it, as the authors' files do not).
+    supply_voltage: np.ndarray | None = None
+    #: Each servo's Present Temperature, the median over the samples [deg C] (None: not
+    #: recorded).
+    temperature: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         """Plain data (a joint without a current sensor: null gain and standard error)."""
@@ -62,7 +78,26 @@ class ServoSession:
              "current_gain_se": nan_to_null(se), "n_samples": self.n_samples}
         if self.dead_band is not None:
             d["dead_band"] = nan_to_null(self.dead_band)
-        return d
+        return {**d, **_servo_state_dict(self)}
+
+
+def _servo_state_dict(terms) -> dict:
+    """The recorded supply and temperature of ``terms`` (a session or a reference), where
+    known."""
+    return {k: nan_to_null(v) for k in ("supply_voltage", "temperature")
+            if (v := getattr(terms, k)) is not None}
+
+
+def _recorded(parts: Sequence[Samples], field: str) -> np.ndarray | None:
+    """Per joint, the median of the samples' ``field`` (``extra``: what ``collect``
+    recorded with each sample), pooled over ``parts``; None unless every part has it."""
+    if not parts or not all(field in p.extra for p in parts):
+        return None
+    values = np.concatenate([np.asarray(p.extra[field], np.float64).reshape(p.n_samples, -1)
+                             for p in parts])
+    if values.shape[1] != parts[0].n_joints or not np.isfinite(values).all():
+        return None
+    return np.median(values, axis=0)
 
 
 #: The dead bands tried [rad]: 0 to 5 ticks of a 4096-tick servo in tenths of a tick (the
@@ -99,13 +134,16 @@ def dead_band_fit(e: np.ndarray, current: np.ndarray, grid: np.ndarray = DEAD_BA
 
 def servo_session(data: Samples | Sequence[Samples]) -> ServoSession:
     """The session terms of one session's samples (several records: pooled): per joint the
-    current gain beyond the dead band (:func:`dead_band_fit`)."""
+    current gain beyond the dead band (:func:`dead_band_fit`), and the servos' supply and
+    temperature where every record carries them."""
     parts = [data] if isinstance(data, Samples) else list(data)
     e = np.concatenate([np.asarray(p.q_d, np.float64) - np.asarray(p.q, np.float64)
                         for p in parts])
     cur = np.concatenate([np.asarray(p.current_tau, np.float64) for p in parts])
     gain, se, dead = dead_band_fit(e, cur)
-    return ServoSession(gain, se, n_samples=int(e.shape[0]), dead_band=dead)
+    return ServoSession(gain, se, n_samples=int(e.shape[0]), dead_band=dead,
+                        supply_voltage=_recorded(parts, "voltage"),
+                        temperature=_recorded(parts, "temperature"))
 
 
 #: A session's current gain is used only where its standard error is below this share
@@ -123,30 +161,50 @@ class SessionReference:
 
     current_gain: np.ndarray  # (N,) [N m/rad]
     strength: float = struct.field(pytree_node=False, default=1.0)
+    #: The training session's supply and temperature per joint, where its files recorded
+    #: them (:class:`ServoSession`); reported beside a new file's, never used to rescale.
+    supply_voltage: np.ndarray | None = None  # (N,) [V]
+    temperature: np.ndarray | None = None  # (N,) [deg C]
 
-    def ratio(self, session: ServoSession) -> np.ndarray:
-        """(N,) the factor on a session's discrepancy, ``(g / g_ref) ** strength``."""
+    @classmethod
+    def of(cls, session: ServoSession, strength: float = 1.0) -> SessionReference:
+        """The reference that ``session`` (a model's training session) makes."""
+        return cls(session.current_gain, float(strength), session.supply_voltage,
+                   session.temperature)
+
+    def gain_ratio(self, session: ServoSession) -> np.ndarray:
+        """(N,) ``g / g_ref``, the session's current gain over the reference's; NaN for a
+        joint whose current does not follow its discrepancy (no spread, a dead current
+        reading, too few samples to tell the slope within :data:`MAX_RELATIVE_SE`)."""
         g, g_ref = np.asarray(session.current_gain), np.asarray(self.current_gain)
         if g.shape != g_ref.shape:
             raise UsageError(f"session terms of {g.shape[0]} joints against a reference of "
                              f"{g_ref.shape[0]}")
         se = np.asarray(session.current_gain_se)
-        # A joint whose current does not follow its discrepancy (no spread, a dead current
-        # reading, too few samples to tell the slope within MAX_RELATIVE_SE) is left as it is.
         ok = (g > 0) & (g_ref > 0) & np.isfinite(g) & (se < MAX_RELATIVE_SE * np.abs(g))
-        ratio = np.clip(np.abs(g / np.where(ok, g_ref, 1.0)), *RATIO_RANGE)
-        return np.where(ok, ratio ** self.strength, 1.0)
+        return np.where(ok, np.abs(g / np.where(ok, g_ref, 1.0)), np.nan)
+
+    def ratio(self, session: ServoSession) -> np.ndarray:
+        """(N,) the factor on a session's discrepancy, ``(g / g_ref) ** strength``
+        (:meth:`gain_ratio` clipped to :data:`RATIO_RANGE`; a joint without one is left as
+        it is)."""
+        raw = self.gain_ratio(session)
+        ok = np.isfinite(raw)
+        return np.where(ok, np.clip(np.where(ok, raw, 1.0), *RATIO_RANGE) ** self.strength,
+                        1.0)
 
     def to_dict(self) -> dict:
         """Plain data (a joint without a current sensor: null gain, left as it is)."""
         return {"current_gain": nan_to_null(self.current_gain),
-                "strength": float(self.strength)}
+                "strength": float(self.strength), **_servo_state_dict(self)}
 
     @classmethod
     def from_dict(cls, d: dict | None) -> SessionReference | None:
         if not d:
             return None
-        return cls(null_to_nan(d["current_gain"]), float(d.get("strength", 1.0)))
+        state = {k: null_to_nan(d[k]) for k in ("supply_voltage", "temperature")
+                 if d.get(k) is not None}
+        return cls(null_to_nan(d["current_gain"]), float(d.get("strength", 1.0)), **state)
 
 
 def adapt(data: Samples, reference: SessionReference | None,
@@ -160,3 +218,30 @@ def adapt(data: Samples, reference: SessionReference | None,
     q = np.asarray(data.q)
     q_d = q + (np.asarray(data.q_d) - q) * ratio.astype(q.dtype)
     return data.replace(q_d=q_d), ratio
+
+
+def servo_state_change(reference: SessionReference | None, session: ServoSession) -> dict:
+    """How a file's servo state (``session``) stands against a model folder's
+    (``reference``), per joint: the file's supply [V] and temperature [deg C] where it
+    recorded them, the reference's where it did, and where both did, the supply's ratio
+    (file / reference: at rest the torque per tick scales by it, and so does the current,
+    so the current gain's ratio should show it too) and the temperature's difference [K].
+    Also the current gain's ratio (file / reference) where both are known, adaptation or
+    not."""
+    out: dict = {k: None for k in ("supply_voltage", "temperature", "reference_supply_voltage",
+                                   "reference_temperature", "supply_ratio",
+                                   "temperature_change", "current_gain_ratio")}
+    for k in ("supply_voltage", "temperature"):
+        mine = getattr(session, k)
+        theirs = None if reference is None else getattr(reference, k)
+        out[k] = None if mine is None else nan_to_null(mine)
+        out["reference_" + k] = None if theirs is None else nan_to_null(theirs)
+        if mine is not None and theirs is not None and np.shape(mine) == np.shape(theirs):
+            change = (np.asarray(mine) / np.asarray(theirs) if k == "supply_voltage"
+                      else np.asarray(mine) - np.asarray(theirs))
+            out["supply_ratio" if k == "supply_voltage" else "temperature_change"] = \
+                nan_to_null(change)
+    if reference is not None and np.shape(reference.current_gain) == np.shape(
+            session.current_gain):
+        out["current_gain_ratio"] = nan_to_null(reference.gain_ratio(session))
+    return out

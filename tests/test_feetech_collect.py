@@ -58,6 +58,8 @@ from jaxinertia.hardware import collect
 from jaxinertia.hardware.feetech import FeetechArm, feetech_config
 from jaxinertia.networks import AttentionModel, TorqueModel, parameter_shapes
 from jaxinertia.samples import load_native
+from jaxinertia.servos import STS3215_7V4
+from jaxinertia.session import SessionReference
 from jaxinertia.sim.params import arm_sim_params
 from jaxinertia.virtual.testing import VirtualRobotProcess
 
@@ -163,16 +165,30 @@ def test_so101_plan_virtual_robot_collect_and_estimate(tmp_path, monkeypatch, ca
     slack = np.abs(servo - s.tau) - bound
     assert (slack <= 2e-3).all(), f"off the sticking band by {slack.max():.4f} N m"
 
-    # estimate on the collected file, with a model folder of the SO-101 ...
+    # estimate on the collected file, with a model folder of the SO-101 whose training
+    # files recorded a 7.8 V supply at 25 deg C (no adaptation) ...
     folder = untrained_folder(s)
-    models = save_models(tmp_path / "models", *folder, robot="so101", arm="so101")
+    ref = SessionReference(np.full(5, 10.0), 0.0, np.full(5, 7.8), np.full(5, 25.0))
+    models = save_models(tmp_path / "models", *folder, robot="so101", arm="so101",
+                         extra={"session": ref.to_dict()})
     capsys.readouterr()
     result = tmp_path / "estimate.json"
     assert main(["estimate", "--models", str(models), "--samples", str(out),
                  "--set-size", str(N_POSES), "--json", str(result)]) == 0, capsys.readouterr()
-    print(capsys.readouterr().out)
+    printed = capsys.readouterr().out
+    print(printed)
     answer = json.loads(result.read_text())["objects"]["cube"]
     assert answer["n_samples"] == N_POSES
+    # ... which reports the servos' state as they recorded it (the virtual STS3215s: their
+    # model's supply, 0.1 V a register step, at the virtual robot's 30 deg C), against the
+    # folder's.
+    state = answer["servo_state"]
+    np.testing.assert_allclose(state["supply_voltage"], STS3215_7V4.supply_voltage, atol=0.05)
+    assert state["temperature"] == [30.0] * 5
+    np.testing.assert_allclose(state["supply_ratio"], np.asarray(state["supply_voltage"]) / 7.8)
+    assert state["temperature_change"] == [5.0] * 5
+    assert "cube: servo state recorded: 7.40 V, 30 deg C; the models' session: 7.80 V, " \
+           "25 deg C (supply x 0.949; temperature +5 K" in printed
     ok = {m: r for m, r in answer["methods"].items() if r["ok"]}
     assert ok, answer["methods"]
     for r in ok.values():

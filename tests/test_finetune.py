@@ -56,11 +56,20 @@ TINY = ["--n-models", "2", "--torque-epochs", "8", "--attention-epochs", "2",
         "--torque-batch", "64", "--attention-batch", "4"]
 
 
-def _file(path, rng, n, **law):
+def _file(path, rng, n, extra=None, **law):
     d = synthetic_samples(rng, n=n, **law)
+    d = d.replace(extra={**d.extra, **(extra or {})})
     save_native(path, d, {"robot": "open_manipulator_x", "objects": list(d.names),
                           "source": "test"})
     return path
+
+
+def _recorded_state(n, seed=12):
+    """What ``collect`` records beside each sample: each servo's supply [V] (0.1 V steps)
+    and temperature [deg C]."""
+    rng = np.random.default_rng(seed)
+    return {"voltage": 11.8 + 0.1 * rng.integers(-1, 2, (n, 4)),
+            "temperature": 36.0 + rng.integers(0, 4, (n, 4)).astype(float)}
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +80,7 @@ def folders(tmp_path_factory):
     rng = np.random.default_rng(11)
     sim = _file(tmp / "sim.npz", rng, 600)
     real = _file(tmp / "real.npz", rng, 300, k=(19.0, 22.0, 18.0, 11.0),
-                 f=(0.04, 0.09, 0.05, 0.02))
+                 f=(0.04, 0.09, 0.05, 0.02), extra=_recorded_state(300))
     assert main(["train", "--data", str(sim), "--out", str(tmp / "m0"), *TINY]) == 0
     return tmp, sim, real
 
@@ -215,6 +224,10 @@ def test_finetuning_never_returns_worse_than_it_started_and_can_freeze_encoders(
     want = servo_session(load_samples(real)[0]).current_gain
     np.testing.assert_allclose(config["session"]["current_gain"], want, rtol=1e-12)
     assert config["session"]["strength"] == 0.5 and config["training"]["session_strength"] == 0.5
+    # ... and the supply and temperature that its samples recorded (their medians).
+    for k, field in (("supply_voltage", "voltage"), ("temperature", "temperature")):
+        np.testing.assert_allclose(config["session"][k],
+                                   np.median(_recorded_state(300)[field], axis=0), err_msg=k)
     assert config["data"][0]["session_ratio"] == [1.0] * 4
     # evaluate reads another session's file in that session at that strength, says so with
     # the factors, and --session-strength 0 turns it off (other numbers).

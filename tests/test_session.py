@@ -20,6 +20,7 @@ from jaxinertia.session import (
     SessionReference,
     adapt,
     servo_session,
+    servo_state_change,
 )
 
 
@@ -94,12 +95,69 @@ def test_a_gain_that_cannot_be_told_or_is_not_a_servos_day_is_not_followed():
     assert r[0] == pytest.approx(1.1)
     assert r[1] == RATIO_RANGE[1] and r[2] == RATIO_RANGE[0]  # clipped
     assert r[3] == 1.0  # too uncertain: left as it is
+    # The ratio itself, before clipping: none for the joint that cannot be told.
+    g = ref.gain_ratio(s)
+    np.testing.assert_allclose(g[:3], [1.1, 3.0, 0.4])
+    assert np.isnan(g[3])
     # A dead current reading (no slope) leaves the joint alone.
     assert ref.ratio(s.replace(current_gain=np.array([0.0, 10.0, 10.0, 10.0])))[0] == 1.0
     with pytest.raises(UsageError, match="3 joints"):
         ref.ratio(ServoSession(np.ones(3), np.zeros(3)))
     assert SessionReference.from_dict(ref.to_dict()).current_gain.tolist() == [10.0] * 4
     assert SessionReference.from_dict(None) is None
+
+
+def test_the_recorded_supply_and_temperature_are_the_sessions_and_compared_not_used():
+    """Files of ``collect`` record each servo's Present Input Voltage and Temperature with
+    every sample: the session takes their per-joint medians, a model folder's reference
+    keeps them (a folder of older files, or the authors', has none), and a new file's are
+    compared with the reference's. They rescale nothing: the current gain carries the
+    supply already."""
+    rng = np.random.default_rng(4)
+    gain = np.array([13.4, 18.3, 13.4, 5.5])
+    d = _session(rng, gain, n=301)
+    volts = 12.0 + 0.1 * rng.integers(-2, 3, size=d.q.shape)  # 0.1 V register steps
+    warm = np.array([31.0, 35.0, 33.0, 30.0]) + rng.integers(0, 3, size=d.q.shape)
+    rec = d.replace(extra={**d.extra, "voltage": volts, "temperature": warm})
+    s = servo_session(rec)
+    np.testing.assert_array_equal(s.supply_voltage, np.median(volts, axis=0))
+    np.testing.assert_array_equal(s.temperature, np.median(warm, axis=0))
+    # Pooled records: only where every one recorded them; a record without: none.
+    both = servo_session([rec, rec])
+    np.testing.assert_array_equal(both.supply_voltage, s.supply_voltage)
+    assert servo_session([rec, d]).supply_voltage is None
+    assert servo_session(d).supply_voltage is None and servo_session(d).temperature is None
+    assert "supply_voltage" not in servo_session(d).to_dict()
+    # The reference a folder records (strength and gain as before), written and read back;
+    # a reference written before these fields reads as none recorded.
+    ref = SessionReference.of(s, 0.5)
+    back = SessionReference.from_dict(ref.to_dict())
+    assert back.strength == 0.5
+    for k in ("current_gain", "supply_voltage", "temperature"):
+        np.testing.assert_array_equal(getattr(back, k), getattr(s, k), err_msg=k)
+    old = SessionReference.from_dict({"current_gain": gain.tolist(), "strength": 1.0})
+    assert old.supply_voltage is None and old.temperature is None
+    # A new file on a sagging supply and warmer: the change against the reference.
+    day = np.array([0.95, 0.95, 0.95, 0.95])
+    sag = _session(rng, gain * day, n=301)
+    sag = sag.replace(extra={**sag.extra, "voltage": 0.95 * volts, "temperature": warm + 8})
+    change = servo_state_change(ref, servo_session(sag))
+    np.testing.assert_allclose(change["supply_ratio"], 0.95, rtol=1e-12)
+    np.testing.assert_allclose(change["temperature_change"], 8.0)
+    np.testing.assert_allclose(change["reference_supply_voltage"], s.supply_voltage)
+    # The current gain saw the same day (within its standard error), adaptation or not.
+    np.testing.assert_allclose(change["current_gain_ratio"], day, rtol=0.01)
+    np.testing.assert_array_equal(change["current_gain_ratio"],
+                                  ref.gain_ratio(servo_session(sag)))
+    # Nothing recorded on either side: nothing compared; the file's alone: its own only.
+    bare = servo_state_change(old, servo_session(sag))
+    assert bare["supply_ratio"] is None and bare["reference_temperature"] is None
+    assert bare["supply_voltage"] == pytest.approx((0.95 * s.supply_voltage).tolist())
+    none = servo_state_change(None, servo_session(d))
+    assert all(v is None for v in none.values())
+    # Not used to rescale: the same factors whether the reference recorded them or not.
+    np.testing.assert_array_equal(adapt(sag, ref)[1],
+                                  adapt(sag, SessionReference(ref.current_gain, 0.5))[1])
 
 
 def test_the_real_files_are_two_sessions(lbipe_dir):

@@ -30,6 +30,7 @@ from jaxinertia.checkpoints import load_models
 from jaxinertia.errors import UsageError
 from jaxinertia.evaluation import choose_sets, evaluate
 from jaxinertia.samples import Samples
+from jaxinertia.session import servo_session, servo_state_change
 from jaxinertia.statics import torque_scale_sensitivity
 from jaxinertia.uncertainty import (
     DEFAULT_TORQUE_NOISE_NM,
@@ -230,6 +231,8 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
     members = [_Member(m, objects, meta, session_strength, arm)
                for m in members_of(models, folder.config)]
     weights = weights_of(folder.config, models)  # checked before any estimate
+    # Each file's servo state against the folder's, from the samples as recorded.
+    states = [servo_state_change(reference, servo_session(o)) for o in objects]
     objects, ratios = adapt_objects(objects, reference)
     floor, floor_source = training_validation_error(folder.config)
     noise = floor if floor is not None else np.full(objects[0].n_joints,
@@ -241,7 +244,7 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
                  "session_strength": 0.0 if reference is None else reference.strength,
                  "torque_error_floor": {"Nm": None if floor is None else floor.tolist(),
                                         "source": floor_source}}
-    for o, (obj, ratio) in enumerate(zip(objects, ratios)):
+    for o, (obj, ratio, state) in enumerate(zip(objects, ratios, states)):
         all_samples = [np.arange(obj.n_samples)[None]]
         res = evaluate([obj], all_samples, pair=pair, baselines=baselines, fc=fc,
                        l_max=[np.nan])
@@ -271,7 +274,7 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
         pred_se = np.asarray(ident.se[0])
         out["objects"][obj.name] = {
             "n_samples": obj.n_samples, "set_size": size, "methods": methods,
-            "session_ratio": ratio,
+            "session_ratio": ratio, "servo_state": state,
             "unavailable": res["unavailable"],
             "identifiability": {"condition": float(ident.condition[0]),
                                 "predicted_mass_se_kg": float(pred_se[0]),

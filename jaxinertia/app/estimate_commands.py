@@ -19,6 +19,7 @@ from jaxinertia.app.options import (
     positive_float,
     positive_int,
     seed_int,
+    servo_state_line,
     session_line,
     write_json_option,
 )
@@ -53,6 +54,8 @@ def cmd_estimate(args) -> int:
     for name, o in res["objects"].items():
         ident = o["identifiability"]
         print(session_line(name, res["session_strength"], o["session_ratio"]))
+        if line := servo_state_line(name, o["servo_state"]):
+            print(line)
         if line := not_held_out_line(name, seen):
             print(line)
         if res.get("uniform_attention"):

@@ -152,3 +152,41 @@ def session_line(name: str, strength: float, ratio) -> str:
                 f"per joint (the file's own current gain against the models', strength "
                 f"{strength:g}; --session-strength 0: off)")
     return f"{name}: session adaptation off (the models' strength 0, or --session-strength 0)"
+
+
+def _span(values, unit: str, digits: int) -> str:
+    """Per-joint values as one number where they agree to the digits shown, else a range
+    (None in ``values``: a joint that did not record it)."""
+    known = [v for v in values if v is not None]
+    lo, hi = (f"{v:.{digits}f}" for v in (min(known), max(known)))
+    return f"{lo} {unit}" if lo == hi else f"{lo}-{hi} {unit}"
+
+
+def servo_state_line(name: str, state: dict) -> str | None:
+    """The servos' supply and temperature that an object's file recorded
+    (:func:`jaxinertia.session.servo_state_change`), against the models' session where
+    their files recorded them too; None for a file that recorded neither."""
+    mine = [(k, unit, d) for k, unit, d in (("supply_voltage", "V", 2), ("temperature", "deg C", 0))
+            if state.get(k) and any(v is not None for v in state[k])]
+    if not mine:
+        return None
+    line = f"{name}: servo state recorded: " + ", ".join(_span(state[k], u, d)
+                                                           for k, u, d in mine)
+    theirs = [(k, u, d) for k, u, d in mine if state.get("reference_" + k)
+              and any(v is not None for v in state["reference_" + k])]
+    if not theirs:
+        return line + " (the models' files recorded none to compare with)"
+    line += "; the models' session: " + ", ".join(_span(state["reference_" + k], u, d)
+                                                   for k, u, d in theirs)
+    changes = []
+    if state.get("supply_ratio"):
+        changes.append("supply x " + _span(state["supply_ratio"], "", 3).strip())
+    dt = [v for v in state.get("temperature_change") or () if v is not None]
+    if dt:
+        lo, hi = (f"{v:+.0f}" for v in (min(dt), max(dt)))
+        changes.append(f"temperature {lo} K" if lo == hi else f"temperature {lo} to {hi} K")
+    gain = state.get("current_gain_ratio")
+    if gain and any(v is not None for v in gain):
+        changes.append("current gain x " + " / ".join(
+            "-" if v is None else f"{v:.3f}" for v in gain) + " (joints 1-" + f"{len(gain)})")
+    return line + (f" ({'; '.join(changes)})" if changes else "")

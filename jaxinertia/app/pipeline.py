@@ -188,15 +188,15 @@ def _sessions_read(parts, metas, strength: float, init_config: dict | None,
     files' records, the two references (real files', simulated files') and each file's
     per-joint ratio."""
     simulated = [is_simulated(m) for m in metas]
-    sim_ref = (SessionReference(servo_session([p for p, s in zip(parts, simulated) if s])
-                                .current_gain, strength) if any(simulated) else None)
+    sim_ref = (SessionReference.of(servo_session([p for p, s in zip(parts, simulated) if s]),
+                                   strength) if any(simulated) else None)
     if sim_ref is None and init_config is not None:
         sim_ref = session_reference(init_config, strength, simulated=True)
     reference = None if init_config is None else session_reference(init_config, strength)
     if session is not None:
-        reference = SessionReference(session.current_gain, strength)
+        reference = SessionReference.of(session, strength)
     if reference is None:
-        reference = sim_ref or SessionReference(servo_session(parts).current_gain, strength)
+        reference = sim_ref or SessionReference.of(servo_session(parts), strength)
     read = [adapt(p, sim_ref if sim else reference) for p, sim in zip(parts, simulated)]
     return [r[0] for r in read], (reference, sim_ref), [r[1].tolist() for r in read]
 
