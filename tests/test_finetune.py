@@ -17,15 +17,17 @@ from support.asserts import assert_tree_equal
 from support.synthetic import feature_config, synthetic_samples
 
 from jaxinertia.app.cli import main
+from jaxinertia.app.ensemble import attach_members
 from jaxinertia.app.estimate import estimate
-from jaxinertia.app.pipeline import adapt_objects, session_reference
+from jaxinertia.app.pipeline import adapt_objects, copy_models, session_reference
 from jaxinertia.app.provenance import FITTED_ON, fitted_on, seen_by
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import load_models, save_models
 from jaxinertia.errors import JaxinertiaError, ModelFolderError, UsageError
 from jaxinertia.estimation import ModelPair
 from jaxinertia.networks import AttentionModel, PhysicalTorqueModel, TorqueModel
-from jaxinertia.samples import load_samples, save_native
+from jaxinertia.reference import reference_correction
+from jaxinertia.samples import Samples, load_samples, save_native
 from jaxinertia.session import servo_session
 from jaxinertia.session_terms import with_session_terms
 from jaxinertia.sim.params import default_sim_params
@@ -279,6 +281,83 @@ def test_what_a_folder_was_fitted_on_is_read_from_its_record_whatever_it_holds()
     assert fitted_on(config) == {"a", "b", "d"}
     for junk in ({"data": "x.npz"}, {"fine_tuned_from": "m0"}, {FITTED_ON: {"sha256": "a"}}):
         assert fitted_on(junk) == set()
+
+
+def test_a_reference_of_known_torques_corrects_the_networks_and_not_the_baselines(folders,
+                                                                                 capsys):
+    """``estimate --reference``: a "session" in which the true joint torques are 1.1 x the
+    models' own (the K pairs' mean) plus an offset per joint. Two known objects recorded in
+    it (the reference) give that gain and offset back; on the third (the unknown), the
+    networks' torques read through them make ``tau - tau_g = A x`` hold exactly, so T's
+    answer (the least squares per pair, then the pairs' mean: linear in the torques) is
+    the truth; the baselines' answer is the one without the reference, to the bit."""
+    tmp, sim, _ = folders
+    data, meta = load_samples(sim)
+    folder = load_models(tmp / "m0")
+    tau_hat = np.asarray(torque_predictions(folder.pair.torque_model, folder.pair.torque_vars,
+                                            folder.features, data), np.float64).mean(0)
+    gain, offset = 1.1, np.array([0.005, -0.01, 0.002, 0.001])
+    tau = gain * tau_hat + offset
+    data = data.replace(tau=tau, tau_g=tau - np.einsum("snp,sp->sn", data.A,
+                                                       data.x[data.object_id]))
+    objects = data.by_object()
+    ref, unknown = tmp / "ref.npz", tmp / "unknown.npz"
+    for path, objs in ((ref, objects[:2]), (unknown, objects[2:])):
+        both = Samples.concatenate(objs)
+        save_native(path, both, {"robot": meta["robot"], "source": "test",
+                                 "objects": list(both.names)})
+    answers = []
+    for extra in ([], ["--reference", str(ref)]):
+        js = tmp / f"estimate_ref{len(extra)}.json"
+        capsys.readouterr()
+        assert main(["estimate", "--models", str(tmp / "m0"), "--samples", str(unknown),
+                     "--session-strength", "0", "--max-mass", "1000", "--max-com", "1000",
+                     "--json", str(js), *extra]) == 0
+        answers.append((json.loads(js.read_text()), capsys.readouterr().out))
+    (plain, _), (got, said) = answers
+    corr = got["reference"]["correction"]
+    n_ref = objects[0].n_samples + objects[1].n_samples
+    assert got["reference"]["objects"] == ["o0", "o1"] and got["reference"]["n_samples"] == n_ref
+    assert said.startswith(f"reference {ref} (o0, o1, {n_ref} samples of known torque): "
+                           "the networks' torques read x 1.100 +- 0.000")
+    np.testing.assert_allclose(corr["gain"], gain, rtol=1e-5)
+    np.testing.assert_allclose(corr["offset_Nm"], offset, rtol=1e-4, atol=1e-7)
+    obj = objects[2]
+    answer, before = got["objects"]["o2"]["methods"], plain["objects"]["o2"]["methods"]
+    assert answer["T"]["mass_kg"] == pytest.approx(obj.x[0, 0], rel=1e-5)
+    np.testing.assert_allclose(answer["T"]["com_tag_m"], obj.x[0, 1:] / obj.x[0, 0], rtol=1e-4)
+    miss = [abs(a["T"]["mass_kg"] / obj.x[0, 0] - 1) for a in (before, answer)]
+    assert miss[0] > 0.01 and miss[0] > 100 * miss[1], miss  # without the reference: off
+    for m in ("PE", "Sensor"):
+        assert answer[m] == before[m], m
+    # An ensemble's members each fit their own (here a copy of the same models: the same
+    # correction, and the mean of two truths the truth).
+    ens = copy_models(tmp / "m0", tmp / "ens")
+    copy_models(tmp / "m0", ens / "members" / "1")
+    attach_members(ens, ["members/1"])
+    both = estimate(ens, unknown, session_strength=0.0, max_mass=1e3, max_com=1e3,
+                    reference=ref)
+    assert both["reference"]["members"] == [both["reference"]["correction"]]
+    np.testing.assert_allclose(both["reference"]["correction"]["gain"], corr["gain"],
+                               rtol=1e-12)
+    assert both["objects"]["o2"]["methods"]["T"]["mass_kg"] == pytest.approx(obj.x[0, 0],
+                                                                              rel=1e-5)
+    # Too few samples to tell a gain and an offset, or a gain no servo's day explains (the
+    # reference names another load than it carried, or another arm): refused, saying so.
+    known = Samples.concatenate(objects[:2])
+    with pytest.raises(UsageError, match="at least 8"):
+        reference_correction(folder.pair, folder.features, known.take(np.arange(5)))
+    with pytest.raises(UsageError, match=r"gain of joint\(s\) \[1, 2, 3, 4\] is \[2\.2"):
+        reference_correction(folder.pair, folder.features,
+                             known.replace(tau=2 * (known.tau - offset)))
+    # A reference must carry its truth: an unknown object's file is refused, in one line.
+    bare = tmp / "bare.npz"
+    save_native(bare, known.without_truth(), {"robot": meta["robot"], "source": "test",
+                                               "objects": list(known.names)})
+    capsys.readouterr()
+    assert main(["estimate", "--models", str(tmp / "m0"), "--samples", str(unknown),
+                 "--reference", str(bare)]) == 2
+    assert f"--reference {bare}: a reference is a known load" in capsys.readouterr().err
 
 
 def test_finetuning_refuses_what_cannot_fit(folders, capsys):

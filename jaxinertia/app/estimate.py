@@ -5,6 +5,7 @@ refused with the reason, never printed as a number."""
 from __future__ import annotations
 
 import os
+from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -27,8 +28,9 @@ from jaxinertia.app.pipeline import (
 )
 from jaxinertia.app.provenance import seen_by
 from jaxinertia.checkpoints import load_models
-from jaxinertia.errors import UsageError
+from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.evaluation import choose_sets, evaluate
+from jaxinertia.reference import apply_reference, reference_correction
 from jaxinertia.samples import Samples
 from jaxinertia.session import servo_session, servo_state_change
 from jaxinertia.statics import torque_scale_sensitivity
@@ -175,7 +177,8 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *,
              set_size: int | None = None,
              n_sets: int = 200, seed: int = 0, max_mass: float = 5.0,
              max_com: float = 0.5, max_com_se: float | None = None,
-             session_strength: float | None = None, arm: str | None = None) -> dict:
+             session_strength: float | None = None, arm: str | None = None,
+             reference: str | os.PathLike | None = None) -> dict:
     """Mass and COM of each object in a sample file (ground truth, if any, is not used),
     by every method, with standard errors, intervals and covariance.
 
@@ -201,10 +204,17 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *,
     A model folder that names COM models (:mod:`jaxinertia.app.by_part`) answers the mass
     from its own models and the COM of the network methods from those; one that names
     ensemble members (:mod:`jaxinertia.app.ensemble`), by their mean with its own.
+
+    ``reference``: a sample file of known loads (their truth recorded: a known weight)
+    recorded in the same session as ``sample_file``. Each folder (and member) fits, on it
+    read in its session, a gain and an offset per joint between its torques and the known
+    ones, and reads the unknown object's torques through them
+    (:mod:`jaxinertia.reference`); the network methods only, the baselines as they are.
     """
+    ref = None if reference is None else _reference_objects(reference, arm)
     kw = dict(set_size=set_size, n_sets=n_sets, seed=seed, max_mass=max_mass,
               max_com=max_com, max_com_se=max_com_se, session_strength=session_strength,
-              arm=arm)
+              arm=arm, reference=ref)
     out, config = _estimate(models, sample_file, **kw)
     com = com_models_of(models, config)
     if com is not None:
@@ -217,23 +227,84 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *,
     return out
 
 
+def _evaluated(obj: Samples, sets, *, pair, baselines, fc, raw: Samples) -> dict:
+    """:func:`evaluate` of one object: the networks on ``obj``, the baselines on ``raw``
+    (the object as recorded, where a reference's correction made ``obj`` another record)."""
+    if raw is obj:
+        return evaluate([obj], sets, pair=pair, baselines=baselines, fc=fc, l_max=[np.nan])
+    net = evaluate([obj], sets, pair=pair, fc=fc, l_max=[np.nan])
+    base = evaluate([raw], sets, baselines=baselines, l_max=[np.nan])
+    name = obj.name
+    return {**net, "estimates": {**base["estimates"], **net["estimates"]},
+            "objects": {name: {**base["objects"][name], **net["objects"][name]}},
+            "unavailable": base["unavailable"]}
+
+
+def _uncertainty(obj: Samples, sets, *, pair, baselines, fc, raw: Samples, floor) -> dict:
+    """:func:`uncertainty_of` of one object, as :func:`_evaluated` splits it."""
+    if raw is obj:
+        return uncertainty_of([obj], sets, pair=pair, fc=fc, baselines=baselines, floor=floor)
+    return {**uncertainty_of([raw], sets, baselines=baselines),
+            **uncertainty_of([obj], sets, pair=pair, fc=fc, floor=floor)}
+
+
+class _Reference(NamedTuple):
+    """A file of known loads recorded in the unknown object's session (``estimate
+    --reference``)."""
+
+    path: str
+    sha256: str | None
+    objects: list[Samples]
+
+
+def _reference_objects(path, arm) -> _Reference:
+    """The known objects of a reference file, at rest, with their truth."""
+    try:
+        objects, meta = objects_at_rest(path, need_truth=True)
+    except FileFormatError as e:
+        if e.field not in ("tau", "x"):
+            raise
+        raise UsageError(f"--reference {path}: a reference is a known load, its truth "
+                         "recorded (collect --object with a known name or mass, such as "
+                         "100g); this file's objects are unknown") from None
+    samples_arm(path, meta, arm)  # another arm's file: one line, before any estimate
+    return _Reference(str(path), meta.get("sha256"), objects)
+
+
+def _corrected(folder, objects: list[Samples], ref: _Reference | None, session, desc: str):
+    """``folder``'s pair and ``objects`` read through the reference's correction, fitted on
+    the reference read in ``session`` (the folder's own); without a reference, as they are.
+    Returns the pair, the objects and the correction (None)."""
+    if ref is None:
+        return folder.pair, objects, None
+    known, _ = adapt_objects(ref.objects, session)
+    try:
+        corr = reference_correction(folder.pair, folder.features, Samples.concatenate(known))
+    except UsageError as e:
+        raise UsageError(f"--reference {ref.path} with {desc}: {e}") from None
+    pair, objects = apply_reference(folder.pair, objects, corr)
+    return pair, objects, corr
+
+
 def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com, max_com_se,
-              session_strength, arm) -> tuple[dict, dict]:
+              session_strength, arm, reference=None) -> tuple[dict, dict]:
     """:func:`estimate` by one model folder: the answer and the folder's config."""
     objects, meta = objects_at_rest(sample_file, need_truth=False)
     objects = [o.without_truth() for o in objects]
     arm = samples_arm(sample_file, meta, arm)  # the folder's and every member's
     folder = load_models(models, robot=meta.get("robot"), arm=arm)
-    pair, baselines, fc = folder.pair, folder.baselines, folder.features
-    reference = session_reference(folder.config, session_strength,
-                                  simulated=is_simulated(meta))
+    baselines, fc = folder.baselines, folder.features
+    session = session_reference(folder.config, session_strength,
+                                simulated=is_simulated(meta))
     # An ensemble's further members (app.ensemble): each reads the objects in its session.
-    members = [_Member(m, objects, meta, session_strength, arm)
+    members = [_Member(m, objects, meta, session_strength, arm, reference)
                for m in members_of(models, folder.config)]
     weights = weights_of(folder.config, models)  # checked before any estimate
     # Each file's servo state against the folder's, from the samples as recorded.
-    states = [servo_state_change(reference, servo_session(o)) for o in objects]
-    objects, ratios = adapt_objects(objects, reference)
+    states = [servo_state_change(session, servo_session(o)) for o in objects]
+    objects, ratios = adapt_objects(objects, session)
+    raw = objects  # the baselines read the objects as they are
+    pair, objects, corr = _corrected(folder, objects, reference, session, str(models))
     floor, floor_source = training_validation_error(folder.config)
     noise = floor if floor is not None else np.full(objects[0].n_joints,
                                                     DEFAULT_TORQUE_NOISE_NM)
@@ -241,18 +312,17 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
                     f"nominal {DEFAULT_TORQUE_NOISE_NM * 1e3:.0f} N mm per joint")
     _refuse_unanswerable(objects, sample_file, set_size, noise)  # before any estimate
     out: dict = {"file": str(sample_file), "sha256": meta.get("sha256"), "objects": {},
-                 "session_strength": 0.0 if reference is None else reference.strength,
+                 "session_strength": 0.0 if session is None else session.strength,
                  "torque_error_floor": {"Nm": None if floor is None else floor.tolist(),
                                         "source": floor_source}}
     for o, (obj, ratio, state) in enumerate(zip(objects, ratios, states)):
         all_samples = [np.arange(obj.n_samples)[None]]
-        res = evaluate([obj], all_samples, pair=pair, baselines=baselines, fc=fc,
-                       l_max=[np.nan])
-        unc = uncertainty_of([obj], all_samples, pair=pair, fc=fc, baselines=baselines,
-                             floor=floor)
+        kw = dict(pair=pair, baselines=baselines, fc=fc, raw=raw[o])
+        res = _evaluated(obj, all_samples, **kw)
+        unc = _uncertainty(obj, all_samples, floor=floor, **kw)
         size = spread_set_size(obj.n_samples, set_size)
         sets, _ = choose_sets([obj], n_sets=n_sets, set_size=size, seed=seed)
-        spread = evaluate([obj], sets, pair=pair, baselines=baselines, fc=fc, l_max=[np.nan])
+        spread = _evaluated(obj, sets, **kw)
         member_parts = [m.parts(o, all_samples, sets) for m in members]
         if members:
             _average_members(res, unc, spread, member_parts,
@@ -291,6 +361,13 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
         out["ensemble_members"] = [str(m.path) for m in members]
         if weights is not None:
             out["ensemble_weights"] = weights
+    if reference is not None:
+        out["reference"] = {
+            "file": reference.path, "sha256": reference.sha256,
+            "objects": [o.name for o in reference.objects],
+            "n_samples": int(sum(o.n_samples for o in reference.objects)),
+            "correction": corr.to_dict(),
+            "members": [m.correction.to_dict() for m in members]}
     # (T-A answers as T only where no member has its attention: models_real_with_released's
     # released member keeps the authors')
     out["uniform_attention"] = all(bool(f.config.get(UNIFORM_ATTENTION))
@@ -302,11 +379,14 @@ class _Member:
     """A further member of an ensemble folder (:mod:`jaxinertia.app.ensemble`): its models,
     the objects read in its session and its torque error floor."""
 
-    def __init__(self, path, objects, meta, session_strength, arm):
+    def __init__(self, path, objects, meta, session_strength, arm, reference=None):
         self.path = path
         self.folder = load_models(path, robot=meta.get("robot"), arm=arm)
-        self.objects, _ = adapt_objects(objects, session_reference(
-            self.folder.config, session_strength, simulated=is_simulated(meta)))
+        session = session_reference(self.folder.config, session_strength,
+                                    simulated=is_simulated(meta))
+        objects, _ = adapt_objects(objects, session)
+        self.pair, self.objects, self.correction = _corrected(self.folder, objects, reference,
+                                                              session, str(path))
         self.floor, _ = training_validation_error(self.folder.config)
 
     def parts(self, o: int, all_samples, sets) -> tuple[dict, dict, dict, np.ndarray]:
@@ -314,7 +394,7 @@ class _Member:
         estimates on the ``sets`` (as :func:`_estimate` computes them), and its attention
         weights on all the samples (K, S, N)."""
         obj, f = self.objects[o], self.folder
-        kw = dict(pair=f.pair, fc=f.features)
+        kw = dict(pair=self.pair, fc=f.features)
         every = evaluate([obj], all_samples, l_max=[np.nan], **kw)
         return (every["estimates"], uncertainty_of([obj], all_samples, floor=self.floor, **kw),
                 evaluate([obj], sets, l_max=[np.nan], **kw)["estimates"],

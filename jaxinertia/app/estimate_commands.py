@@ -36,6 +36,19 @@ def _pm(value: float, se: float) -> str:
     return f"{value:.1f} +- {se:.1f}"
 
 
+def reference_line(ref: dict) -> str:
+    """What ``estimate --reference`` fitted: the models' torques against the known ones."""
+    c = ref["correction"]
+    gains = " / ".join(f"{g:.3f} +- {se:.3f}" for g, se in zip(c["gain"], c["gain_se"]))
+    offsets = " / ".join(f"{b * 1e3:+.1f}" for b in c["offset_Nm"])
+    more = (f"; each of the {len(ref['members'])} further members fits its own"
+            if ref["members"] else "")
+    return (f"reference {ref['file']} ({', '.join(ref['objects'])}, {ref['n_samples']} "
+            f"samples of known torque): the networks' torques read x {gains}, "
+            f"{offsets} N mm (joints 1-{len(c['gain'])}; fitted on it{more}); "
+            "it must be recorded in this file's session")
+
+
 def cmd_estimate(args) -> int:
     check_outputs(args, "--json")
     enable_x64()
@@ -46,11 +59,14 @@ def cmd_estimate(args) -> int:
 
     res = estimate(args.models, args.samples, set_size=args.set_size, max_mass=args.max_mass,
                    max_com=args.max_com, max_com_se=args.max_com_se,
-                   session_strength=args.session_strength, arm=arm_name(args))
+                   session_strength=args.session_strength, arm=arm_name(args),
+                   reference=args.reference)
     floor = res["torque_error_floor"]
     from jaxinertia.app.provenance import not_held_out_line  # (as above)
 
     seen = {p: (v["folders"], v["of"]) for p, v in res["fitted_on_this_file"].items()}
+    if ref := res.get("reference"):
+        print(reference_line(ref))
     for name, o in res["objects"].items():
         ident = o["identifiability"]
         print(session_line(name, res["session_strength"], o["session_ratio"]))
@@ -224,6 +240,12 @@ def register(sub) -> None:
                    "(predicted standard error [m] at the estimated mass; default: no limit, "
                    "a singular set of poses is always refused)")
     add_session_strength(m)
+    m.add_argument("--reference", type=Path, default=None, metavar="FILE",
+                   help="a sample file of a known load (a known weight, its truth recorded) "
+                   "collected in the same session as --samples, just before or after it: "
+                   "each joint's torque gain and offset fitted on it correct the networks' "
+                   "torques (the servos' state of the day; docs/results.md, 'A reference in "
+                   "the same session')")
     m.add_argument("--json", type=Path,
                    help="write every answer here, with standard errors, 68/95 %% intervals and "
                    "the covariance of x = [m, m p]")
