@@ -358,6 +358,14 @@ def test_a_reference_of_known_torques_corrects_the_networks_and_not_the_baseline
     assert main(["estimate", "--models", str(tmp / "m0"), "--samples", str(unknown),
                  "--reference", str(bare)]) == 2
     assert f"--reference {bare}: a reference is a known load" in capsys.readouterr().err
+    # The empty gripper alone is no reference (docs/results.md): refused, saying what to
+    # record instead.
+    empty = tmp / "empty.npz"
+    save_native(empty, known.replace(x=np.zeros_like(known.x), tau=known.tau_g),
+                {"robot": meta["robot"], "source": "test", "objects": list(known.names)})
+    assert main(["estimate", "--models", str(tmp / "m0"), "--samples", str(unknown),
+                 "--reference", str(empty)]) == 2
+    assert "the empty gripper alone is no reference" in capsys.readouterr().err
 
 
 def test_finetuning_refuses_what_cannot_fit(folders, capsys):

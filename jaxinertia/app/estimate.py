@@ -268,6 +268,12 @@ def _reference_objects(path, arm) -> _Reference:
                          "recorded (collect --object with a known name or mass, such as "
                          "100g); this file's objects are unknown") from None
     samples_arm(path, meta, arm)  # another arm's file: one line, before any estimate
+    if not any(o.mass > 0 for o in objects):
+        raise UsageError(f"--reference {path}: the empty gripper alone is no reference: at no "
+                         "load the correction fits the models' own errors there, and on the "
+                         "simulator it made the answer worse (docs/results.md, 'A reference "
+                         "in the same session'); record a known weight in the range of the "
+                         "objects, e.g. collect --object 100g")
     return _Reference(str(path), meta.get("sha256"), objects)
 
 
@@ -365,6 +371,7 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
         out["reference"] = {
             "file": reference.path, "sha256": reference.sha256,
             "objects": [o.name for o in reference.objects],
+            "empty_gripper": any(not o.mass > 0 for o in reference.objects),
             "n_samples": int(sum(o.n_samples for o in reference.objects)),
             "correction": corr.to_dict(),
             "members": [m.correction.to_dict() for m in members]}

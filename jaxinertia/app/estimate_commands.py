@@ -43,10 +43,12 @@ def reference_line(ref: dict) -> str:
     offsets = " / ".join(f"{b * 1e3:+.1f}" for b in c["offset_Nm"])
     more = (f"; each of the {len(ref['members'])} further members fits its own"
             if ref["members"] else "")
+    empty = ("; its empty-gripper samples weaken it (a known weight alone did better on "
+             "the simulator)" if ref.get("empty_gripper") else "")
     return (f"reference {ref['file']} ({', '.join(ref['objects'])}, {ref['n_samples']} "
             f"samples of known torque): the networks' torques read x {gains}, "
             f"{offsets} N mm (joints 1-{len(c['gain'])}; fitted on it{more}); "
-            "it must be recorded in this file's session")
+            f"it must be recorded in this file's session{empty}")
 
 
 def cmd_estimate(args) -> int:
