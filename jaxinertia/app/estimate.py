@@ -5,7 +5,6 @@ refused with the reason, never printed as a number."""
 from __future__ import annotations
 
 import os
-from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -27,10 +26,10 @@ from jaxinertia.app.pipeline import (
     session_reference,
 )
 from jaxinertia.app.provenance import seen_by
+from jaxinertia.app.with_reference import corrected, evaluated, read_reference, uncertainty
 from jaxinertia.checkpoints import load_models
-from jaxinertia.errors import FileFormatError, UsageError
+from jaxinertia.errors import UsageError
 from jaxinertia.evaluation import choose_sets, evaluate
-from jaxinertia.reference import apply_reference, reference_correction
 from jaxinertia.samples import Samples
 from jaxinertia.session import servo_session, servo_state_change
 from jaxinertia.statics import torque_scale_sensitivity
@@ -211,7 +210,7 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *,
     ones, and reads the unknown object's torques through them
     (:mod:`jaxinertia.reference`); the network methods only, the baselines as they are.
     """
-    ref = None if reference is None else _reference_objects(reference, arm)
+    ref = None if reference is None else read_reference(reference, arm)
     kw = dict(set_size=set_size, n_sets=n_sets, seed=seed, max_mass=max_mass,
               max_com=max_com, max_com_se=max_com_se, session_strength=session_strength,
               arm=arm, reference=ref)
@@ -221,75 +220,13 @@ def estimate(models: str | os.PathLike, sample_file: str | os.PathLike, *,
         com_out = _estimate(com, sample_file, **kw)[0]
         out = merge_answers(out, com_out)
         out.update(com_models=str(com), com_session_strength=com_out["session_strength"])
+        if ref is not None:  # the COM's folders fitted their own on the reference
+            out["reference"]["com_models"] = {k: com_out["reference"][k]
+                                              for k in ("correction", "members")}
     # Were the models fitted on this very file? (Then its answer is no held-out number.)
     out["fitted_on_this_file"] = {p: {"folders": k, "of": n}
                                   for p, (k, n) in seen_by(models, out["sha256"]).items()}
     return out
-
-
-def _evaluated(obj: Samples, sets, *, pair, baselines, fc, raw: Samples) -> dict:
-    """:func:`evaluate` of one object: the networks on ``obj``, the baselines on ``raw``
-    (the object as recorded, where a reference's correction made ``obj`` another record)."""
-    if raw is obj:
-        return evaluate([obj], sets, pair=pair, baselines=baselines, fc=fc, l_max=[np.nan])
-    net = evaluate([obj], sets, pair=pair, fc=fc, l_max=[np.nan])
-    base = evaluate([raw], sets, baselines=baselines, l_max=[np.nan])
-    name = obj.name
-    return {**net, "estimates": {**base["estimates"], **net["estimates"]},
-            "objects": {name: {**base["objects"][name], **net["objects"][name]}},
-            "unavailable": base["unavailable"]}
-
-
-def _uncertainty(obj: Samples, sets, *, pair, baselines, fc, raw: Samples, floor) -> dict:
-    """:func:`uncertainty_of` of one object, as :func:`_evaluated` splits it."""
-    if raw is obj:
-        return uncertainty_of([obj], sets, pair=pair, fc=fc, baselines=baselines, floor=floor)
-    return {**uncertainty_of([raw], sets, baselines=baselines),
-            **uncertainty_of([obj], sets, pair=pair, fc=fc, floor=floor)}
-
-
-class _Reference(NamedTuple):
-    """A file of known loads recorded in the unknown object's session (``estimate
-    --reference``)."""
-
-    path: str
-    sha256: str | None
-    objects: list[Samples]
-
-
-def _reference_objects(path, arm) -> _Reference:
-    """The known objects of a reference file, at rest, with their truth."""
-    try:
-        objects, meta = objects_at_rest(path, need_truth=True)
-    except FileFormatError as e:
-        if e.field not in ("tau", "x"):
-            raise
-        raise UsageError(f"--reference {path}: a reference is a known load, its truth "
-                         "recorded (collect --object with a known name or mass, such as "
-                         "100g); this file's objects are unknown") from None
-    samples_arm(path, meta, arm)  # another arm's file: one line, before any estimate
-    if not any(o.mass > 0 for o in objects):
-        raise UsageError(f"--reference {path}: the empty gripper alone is no reference: at no "
-                         "load the correction fits the models' own errors there, and on the "
-                         "simulator it made the answer worse (docs/results.md, 'A reference "
-                         "in the same session'); record a known weight in the range of the "
-                         "objects, e.g. collect --object 100g")
-    return _Reference(str(path), meta.get("sha256"), objects)
-
-
-def _corrected(folder, objects: list[Samples], ref: _Reference | None, session, desc: str):
-    """``folder``'s pair and ``objects`` read through the reference's correction, fitted on
-    the reference read in ``session`` (the folder's own); without a reference, as they are.
-    Returns the pair, the objects and the correction (None)."""
-    if ref is None:
-        return folder.pair, objects, None
-    known, _ = adapt_objects(ref.objects, session)
-    try:
-        corr = reference_correction(folder.pair, folder.features, Samples.concatenate(known))
-    except UsageError as e:
-        raise UsageError(f"--reference {ref.path} with {desc}: {e}") from None
-    pair, objects = apply_reference(folder.pair, objects, corr)
-    return pair, objects, corr
 
 
 def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com, max_com_se,
@@ -310,7 +247,7 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
     states = [servo_state_change(session, servo_session(o)) for o in objects]
     objects, ratios = adapt_objects(objects, session)
     raw = objects  # the baselines read the objects as they are
-    pair, objects, corr = _corrected(folder, objects, reference, session, str(models))
+    pair, objects, corr = corrected(folder, objects, reference, session, str(models))
     floor, floor_source = training_validation_error(folder.config)
     noise = floor if floor is not None else np.full(objects[0].n_joints,
                                                     DEFAULT_TORQUE_NOISE_NM)
@@ -324,11 +261,11 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
     for o, (obj, ratio, state) in enumerate(zip(objects, ratios, states)):
         all_samples = [np.arange(obj.n_samples)[None]]
         kw = dict(pair=pair, baselines=baselines, fc=fc, raw=raw[o])
-        res = _evaluated(obj, all_samples, **kw)
-        unc = _uncertainty(obj, all_samples, floor=floor, **kw)
+        res = evaluated(obj, all_samples, **kw)
+        unc = uncertainty(obj, all_samples, floor=floor, **kw)
         size = spread_set_size(obj.n_samples, set_size)
         sets, _ = choose_sets([obj], n_sets=n_sets, set_size=size, seed=seed)
-        spread = _evaluated(obj, sets, **kw)
+        spread = evaluated(obj, sets, **kw)
         member_parts = [m.parts(o, all_samples, sets) for m in members]
         if members:
             _average_members(res, unc, spread, member_parts,
@@ -392,7 +329,7 @@ class _Member:
         session = session_reference(self.folder.config, session_strength,
                                     simulated=is_simulated(meta))
         objects, _ = adapt_objects(objects, session)
-        self.pair, self.objects, self.correction = _corrected(self.folder, objects, reference,
+        self.pair, self.objects, self.correction = corrected(self.folder, objects, reference,
                                                               session, str(path))
         self.floor, _ = training_validation_error(self.folder.config)
 

@@ -41,8 +41,10 @@ def reference_line(ref: dict) -> str:
     c = ref["correction"]
     gains = " / ".join(f"{g:.3f} +- {se:.3f}" for g, se in zip(c["gain"], c["gain_se"]))
     offsets = " / ".join(f"{b * 1e3:+.1f}" for b in c["offset_Nm"])
-    more = (f"; each of the {len(ref['members'])} further members fits its own"
-            if ref["members"] else "")
+    k = len(ref["members"])
+    more = ("" if not k else "; the further member fits its own" if k == 1 else
+            f"; each of the {k} further members fits its own")
+    more += "; so do the COM's models" if ref.get("com_models") else ""
     empty = ("; its empty-gripper samples weaken it (a known weight alone did better on "
              "the simulator)" if ref.get("empty_gripper") else "")
     return (f"reference {ref['file']} ({', '.join(ref['objects'])}, {ref['n_samples']} "
