@@ -320,6 +320,9 @@ def test_a_reference_of_known_torques_corrects_the_networks_and_not_the_baseline
     assert got["reference"]["objects"] == ["o0", "o1"] and got["reference"]["n_samples"] == n_ref
     assert said.startswith(f"reference {ref} (o0, o1, {n_ref} samples of known torque): "
                            "the networks' torques read x 1.100 +- 0.000")
+    # The reference and the file: one servo law, so one session as far as the current says.
+    assert "o2: this file against the reference: current gain x " in said
+    assert got["objects"]["o2"]["reference_session"]["same_session"] is True
     np.testing.assert_allclose(corr["gain"], gain, rtol=1e-5)
     np.testing.assert_allclose(corr["offset_Nm"], offset, rtol=1e-4, atol=1e-7)
     obj = objects[2]

@@ -9,6 +9,7 @@ import pytest
 from support.synthetic import synthetic_samples
 
 from jaxinertia.app.recipe import choose_recipe
+from jaxinertia.app.with_reference import ReferenceFile, same_session
 from jaxinertia.errors import UsageError
 from jaxinertia.lbipe import find_layout
 from jaxinertia.lbipe import load_test_files as real_files
@@ -155,6 +156,14 @@ def test_the_recorded_supply_and_temperature_are_the_sessions_and_compared_not_u
     assert bare["supply_voltage"] == pytest.approx((0.95 * s.supply_voltage).tolist())
     none = servo_state_change(None, servo_session(d))
     assert all(v is None for v in none.values())
+    # estimate --reference: a reference whose recorded supply is 3 % off the file's is
+    # another session, whatever the current gains say (here the same samples: equal).
+    ref_file = ReferenceFile("ref", None, [rec])
+    assert same_session(ref_file, rec)["same_session"] is True
+    other = rec.replace(extra={**rec.extra, "voltage": 0.97 * volts})
+    st = same_session(ref_file, other)
+    assert st["same_session"] is False and st["other_session_joints"] == [1, 2, 3, 4]
+    np.testing.assert_allclose(st["current_gain_ratio"], 1.0)
     # Not used to rescale: the same factors whether the reference recorded them or not.
     np.testing.assert_array_equal(adapt(sag, ref)[1],
                                   adapt(sag, SessionReference(ref.current_gain, 0.5))[1])
@@ -175,6 +184,25 @@ def test_the_real_files_are_two_sessions(lbipe_dir):
     tick = DEAD_BAND_GRID[10]
     assert np.all((cube.dead_band > 0.5 * tick) & (cube.dead_band < DEAD_BAND_GRID[-1]))
     assert 4 * max(cube.current_gain_se[1], white.current_gain_se[1]) < 0.044 * cube.current_gain[1]
+
+
+def test_a_reference_from_another_session_is_told_from_one_of_the_same(lbipe_dir):
+    """``estimate --reference`` checks, without any truth, that the reference looks recorded
+    in the file's session: each joint's current gain must agree within six standard
+    errors (or 2 %). The two real files are two sessions (every joint 2.6-5.8 % apart): told
+    apart. One file cut at random into a reference of 250 samples and the rest is one
+    session: in 20 cuts of each file, none is taken for another."""
+    files = {o.name: o for o in real_files(find_layout(lbipe_dir))}
+    for ref, other in (("cube", "white"), ("white", "cube")):
+        st = same_session(ReferenceFile(ref, None, [files[ref]]), files[other])
+        assert st["same_session"] is False and 2 in st["other_session_joints"], st
+        assert abs(st["current_gain_ratio"][1] - (0.955 if ref == "cube" else 1 / 0.955)) < 0.01
+    for o in files.values():
+        for seed in range(20):
+            idx = np.random.default_rng(seed).permutation(o.n_samples)
+            st = same_session(ReferenceFile(o.name, None, [o.take(idx[:250])]),
+                              o.take(idx[250:]))
+            assert st["same_session"] is True, (o.name, seed, st)
 
 
 def _objects(ta_mass, ta_com, t=None):

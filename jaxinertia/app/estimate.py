@@ -26,7 +26,13 @@ from jaxinertia.app.pipeline import (
     session_reference,
 )
 from jaxinertia.app.provenance import seen_by
-from jaxinertia.app.with_reference import corrected, evaluated, read_reference, uncertainty
+from jaxinertia.app.with_reference import (
+    corrected,
+    evaluated,
+    read_reference,
+    same_session,
+    uncertainty,
+)
 from jaxinertia.checkpoints import load_models
 from jaxinertia.errors import UsageError
 from jaxinertia.evaluation import choose_sets, evaluate
@@ -243,8 +249,9 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
     members = [_Member(m, objects, meta, session_strength, arm, reference)
                for m in members_of(models, folder.config)]
     weights = weights_of(folder.config, models)  # checked before any estimate
-    # Each file's servo state against the folder's, from the samples as recorded.
+    # Each file's servo state against the folder's (and the reference's), as recorded.
     states = [servo_state_change(session, servo_session(o)) for o in objects]
+    against = [None if reference is None else same_session(reference, o) for o in objects]
     objects, ratios = adapt_objects(objects, session)
     raw = objects  # the baselines read the objects as they are
     pair, objects, corr = corrected(folder, objects, reference, session, str(models))
@@ -288,6 +295,7 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
         out["objects"][obj.name] = {
             "n_samples": obj.n_samples, "set_size": size, "methods": methods,
             "session_ratio": ratio, "servo_state": state,
+            **({} if against[o] is None else {"reference_session": against[o]}),
             "unavailable": res["unavailable"],
             "identifiability": {"condition": float(ident.condition[0]),
                                 "predicted_mass_se_kg": float(pred_se[0]),

@@ -36,6 +36,26 @@ def _pm(value: float, se: float) -> str:
     return f"{value:.1f} +- {se:.1f}"
 
 
+def reference_session_line(name: str, state: dict) -> str:
+    """Whether the reference looks recorded in this file's session (its current gain per
+    joint, and the supply and temperature where both files recorded them)."""
+    gains = " / ".join("-" if g is None else f"{g:.3f} +- {se:.3f}"
+                       for g, se in zip(state["current_gain_ratio"] or [],
+                                        state["current_gain_ratio_se"] or []))
+    facts = f"current gain x {gains}" if gains else "no current gain to compare"
+    if state["same_session"] is None:
+        verdict = "cannot tell whether it is this file's session"
+    elif state["same_session"]:
+        verdict = ("consistent with one session (the current gain tells another session, "
+                   "3-6 % apart as the two real files, from about 1000 samples each; the "
+                   "supply and temperature, where both files recorded them, at once)")
+    else:
+        verdict = (f"ANOTHER SESSION, it seems (joint(s) {state['other_session_joints']}): a "
+                   "reference from another session moves the answer, it does not correct it "
+                   "(docs/results.md, 'A reference in the same session')")
+    return f"{name}: this file against the reference: {facts}: {verdict}"
+
+
 def reference_line(ref: dict) -> str:
     """What ``estimate --reference`` fitted: the models' torques against the known ones."""
     c = ref["correction"]
@@ -76,6 +96,8 @@ def cmd_estimate(args) -> int:
         print(session_line(name, res["session_strength"], o["session_ratio"]))
         if line := servo_state_line(name, o["servo_state"]):
             print(line)
+        if "reference_session" in o:
+            print(reference_session_line(name, o["reference_session"]))
         if line := not_held_out_line(name, seen):
             print(line)
         if res.get("uniform_attention"):

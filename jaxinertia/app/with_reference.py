@@ -13,11 +13,28 @@ from jaxinertia.app.arm_options import samples_arm
 from jaxinertia.app.pipeline import adapt_objects, objects_at_rest
 from jaxinertia.errors import FileFormatError, UsageError
 from jaxinertia.evaluation import evaluate
+from jaxinertia.fileio import nan_to_null
 from jaxinertia.reference import apply_reference, reference_correction
 from jaxinertia.samples import Samples
+from jaxinertia.session import SessionReference, servo_session, servo_state_change
 from jaxinertia.uncertainty import uncertainty_of
 
-__all__ = ["ReferenceFile", "corrected", "evaluated", "read_reference", "uncertainty"]
+__all__ = ["ReferenceFile", "corrected", "evaluated", "read_reference", "same_session",
+           "uncertainty"]
+
+#: A joint's current gain that differs between the reference and the file by more than
+#: this share and this many standard errors says another session. The dead-band fit's
+#: standard errors understate the spread: a real file cut at random into 250 samples and
+#: the rest differs from itself by up to 4.7 of them (100 cuts of the two files). The two
+#: real files' sessions (2.6-5.8 % apart on every joint) stand 7.7-10 of them apart on
+#: joints 1-2 with 1000 samples each, 3.5-7 with a reference of 250: a check that sees
+#: another session only with references of about a thousand samples.
+OTHER_SESSION_GAIN = 0.02
+OTHER_SESSION_SIGMAS = 6.0
+#: ... or a supply that differs by more than this share, or a temperature by more than
+#: this many kelvin (where both files recorded them).
+OTHER_SESSION_SUPPLY = 0.02
+OTHER_SESSION_KELVIN = 5.0
 
 
 def evaluated(obj: Samples, sets, *, pair, baselines, fc, raw: Samples) -> dict:
@@ -83,3 +100,31 @@ def corrected(folder, objects: list[Samples], ref: ReferenceFile | None, session
         raise UsageError(f"--reference {ref.path} with {desc}: {e}") from None
     pair, objects = apply_reference(folder.pair, objects, corr)
     return pair, objects, corr
+
+
+def same_session(ref: ReferenceFile, obj: Samples) -> dict:
+    """Whether the reference and an object's file (both as recorded) look like one session,
+    from what needs no truth: each joint's current gain (:mod:`jaxinertia.session`) and,
+    where both recorded them, the supply and temperature. The servo state of the file
+    against the reference's (:func:`jaxinertia.session.servo_state_change`), the gain
+    ratio's standard error, the joints that disagree and ``same_session`` (None: nothing
+    to compare)."""
+    mine, theirs = servo_session(obj), servo_session(ref.objects)
+    state = servo_state_change(SessionReference.of(theirs), mine)
+    ratio = SessionReference.of(theirs).gain_ratio(mine)
+    rel = np.hypot(np.asarray(mine.current_gain_se) / np.abs(mine.current_gain),
+                   np.asarray(theirs.current_gain_se) / np.abs(theirs.current_gain))
+    se = np.where(np.isfinite(ratio), ratio * rel, np.nan)
+    known = np.isfinite(ratio)
+    off = known & (np.abs(ratio - 1) > np.maximum(OTHER_SESSION_SIGMAS * np.where(
+        known, se, 0.0), OTHER_SESSION_GAIN))
+    for k, limit in (("supply_ratio", OTHER_SESSION_SUPPLY),
+                     ("temperature_change", OTHER_SESSION_KELVIN)):
+        v = np.array([np.nan if x is None else x for x in state[k] or []], float)
+        if v.size:
+            known = known | np.isfinite(v)
+            off = off | (np.abs(v - (1.0 if k == "supply_ratio" else 0.0)) > limit)
+    state["current_gain_ratio_se"] = nan_to_null(se)
+    state["other_session_joints"] = (np.flatnonzero(off) + 1).tolist()
+    state["same_session"] = None if not known.any() else not off.any()
+    return state
