@@ -40,11 +40,13 @@ from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import choose_sets, evaluate
 from jaxinertia.lbipe import default_lbipe_dir, find_layout, load_test_files
 from jaxinertia.reference import apply_reference, reference_correction
-from jaxinertia.samples import Samples
+from jaxinertia.samples import Samples, save_native
 from jaxinertia.session import servo_session
 from jaxinertia.sim.params import default_sim_params
 from jaxinertia.sim.randomize import session_drawn, session_spread
 from jaxinertia.sim.real_fit import baseline_statistics
+from jaxinertia.training import TrainConfig
+from jaxinertia.training_setup import FINETUNE_DEFAULTS
 
 METHODS = ("T", "T-A")
 
@@ -83,6 +85,10 @@ def main():
                     "150g)")
     ap.add_argument("--reference-n", type=int, nargs="+", default=[64, 250, 1000],
                     help="poses per load of a reference")
+    ap.add_argument("--finetune", type=int, default=0, metavar="N",
+                    help="also fine-tune the folder (every part, the fine-tuning defaults, "
+                    "read as recorded) on N poses per load of the first reference, and "
+                    "judge that folder as recorded")
     ap.add_argument("--n-sets", type=int, default=None)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--lbipe-dir", default=None)
@@ -148,6 +154,19 @@ def main():
                             + ("" if offset else ", gain only"))
                     variants[name] = judged(folder, objs, sets, corr)
                     session_fit[name] = corr.to_dict()
+        if a.finetune:
+            spec = a.reference[0]
+            part = Samples.concatenate([loads[name].take(np.arange(
+                min(a.finetune, loads[name].n_samples))) for name in spec.split(",")])
+            path = out / "data" / f"finetune_session_{s}.npz"
+            save_native(path, part, {"robot": ref.meta.get("robot"), "source": "test",
+                                     "objects": list(part.names)})
+            tuned = out / f"models_finetuned_session_{s}"
+            train([path], tuned, TrainConfig(**FINETUNE_DEFAULTS, trainable="all",
+                                             session_strength=0.0, seed=a.seed),
+                  init=models, overwrite=True, progress=False)
+            variants[f"fine-tuned on {spec} x {a.finetune}"] = judged(load_models(tuned),
+                                                                      objects, sets)
         fitted.append(session_fit)
         for name, v in variants.items():
             rows.setdefault(name, []).append(v)
