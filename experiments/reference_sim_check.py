@@ -24,13 +24,13 @@ over objects and sessions, and the fitted gains against each session's true fact
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
+from session_sim_check import sessions_spread  # (experiments/: the script's folder)
 
 from jaxinertia import apply_xla_workarounds
 from jaxinertia.app.pipeline import adapt_objects, session_reference, train
@@ -38,25 +38,14 @@ from jaxinertia.app.reproduce import FULL, QUICK
 from jaxinertia.app.simdata import simulate_files
 from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import choose_sets, evaluate
-from jaxinertia.lbipe import default_lbipe_dir, find_layout, load_test_files
 from jaxinertia.reference import apply_reference, reference_correction
 from jaxinertia.samples import Samples, save_native
-from jaxinertia.session import servo_session
 from jaxinertia.sim.params import default_sim_params
-from jaxinertia.sim.randomize import session_drawn, session_spread
-from jaxinertia.sim.real_fit import baseline_statistics
+from jaxinertia.sim.randomize import session_drawn
 from jaxinertia.training import TrainConfig
 from jaxinertia.training_setup import FINETUNE_DEFAULTS
 
 METHODS = ("T", "T-A")
-
-
-def real_spread(lbipe_dir):
-    files = load_test_files(find_layout(lbipe_dir))
-    cur = [servo_session(o).current_gain for o in files]
-    tor = [baseline_statistics(o.q_d, o.q, o.direction, o.tau, o.current_tau)["k"]
-           for o in files]
-    return session_spread(cur, tor)
 
 
 def judged(folder, objects, sets, correction=None):
@@ -96,8 +85,7 @@ def main():
     scale = FULL if a.scale == "full" else QUICK
     out = Path(a.out)
     t0 = time.perf_counter()
-    spread = real_spread(a.lbipe_dir or default_lbipe_dir())
-    spread = dataclasses.replace(spread, torque_rel=spread.torque_rel * a.torque_rel_scale)
+    spread, _ = sessions_spread(a.lbipe_dir, a.torque_rel_scale)  # item 5's sessions
     print("session spread:", spread.to_dict())
     base = default_sim_params()
     models = Path(a.models) if a.models else out / "models"

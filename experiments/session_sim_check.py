@@ -46,6 +46,13 @@ def real_spread(lbipe_dir):
                                       for o, c, t in zip(files, cur, tor)}
 
 
+def sessions_spread(lbipe_dir, torque_rel_scale: float = 1.0):
+    """The spread sessions are drawn with (the real files', the torque-only part times
+    ``torque_rel_scale``) and the real files' gains."""
+    spread, real = real_spread(lbipe_dir or default_lbipe_dir())
+    return dataclasses.replace(spread, torque_rel=spread.torque_rel * torque_rel_scale), real
+
+
 def main():
     apply_xla_workarounds()  # XLA:CPU settings, before JAX starts its backend
     jax.config.update("jax_enable_x64", True)
@@ -63,8 +70,7 @@ def main():
     scale = FULL if a.scale == "full" else QUICK
     out = Path(a.out)
     t0 = time.perf_counter()
-    spread, real = real_spread(a.lbipe_dir or default_lbipe_dir())
-    spread = dataclasses.replace(spread, torque_rel=spread.torque_rel * a.torque_rel_scale)
+    spread, real = sessions_spread(a.lbipe_dir, a.torque_rel_scale)
     print("real sessions (current gain, torque gain):", real)
     print("session spread:", spread.to_dict())
     base = default_sim_params()
