@@ -32,11 +32,14 @@ from flax import struct
 
 from jaxinertia.errors import UsageError
 from jaxinertia.estimation import ModelPair
+from jaxinertia.evaluation import evaluate
 from jaxinertia.features import FeatureConfig
 from jaxinertia.fileio import nan_to_null
 from jaxinertia.samples import Samples
+from jaxinertia.session import SessionReference, adapt
 
-__all__ = ["ReferenceCorrection", "apply_reference", "reference_correction"]
+__all__ = ["ReferenceCorrection", "apply_reference", "corrected", "evaluate_corrected",
+           "reference_correction"]
 
 #: A joint's gain is used only within this range (beyond it the reference is another
 #: servo, another arm or a broken recording, not a day's state).
@@ -118,3 +121,35 @@ def apply_reference(pair: ModelPair, objects: Sequence[Samples],
                                    * correction.gain).astype(dtype))
     return pair, [o.replace(tau_g=np.asarray(o.tau_g, np.float64) - correction.offset)
                   for o in objects]
+
+
+def corrected(pair: ModelPair, fc: FeatureConfig, objects: Sequence[Samples],
+              known: Sequence[Samples] | None, session: SessionReference | None
+              ) -> tuple[ModelPair, list[Samples], ReferenceCorrection | None]:
+    """``pair`` and ``objects`` (already read in ``session``) read through the correction
+    fitted on the known loads ``known`` read in the same ``session``; without ``known``, as
+    they are (correction None)."""
+    if known is None:
+        return pair, objects, None
+    corr = reference_correction(pair, fc, Samples.concatenate([adapt(k, session)[0]
+                                                                for k in known]))
+    pair, objects = apply_reference(pair, objects, corr)
+    return pair, objects, corr
+
+
+def evaluate_corrected(objects: Sequence[Samples], raw: Sequence[Samples], sets, *,
+                       pair: ModelPair | None, baselines, fc: FeatureConfig | None,
+                       l_max) -> dict:
+    """:func:`jaxinertia.evaluation.evaluate` with the networks on ``objects`` (read
+    through a reference's correction) and the baselines on ``raw`` (the same objects as
+    recorded); ``objects is raw``: one evaluation, as without a reference."""
+    if objects is raw:
+        return evaluate(objects, sets, pair=pair, baselines=baselines, fc=fc, l_max=l_max)
+    net = evaluate(objects, sets, pair=pair, fc=fc, l_max=l_max)
+    base = evaluate(raw, sets, baselines=baselines, l_max=l_max)
+    return {**net, "estimates": {**base["estimates"], **net["estimates"]},
+            "torque": {**base["torque"], **net["torque"]},
+            "objects": {n: {**base["objects"][n], **net["objects"][n]} for n in net["objects"]},
+            "diagnostics": {n: {**base["diagnostics"][n], **net["diagnostics"][n]}
+                            for n in net["diagnostics"]},
+            "unavailable": base["unavailable"]}

@@ -48,8 +48,8 @@ from jaxinertia.errors import UsageError
 from jaxinertia.fileio import nan_to_null, null_to_nan
 from jaxinertia.samples import Samples
 
-__all__ = ["DEAD_BAND_GRID", "ServoSession", "SessionReference", "adapt", "dead_band_fit",
-           "servo_session", "servo_state_change"]
+__all__ = ["DEAD_BAND_GRID", "ServoSession", "SessionReference", "adapt", "adapt_objects",
+           "dead_band_fit", "servo_session", "servo_state_change", "session_reference"]
 
 
 @struct.dataclass
@@ -218,6 +218,26 @@ def adapt(data: Samples, reference: SessionReference | None,
     q = np.asarray(data.q)
     q_d = q + (np.asarray(data.q_d) - q) * ratio.astype(q.dtype)
     return data.replace(q_d=q_d), ratio
+
+
+def session_reference(config: dict, strength: float | None = None, *,
+                      simulated: bool = False) -> SessionReference | None:
+    """A model folder's session reference (from its ``config``) for real files (None: the
+    folder predates sessions), or, ``simulated``, for simulated ones: the session of the
+    simulator that made its training data (real ones' when it has none); ``strength``
+    overrides the recorded one."""
+    ref = SessionReference.from_dict(config.get("session"))
+    if simulated:
+        ref = SessionReference.from_dict(config.get("simulator_session")) or ref
+    return ref if ref is None or strength is None else ref.replace(strength=float(strength))
+
+
+def adapt_objects(objects: Sequence[Samples], reference: SessionReference | None
+                  ) -> tuple[list[Samples], list[list[float]]]:
+    """Each object's samples (one recording session each) read in the reference session,
+    from its own current-discrepancy slope; returns them and the per-joint ratios."""
+    pairs = [adapt(o, reference) for o in objects]
+    return [p[0] for p in pairs], [p[1].tolist() for p in pairs]
 
 
 def servo_state_change(reference: SessionReference | None, session: ServoSession) -> dict:

@@ -19,7 +19,12 @@ from support.synthetic import feature_config, synthetic_samples
 from jaxinertia.app.cli import main
 from jaxinertia.app.ensemble import attach_members
 from jaxinertia.app.estimate import estimate
-from jaxinertia.app.pipeline import adapt_objects, copy_models, session_reference
+from jaxinertia.app.pipeline import (
+    adapt_objects,
+    copy_models,
+    evaluate_samples,
+    session_reference,
+)
 from jaxinertia.app.provenance import FITTED_ON, fitted_on, seen_by
 from jaxinertia.baselines import fit_baselines
 from jaxinertia.checkpoints import load_models, save_models
@@ -345,6 +350,24 @@ def test_a_reference_of_known_torques_corrects_the_networks_and_not_the_baseline
                                rtol=1e-12)
     assert both["objects"]["o2"]["methods"]["T"]["mass_kg"] == pytest.approx(obj.x[0, 0],
                                                                               rel=1e-5)
+    # evaluate --reference: the same correction; the K pairs' mean answer on every set is
+    # the truth (each pair's own is not: the pairs differ from their mean).
+    res = evaluate_samples(ens, unknown, n_sets=4, session_strength=0.0, l_max={"o2": 0.1},
+                           known=objects[:2])
+    np.testing.assert_allclose(res["reference_correction"]["gain"], corr["gain"], rtol=1e-12)
+    x_sets = np.asarray(res["estimates"]["T"])[0].mean(axis=0)  # (B, 4): the pairs' mean
+    np.testing.assert_allclose(x_sets, np.broadcast_to(obj.x[0], x_sets.shape), rtol=1e-4)
+    plain_res = evaluate_samples(ens, unknown, n_sets=4, session_strength=0.0,
+                                 l_max={"o2": 0.1})
+    assert res["objects"]["o2"]["PE"] == plain_res["objects"]["o2"]["PE"]
+    capsys.readouterr()
+    assert main(["evaluate", "--models", str(tmp / "m0"), "--samples", str(unknown),
+                 "--reference", str(ref), "--sets", "4", "--l-max", "o2=0.1",
+                 "--session-strength", "0"]) == 0
+    assert "samples of known torque): the networks' torques read x 1.100 / 1.100" in \
+        capsys.readouterr().out
+    assert main(["evaluate", "--models", str(tmp / "m0"), "--reference", str(ref)]) == 2
+    assert "--reference needs --samples" in capsys.readouterr().err
     # Too few samples to tell a gain and an offset, or a gain no servo's day explains (the
     # reference names another load than it carried, or another arm): refused, saying so.
     known = Samples.concatenate(objects[:2])

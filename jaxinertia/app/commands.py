@@ -186,10 +186,21 @@ def cmd_evaluate(args) -> int:
 
     released = None
     if args.samples:
+        from jaxinertia.app.with_reference import read_reference  # (as above)
+
+        ref = (None if args.reference is None else
+               read_reference(args.reference, arm_name(args)))
         res = pipeline.evaluate_samples(args.models, args.samples, n_sets=args.sets,
                                         seed=args.seed, l_max=l_max, arm=arm_name(args),
-                                        session_strength=args.session_strength)
+                                        session_strength=args.session_strength,
+                                        known=None if ref is None else ref.objects)
+        if ref is not None:
+            res["reference"] = ref.record()
     else:
+        if args.reference is not None:
+            raise UsageError("--reference needs --samples: a reference is recorded in the "
+                             "session of the file it corrects (the real lbipe files are two "
+                             "sessions; docs/results.md, 'A reference in the same session')")
         lbipe_arm_only(args, "without --samples, evaluate reads")
         lbipe_dir = lbipe_dir_of(args)
         real = pipeline.sim_to_real(args.models, lbipe_dir, seed=args.seed, n_sets=args.sets,
@@ -201,6 +212,13 @@ def cmd_evaluate(args) -> int:
     from jaxinertia.app.provenance import not_held_out_line, seen_by  # (as above)
 
     about = {}  # per object, beside its tables in --json: its file, session, provenance
+    if ref := res.get("reference"):
+        c = res["reference_correction"]
+        print(f"reference {ref['file']} ({', '.join(ref['objects'])}, {ref['n_samples']} "
+              "samples of known torque): the networks' torques read x "
+              + " / ".join(f"{g:.3f}" for g in c["gain"]) + ", "
+              + " / ".join(f"{b * 1e3:+.1f}" for b in c["offset_Nm"])
+              + " N mm per joint (each folder fits its own; the baselines as recorded)")
     for name, ratio in res["session_ratio"].items():
         print(session_line(name, res["session_strength"], ratio))
         about[name] = {"sha256": res["sha256"][name], "session": {
@@ -214,6 +232,8 @@ def cmd_evaluate(args) -> int:
         seen = seen_by(args.models, res["sha256"][name])
         about[name]["fitted_on_this_file"] = {p: {"folders": k, "of": n}
                                               for p, (k, n) in seen.items()}
+        if ref:  # the known loads that corrected the networks, and the folder's correction
+            about[name]["reference"] = {**ref, "correction": res["reference_correction"]}
         if line := not_held_out_line(name, seen):
             print(line)
     print()
@@ -271,6 +291,10 @@ def register(sub) -> None:
     e.add_argument("--json", type=Path, help="write Table I/III (lbipe-benchmark schema) and "
                    "per object its file's SHA-256, the session ratios it was read with and how "
                    "many of the folders answering were fitted on it (fitted_on_this_file)")
+    e.add_argument("--reference", type=Path, default=None, metavar="FILE",
+                   help="with --samples: known loads recorded in the same session; each "
+                   "folder's networks read the objects through the torque gain and offset "
+                   "per joint fitted on it (as estimate --reference)")
     e.add_argument("--sets", type=positive_int, default=1000,
                    help="random sets per object (no golden)")
     e.add_argument("--overwrite", action="store_true", help="replace an existing --json")

@@ -314,11 +314,7 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
             out["ensemble_weights"] = weights
     if reference is not None:
         out["reference"] = {
-            "file": reference.path, "sha256": reference.sha256,
-            "objects": [o.name for o in reference.objects],
-            "empty_gripper": any(not o.mass > 0 for o in reference.objects),
-            "n_samples": int(sum(o.n_samples for o in reference.objects)),
-            "correction": corr.to_dict(),
+            **reference.record(), "correction": corr.to_dict(),
             "members": [m.correction.to_dict() for m in members]}
     # (T-A answers as T only where no member has its attention: models_real_with_released's
     # released member keeps the authors')

@@ -45,8 +45,16 @@ from jaxinertia.lbipe import (
     read_test_files,
 )
 from jaxinertia.networks import torque_model_kind
+from jaxinertia.reference import corrected, evaluate_corrected
 from jaxinertia.samples import SampleFile, Samples, load_samples, read_sample_file
-from jaxinertia.session import ServoSession, SessionReference, adapt, servo_session
+from jaxinertia.session import (
+    ServoSession,
+    SessionReference,
+    adapt,
+    adapt_objects,
+    servo_session,
+    session_reference,
+)
 from jaxinertia.session_terms import with_session_terms
 from jaxinertia.training import (
     TrainConfig,
@@ -278,52 +286,37 @@ def copy_models(src: str | os.PathLike, dst: str | os.PathLike, *,
     return copy_folder(src, dst, config)
 
 
-def session_reference(config: dict, strength: float | None = None, *,
-                      simulated: bool = False) -> SessionReference | None:
-    """A model folder's session reference for real files (None: the folder predates
-    sessions), or, ``simulated``, for simulated ones: the session of the simulator that
-    made its training data (real ones' when it has none); ``strength`` overrides the
-    recorded one."""
-    ref = SessionReference.from_dict(config.get("session"))
-    if simulated:
-        ref = SessionReference.from_dict(config.get("simulator_session")) or ref
-    return ref if ref is None or strength is None else ref.replace(strength=float(strength))
-
-
-def adapt_objects(objects: Sequence[Samples], reference: SessionReference | None
-                  ) -> tuple[list[Samples], list[list[float]]]:
-    """Each object's samples (one recording session each) read in the reference session,
-    from its own current-discrepancy slope; returns them and the per-joint ratios."""
-    pairs = [adapt(o, reference) for o in objects]
-    return [p[0] for p in pairs], [p[1].tolist() for p in pairs]
-
-
 def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
                     sets: Sequence[np.ndarray], *, l_max: Sequence[float] | None = None,
                     robot: str | None = None, session_strength: float | None = None,
-                    simulated: bool = False, arm: str | None = None) -> dict:
+                    simulated: bool = False, arm: str | None = None,
+                    known: Sequence[Samples] | None = None) -> dict:
     """A model folder (its pairs and baselines) on known objects over the given sets, each
     object read in the folder's session (``simulated``: objects the simulator made, read in
     its session; ``session_strength``: override, 0 = off). A folder that names COM models
     (:mod:`jaxinertia.app.by_part`) is judged with the network methods' COM from those; one
-    that names ensemble members (:mod:`jaxinertia.app.ensemble`), by their mean."""
+    that names ensemble members (:mod:`jaxinertia.app.ensemble`), by their mean. ``known``:
+    known loads recorded in the objects' session, through whose gain and offset per joint
+    each folder's networks read them (:mod:`jaxinertia.reference`; the baselines do not)."""
     folder = load_models(models, robot=robot, arm=arm)
     reference = session_reference(folder.config, session_strength, simulated=simulated)
     adapted, ratios = adapt_objects(objects, reference)
     t, members = time.perf_counter(), members_of(models, folder.config)
-    res = evaluate(adapted, sets, pair=folder.pair, baselines=folder.baselines,
-                   fc=folder.features, l_max=l_max)
+    pair, read, corr = corrected(folder.pair, folder.features, adapted, known, reference)
+    res = evaluate_corrected(read, adapted, sets, pair=pair, baselines=folder.baselines,
+                             fc=folder.features, l_max=l_max)
+    kw = dict(l_max=l_max, robot=robot, session_strength=session_strength,
+              simulated=simulated, arm=arm, known=known)
     if members:  # each member reads the objects in its own session
-        res = mean_evaluation([res] + [evaluate_models(
-            m, objects, sets, l_max=l_max, robot=robot, session_strength=session_strength,
-            simulated=simulated, arm=arm) for m in members], objects, [Path(models), *members],
-            weights_of(folder.config, models))
+        res = mean_evaluation([res] + [evaluate_models(m, objects, sets, **kw)
+                                       for m in members], objects, [Path(models), *members],
+                              weights_of(folder.config, models))
     com = com_models_of(models, folder.config)
     if com is not None:
-        part = evaluate_models(com, objects, sets, l_max=l_max, robot=robot,
-                               session_strength=session_strength, simulated=simulated, arm=arm)
+        part = evaluate_models(com, objects, sets, **kw)
         res = {**merge_evaluations(res, part), "com_models": str(com), "com_session": {
             "strength": part["session_strength"], "ratio": part["session_ratio"]}}
+    res.update({} if corr is None else {"reference_correction": corr.to_dict()})
     res["wall_time_s"] = time.perf_counter() - t
     res["config"] = folder.config
     res["session_ratio"] = {o.name: r for o, r in zip(adapted, ratios)}
@@ -334,7 +327,8 @@ def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
 def evaluate_samples(models: str | os.PathLike, sample_file: str | os.PathLike | SampleFile,
                      *, n_sets: int = 1000, set_size: int = 64, seed: int = 0,
                      l_max: dict[str, float] | None = None, arm: str | None = None,
-                     session_strength: float | None = None) -> dict:
+                     session_strength: float | None = None,
+                     known: Sequence[Samples] | None = None) -> dict:
     """A model folder on every object of a sample file (random sets, seed + i); ``l_max``
     gives the bounding-box diagonal of objects without a built-in one. ``sample_file``: a
     path, or a file already read (its samples at rest); ``arm``: the arm the samples must
@@ -353,7 +347,7 @@ def evaluate_samples(models: str | os.PathLike, sample_file: str | os.PathLike |
     sets, _ = choose_sets(objects, n_sets=n_sets, set_size=set_size, seed=seed)
     return {**evaluate_models(models, objects, sets, l_max=diag, robot=meta.get("robot"),
                               simulated=is_simulated(meta), arm=arm,
-                              session_strength=session_strength),
+                              session_strength=session_strength, known=known),
             "sha256": {o.name: meta.get("sha256") for o in objects}}  # (each object's file)
 
 

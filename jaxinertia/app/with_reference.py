@@ -10,11 +10,11 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxinertia.app.arm_options import samples_arm
-from jaxinertia.app.pipeline import adapt_objects, objects_at_rest
+from jaxinertia.app.pipeline import objects_at_rest
 from jaxinertia.errors import FileFormatError, UsageError
-from jaxinertia.evaluation import evaluate
 from jaxinertia.fileio import nan_to_null
-from jaxinertia.reference import apply_reference, reference_correction
+from jaxinertia.reference import corrected as fit_and_apply
+from jaxinertia.reference import evaluate_corrected
 from jaxinertia.samples import Samples
 from jaxinertia.session import SessionReference, servo_session, servo_state_change
 from jaxinertia.uncertainty import uncertainty_of
@@ -38,16 +38,11 @@ OTHER_SESSION_KELVIN = 5.0
 
 
 def evaluated(obj: Samples, sets, *, pair, baselines, fc, raw: Samples) -> dict:
-    """:func:`evaluate` of one object: the networks on ``obj``, the baselines on ``raw``
-    (the object as recorded, where a reference's correction made ``obj`` another record)."""
-    if raw is obj:
-        return evaluate([obj], sets, pair=pair, baselines=baselines, fc=fc, l_max=[np.nan])
-    net = evaluate([obj], sets, pair=pair, fc=fc, l_max=[np.nan])
-    base = evaluate([raw], sets, baselines=baselines, l_max=[np.nan])
-    name = obj.name
-    return {**net, "estimates": {**base["estimates"], **net["estimates"]},
-            "objects": {name: {**base["objects"][name], **net["objects"][name]}},
-            "unavailable": base["unavailable"]}
+    """:func:`~jaxinertia.reference.evaluate_corrected` of one object (``raw``: as
+    recorded, where a reference's correction made ``obj`` another record)."""
+    objs = [obj]
+    return evaluate_corrected(objs, objs if raw is obj else [raw], sets, pair=pair,
+                              baselines=baselines, fc=fc, l_max=[np.nan])
 
 
 def uncertainty(obj: Samples, sets, *, pair, baselines, fc, raw: Samples, floor) -> dict:
@@ -60,11 +55,18 @@ def uncertainty(obj: Samples, sets, *, pair, baselines, fc, raw: Samples, floor)
 
 class ReferenceFile(NamedTuple):
     """A file of known loads recorded in the unknown object's session (``estimate
-    --reference``)."""
+    --reference``, ``evaluate --reference``)."""
 
     path: str
     sha256: str | None
     objects: list[Samples]
+
+    def record(self) -> dict:
+        """What an answer says of it."""
+        return {"file": self.path, "sha256": self.sha256,
+                "objects": [o.name for o in self.objects],
+                "empty_gripper": any(not o.mass > 0 for o in self.objects),
+                "n_samples": int(sum(o.n_samples for o in self.objects))}
 
 
 def read_reference(path, arm) -> ReferenceFile:
@@ -91,15 +93,11 @@ def corrected(folder, objects: list[Samples], ref: ReferenceFile | None, session
     """``folder``'s pair and ``objects`` read through the reference's correction, fitted on
     the reference read in ``session`` (the folder's own); without a reference, as they are.
     Returns the pair, the objects and the correction (None)."""
-    if ref is None:
-        return folder.pair, objects, None
-    known, _ = adapt_objects(ref.objects, session)
     try:
-        corr = reference_correction(folder.pair, folder.features, Samples.concatenate(known))
+        return fit_and_apply(folder.pair, folder.features, objects,
+                             None if ref is None else ref.objects, session)
     except UsageError as e:
         raise UsageError(f"--reference {ref.path} with {desc}: {e}") from None
-    pair, objects = apply_reference(folder.pair, objects, corr)
-    return pair, objects, corr
 
 
 def same_session(ref: ReferenceFile, obj: Samples) -> dict:
