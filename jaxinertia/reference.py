@@ -37,6 +37,7 @@ from jaxinertia.features import FeatureConfig
 from jaxinertia.fileio import nan_to_null
 from jaxinertia.samples import Samples
 from jaxinertia.session import SessionReference, adapt
+from jaxinertia.training import torque_predictions
 
 __all__ = ["ReferenceCorrection", "apply_reference", "corrected", "evaluate_corrected",
            "reference_correction"]
@@ -68,8 +69,6 @@ class ReferenceCorrection:
 def predicted_torques(pair: ModelPair, fc: FeatureConfig, data: Samples) -> np.ndarray:
     """(S, N) the mean of the K model pairs' torques on ``data`` [N m], as the estimate
     computes them (the pair's own output scale)."""
-    from jaxinertia.training import torque_predictions  # (training imports this package)
-
     fc = fc.replace(tau_scale=np.asarray(pair.tau_scale))
     return np.asarray(torque_predictions(pair.torque_model, pair.torque_vars, fc, data),
                       np.float64).mean(axis=0)
