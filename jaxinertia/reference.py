@@ -4,17 +4,18 @@ the day measured, not inferred.
 A recording session scales the torque one tick of error buys (supply, winding
 temperature, wear; :mod:`jaxinertia.session`). The current gain sees the electrical part
 of it and nothing of a change of the torque constant, and on the OpenMANIPULATOR-X 1 % of
-joint 2's torque is about 5 g of the object's mass. A *reference*, a load whose joint
-torques are known (the empty gripper: the arm's own gravity, ``tau = tau_g``; or a known
-weight), recorded at a few hundred poses in the same session, measures it: per joint, the
-models' torques against the true ones,
+joint 2's torque is about 5 g of the object's mass. A *reference*, a known weight in the
+range of the objects (its joint torques known), recorded at a few hundred poses in the
+same session, measures it: per joint, the models' torques against the true ones,
 
     tau = g * tau_hat + b        (least squares over the reference's samples),
 
-and the unknown object's are read as ``g * tau_hat + b``. The arm's own gravity varies over
-the poses by several times the object's torque, so the gain is well determined by the
-reference alone (unlike a gain fitted together with an unknown object, where the object's
-mass absorbs it: docs/results.md, "Adaptation from the statics alone"). A reference from
+and the unknown object's are read as ``g * tau_hat + b``. The load's known torques fix
+the gain (unlike a gain fitted together with an unknown object, where the object's mass
+absorbs it: docs/results.md, "Adaptation from the statics alone"). The empty gripper is no
+reference: at no load the fit takes the models' own errors there for the session's, and
+on the simulator it made the answer worse (docs/results.md, "A reference in the same
+session"; ``estimate`` refuses it). A reference from
 another session carries that session's state instead (docs/results.md, "A known object at
 the same poses as a reference": it made the real files' answers worse).
 
