@@ -20,6 +20,7 @@ from pathlib import Path
 import jax
 
 from jaxinertia.app.folds import FoldScale, run_folds
+from jaxinertia.app.options import enable_x64
 from jaxinertia.app.pipeline import load_real
 from jaxinertia.app.reproduce import FULL, QUICK
 
@@ -49,6 +50,8 @@ def main() -> None:
     ap.add_argument("--full", action="store_true", help="the paper's scale (default: quick)")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
+    enable_x64()  # as the command line: float64 statics and least squares (before session 39
+    #               this script ran them in float32, unlike `reproduce`)
     jax.monitoring.register_event_duration_secs_listener(_on_duration)
     scale = FULL if args.full else QUICK
     real = load_real(args.lbipe_dir, seed=args.seed, n_sets=scale.n_sets)

@@ -33,7 +33,7 @@ def test_xm430_record_is_todays_numbers_exactly():
     v, no_load = 12.0, 46.0 * 2.0 * np.pi / 60.0
     expected = dict(p_gain=800.0, i_gain=0.0, d_gain=0.0, pwm_limit=885.0, supply_voltage=v,
                     torque_constant=4.1 / 2.3, resistance=v / 2.3, back_emf=v / no_load,
-                    current_limit=3.2, current_noise=2 * 2.69e-3)
+                    current_limit=3.2, current_noise=2 * 2.69e-3, current_dead_band=0.0)
     for params in (ServoParams.xm430_w350(4), ServoParams.from_model(XM430_W350, 4)):
         assert set(params.__dict__) == set(expected)
         for k, val in expected.items():

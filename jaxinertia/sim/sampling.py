@@ -21,6 +21,7 @@ from jaxinertia.sim.servo import (
     CURRENT_LSB_A,
     NOMINAL_TORQUE_CONSTANT,
     RAD_PER_TICK,
+    current_reading_share,
     present_ticks,
 )
 from jaxinertia.sim.simulator import SimParams, SimState, move_and_settle, physical_params
@@ -68,7 +69,10 @@ def record(params: SimParams, bare: Robot, obj: HeldObject, q_d, direction, stat
     # current-based torque); the XM430's unless the parameters say otherwise.
     lsb, k_t = ((CURRENT_LSB_A, NOMINAL_TORQUE_CONSTANT) if params.current_lsb is None
                 else (params.current_lsb, params.current_torque_constant))
-    current = jnp.round((state.servo.current + noise) / lsb) * lsb
+    # Within the drive's dead band the reading is 0, noise and all (ServoParams).
+    share = current_reading_share(state.servo.prev_error, params.servo.current_dead_band)
+    current = jnp.where(share > 0, jnp.round((state.servo.current * share + noise) / lsb) * lsb,
+                        0.0)
     R_bt, p_bt = tag_pose(bare, q, obj.R_ee_tag, obj.p_ee_tag)
     A = load_regressor(bare, q, R_bt, p_bt)
     tau_g = gravity_torques(bare, q)

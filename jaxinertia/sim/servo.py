@@ -40,6 +40,7 @@ __all__ = [
     "NOMINAL_TORQUE_CONSTANT",
     "ServoParams",
     "ServoState",
+    "current_reading_share",
     "present_ticks",
     "servo_step",
     "goal_ticks",
@@ -60,6 +61,9 @@ class ServoParams:
     back_emf: jnp.ndarray  # output-side [V s/rad]
     current_limit: jnp.ndarray  # [A]
     current_noise: jnp.ndarray  # std of the Present Current reading [A]
+    #: The drive's dead band [ticks of error]: within it Present Current reads 0, beyond it
+    #: the reading grows from 0 (:func:`current_reading_share`; 0: none, the datasheet's).
+    current_dead_band: jnp.ndarray
 
     @classmethod
     def xm430_w350(cls, n_joints: int, **overrides) -> ServoParams:
@@ -88,7 +92,8 @@ class ServoParams:
                 d_gain=d * (kd * 16.0) * to_pwm, pwm_limit=m.pwm_limit * to_pwm,
                 supply_voltage=v, torque_constant=m.stall_torque / m.stall_current,
                 resistance=v / m.stall_current, back_emf=v / m.no_load_speed,
-                current_limit=m.current_limit, current_noise=2 * noise_lsb)
+                current_limit=m.current_limit, current_noise=2 * noise_lsb,
+                current_dead_band=0.0)
 
         per_joint = [values(m) for m in models]
         base = {k: np.array([pj[k] for pj in per_joint]) for k in per_joint[0]}
@@ -139,3 +144,17 @@ def servo_step(
     current = (voltage - params.back_emf * qd) / params.resistance
     current = jnp.clip(current, -params.current_limit, params.current_limit)
     return ServoState(integral, e, params.torque_constant * current, current)
+
+
+def current_reading_share(error_ticks, dead_band):
+    """The share of the motor current that Present Current shows at a position error
+    [ticks]: ``max(|e| - d, 0) / |e|``, so that the reading grows by the same gain per
+    tick beyond the drive's dead band ``d`` [ticks] and is 0 within it (the real XM430s of
+    the OpenMANIPULATOR-X read no current within 1-3 ticks: ``experiments/servo_dead_band.py``,
+    docs/results.md "The dead band"). Exactly 1 where ``d`` is 0. The reading alone: the
+    torque the servo holds is the simulator's, whose calibration matches the real torques
+    (a dead band in the torque too was tried and made the arm sag where friction holds the
+    real one)."""
+    e = jnp.abs(error_ticks)
+    return jnp.where(dead_band > 0, jnp.clip(1.0 - dead_band / jnp.maximum(e, 1e-6), 0.0, 1.0),
+                     1.0)

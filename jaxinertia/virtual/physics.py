@@ -64,7 +64,7 @@ import numpy as np
 
 from jaxinertia import _xla_workarounds, compilation_cache
 from jaxinertia.hardware import control_table as ct
-from jaxinertia.sim.servo import ServoParams, goal_ticks
+from jaxinertia.sim.servo import ServoParams, current_reading_share, goal_ticks
 from jaxinertia.sim.simulator import SimParams, SimState, step, trapezoid
 from jaxinertia.virtual.bus import ServoMemory, table_views
 from jaxinertia.xm430 import PWM_FULL_SCALE
@@ -255,8 +255,10 @@ class ArmPhysics:
         qd = np.asarray(state.qd)
         current = np.asarray(state.servo.current)
         s = self.params.servo
-        reading = current + np.asarray(s.current_noise) * self._noise_rng.standard_normal(
-            current.shape)
+        share = np.asarray(current_reading_share(np.asarray(state.servo.prev_error),
+                                                 np.asarray(s.current_dead_band)))
+        reading = np.where(share > 0, current * share + np.asarray(s.current_noise)
+                           * self._noise_rng.standard_normal(current.shape), 0.0)
         # Present PWM from the motor equation V = R I + k_e qd (before the reading noise).
         volts = np.asarray(s.resistance) * current + np.asarray(s.back_emf) * qd
         if torque:
