@@ -49,7 +49,8 @@ from jaxinertia.fileio import nan_to_null, null_to_nan
 from jaxinertia.samples import Samples
 
 __all__ = ["DEAD_BAND_GRID", "ServoSession", "SessionReference", "adapt", "adapt_objects",
-           "dead_band_fit", "servo_session", "servo_state_change", "session_reference"]
+           "dead_band_fit", "seen_dead_band", "servo_session", "servo_state_change",
+           "session_reference"]
 
 
 @struct.dataclass
@@ -130,6 +131,25 @@ def dead_band_fit(e: np.ndarray, current: np.ndarray, grid: np.ndarray = DEAD_BA
     se = np.where(ok, np.sqrt(np.maximum(sse[best, cols], 0.0) / dof / safe[best, cols]),
                   np.inf)
     return gain, se, np.where(sensed, np.asarray(grid)[best], np.nan)
+
+
+#: A joint's dead band is seen only where its error takes both signs, each on at least this
+#: share of the samples (joint 2 of the OpenMANIPULATOR-X carries the arm and never does).
+MIN_SIGN_SHARE = 0.1
+
+
+def seen_dead_band(data: Samples | Sequence[Samples]) -> np.ndarray:
+    """(N,) the dead band [rad] of the records' Present Current, pooled
+    (:func:`dead_band_fit`); 0 where it cannot be seen: a joint whose error keeps one sign
+    (there ``d`` trades against the offset ``c``) or one without a current sensor. The
+    simulator's reading takes it (``sim.real_fit.fit_servo_friction(dead_band=True)``)."""
+    parts = [data] if isinstance(data, Samples) else list(data)
+    e = np.concatenate([np.asarray(p.q_d, np.float64) - np.asarray(p.q, np.float64)
+                        for p in parts])
+    _, _, band = dead_band_fit(e, np.concatenate([np.asarray(p.current_tau, np.float64)
+                                                  for p in parts]))
+    seen = np.minimum(np.mean(e > 0, axis=0), np.mean(e < 0, axis=0)) >= MIN_SIGN_SHARE
+    return np.where(seen & np.isfinite(band), band, 0.0)
 
 
 def servo_session(data: Samples | Sequence[Samples]) -> ServoSession:

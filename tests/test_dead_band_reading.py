@@ -12,15 +12,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxinertia.session import dead_band_fit
+from jaxinertia.session import dead_band_fit, seen_dead_band
 from jaxinertia.sim.params import apply_servo_friction, default_sim_params, params_to_dict
-from jaxinertia.sim.real_fit import (
-    fit_servo_friction,
-    reading_dead_band,
-    real_files,
-    real_plan,
-    simulate_real_plan,
-)
+from jaxinertia.sim.real_fit import fit_servo_friction, real_files, real_plan, simulate_real_plan
 from jaxinertia.sim.servo import RAD_PER_TICK, current_reading_share
 
 
@@ -68,9 +62,10 @@ def test_the_band_is_read_from_the_real_files_where_it_can_be_seen(lbipe_dir):
     """Joints 1, 3 and 4 change sign and show a band of about 1, 1 and 2.3 ticks; joint 2
     (it carries the arm: its error keeps one sign) has none to see."""
     data = real_files(lbipe_dir)
-    pooled = reading_dead_band(data)
+    pooled = seen_dead_band(data) / RAD_PER_TICK
     assert pooled[1] == 0.0
-    for one in (reading_dead_band(data[:1]), reading_dead_band(data[1:]), pooled):
+    for one in (seen_dead_band(data[:1]) / RAD_PER_TICK, seen_dead_band(data[1]) / RAD_PER_TICK,
+                pooled):
         assert np.all((one[[0, 2, 3]] >= 0.5) & (one[[0, 2, 3]] <= 3.0)), one
         assert one[3] > one[0] and one[3] > one[2], one
     # The simulator fit sets it (the shipped default has none: its servo is the datasheet's
@@ -90,8 +85,8 @@ def test_the_simulator_fit_sets_the_files_band_when_asked(small_lbipe_dir, strea
     data = real_files(small_lbipe_dir)
     kw = dict(iterations=1, log=lambda m: None, programs=stream_programs)
     banded, _ = fit_servo_friction(default_sim_params(), data, dead_band=True, **kw)
-    np.testing.assert_array_equal(np.asarray(banded.servo.current_dead_band),
-                                  reading_dead_band(data))
-    assert np.all(reading_dead_band(data)[[0, 2, 3]] > 0)  # (the check above can fail)
+    band = seen_dead_band(data) / RAD_PER_TICK
+    np.testing.assert_allclose(np.asarray(banded.servo.current_dead_band), band, rtol=1e-12)
+    assert np.all(band[[0, 2, 3]] > 0)  # (the check above can fail)
     plain, _ = fit_servo_friction(default_sim_params(), data, **kw)
     np.testing.assert_array_equal(np.asarray(plain.servo.current_dead_band), np.zeros(4))

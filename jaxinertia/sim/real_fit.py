@@ -28,8 +28,8 @@ from jaxinertia.lbipe import find_layout, load_test_files
 from jaxinertia.objects import HeldObject
 from jaxinertia.robot import Robot
 from jaxinertia.samples import Samples
+from jaxinertia.session import seen_dead_band
 from jaxinertia.sim.randomize import SessionSpread
-from jaxinertia.session import dead_band_fit
 from jaxinertia.sim.run import run_jobs, run_plans
 from jaxinertia.sim.servo import RAD_PER_TICK
 from jaxinertia.sim.simulator import SimParams
@@ -41,8 +41,8 @@ from jaxinertia.statics import (
 )
 
 __all__ = ["OFFSET_ITERATIONS", "baseline_statistics", "fit_servo_friction",
-           "fit_servo_friction_many", "fit_link_gravity", "reading_dead_band", "real_files",
-           "real_plan", "select", "session_terms", "simulate_real_plan", "simulate_real_plans"]
+           "fit_servo_friction_many", "fit_link_gravity", "real_files", "real_plan", "select",
+           "session_terms", "simulate_real_plan", "simulate_real_plans"]
 
 
 def real_files(lbipe_dir: str | os.PathLike,
@@ -117,24 +117,6 @@ def baseline_statistics(q_d, q, direction, tau, current_tau) -> dict[str, np.nda
         out["current_mae"].append(np.mean(np.abs(X @ c - tau[:, j])))
         out["tau_max"].append(np.max(np.abs(tau[:, j])))
     return {k: np.asarray(v) for k, v in out.items()}
-
-
-#: A joint's dead band is seen only where its error takes both signs, each on at least this
-#: share of the samples (joint 2 of the OpenMANIPULATOR-X carries the arm and never does).
-MIN_SIGN_SHARE = 0.1
-
-
-def reading_dead_band(data: Sequence[Samples]) -> np.ndarray:
-    """(N,) the dead band [ticks] of the real files' Present Current, pooled
-    (:func:`jaxinertia.session.dead_band_fit`: ``current = g sign(e) max(|e| - d, 0) + c``);
-    0 where it cannot be seen: a joint whose error keeps one sign (there ``d`` trades
-    against the offset ``c``) or one without a current sensor."""
-    e = np.concatenate([np.asarray(d.q_d, np.float64) - np.asarray(d.q, np.float64)
-                        for d in data])
-    cur = np.concatenate([np.asarray(d.current_tau, np.float64) for d in data])
-    _, _, band = dead_band_fit(e, cur)
-    seen = np.minimum(np.mean(e > 0, axis=0), np.mean(e < 0, axis=0)) >= MIN_SIGN_SHARE
-    return np.where(seen & np.isfinite(band), band / RAD_PER_TICK, 0.0)
 
 
 def real_plan(robot: Robot, data: Sequence[Samples]) -> list[tuple[str, HeldObject, Samples]]:
@@ -264,11 +246,9 @@ def fit_servo_friction(params, data: Sequence[Samples], *, iterations: int = 6,
     most of the sim-to-real gap (docs/results.md). ``data``: the real files' records it
     fits (one per file; a held-out fold hands it one). ``programs``: the caller's compiled
     stream programs (None: this call's own, shared by its iterations). ``dead_band``: the
-    simulated Present Current reads nothing within the real files' dead band
-    (:func:`reading_dead_band`; the torque is untouched), so that the current the models
-    read and the current gain the fit matches look as on the real arm. Off by default: in
-    the held-out folds it made the mass worse (docs/results.md, "The current's dead band
-    in the simulator").
+    simulated Present Current reads 0 within the files' dead band (the torque untouched:
+    :func:`jaxinertia.session.seen_dead_band`); off by default, as it made the folds' mass
+    worse (docs/results.md, "The current's dead band in the simulator").
 
     ``sessions`` (with more than one file): each file is its own recording session
     (:mod:`jaxinertia.session`). The physics is shared (friction laws, constant joint
@@ -281,12 +261,6 @@ def fit_servo_friction(params, data: Sequence[Samples], *, iterations: int = 6,
     data estimate mass 1.6-3 times worse on the two real files (COM better;
     ``experiments/sim_fit_compare.py``, docs/results.md "Sessions"). Returns
     ``(params, history)``."""
-    if programs is None:
-        with StreamPrograms() as own:
-            return fit_servo_friction(
-                params, data, iterations=iterations, seed=seed, kinetic_ratio=kinetic_ratio,
-                fit_offset=fit_offset, sessions=sessions, dead_band=dead_band, log=log,
-                progress=progress, programs=own)
     fit = _fixed_point(params, data, iterations=iterations, seed=seed,
                        kinetic_ratio=kinetic_ratio, fit_offset=fit_offset, sessions=sessions,
                        dead_band=dead_band, log=log)
@@ -303,12 +277,6 @@ def fit_servo_friction_many(fits: Sequence[tuple[SimParams, Sequence[Samples]]],
     fit's real plan in one program (:func:`simulate_real_plans`), instead of one fit's
     small programs waiting behind another's. Each fit's result is what it would be alone,
     up to the last bits of the simulated torques' statics. Returns ``[(params, history)]``."""
-    if programs is None:
-        with StreamPrograms() as own:
-            return fit_servo_friction_many(
-                fits, iterations=iterations, seed=seed, kinetic_ratio=kinetic_ratio,
-                fit_offset=fit_offset, sessions=sessions, dead_band=dead_band, log=log,
-                programs=own)
     return _drive([_fixed_point(p, d, iterations=iterations, seed=seed,
                                 kinetic_ratio=kinetic_ratio, fit_offset=fit_offset,
                                 sessions=sessions, dead_band=dead_band, log=log)
@@ -316,10 +284,14 @@ def fit_servo_friction_many(fits: Sequence[tuple[SimParams, Sequence[Samples]]],
                   programs, together=True)
 
 
-def _drive(fits: list, programs: StreamPrograms, *, progress: bool = False,
+def _drive(fits: list, programs: StreamPrograms | None, *, progress: bool = False,
            together: bool = False) -> list:
     """Runs fixed points (:func:`_fixed_point` generators) to their ends, simulating what
-    each asks for: one at a time, or (``together``) every pending fit's in one program."""
+    each asks for: one at a time, or (``together``) every pending fit's in one program
+    (``programs``: the caller's; None: this call's own, shared by its iterations)."""
+    if programs is None:
+        with StreamPrograms() as own:
+            return _drive(fits, own, progress=progress, together=together)
     out: list = [None] * len(fits)
     pending = {i: next(f) for i, f in enumerate(fits)}  # each simulates at least once
     while pending:
@@ -358,7 +330,7 @@ def _fixed_point(params, data: Sequence[Samples], *, iterations: int, seed: int,
     key = jax.random.key(seed)
     if dead_band:  # the reading's dead band, as the real files show it (fixed: no iteration)
         params = params.replace(servo=params.servo.replace(current_dead_band=jnp.asarray(
-            reading_dead_band(data), params.servo.p_gain.dtype)))
+            seen_dead_band(data) / RAD_PER_TICK, params.servo.p_gain.dtype)))
     fr = params.friction  # start the per-sample friction spread where the real data sit
     params = params.replace(friction=fr.replace(jitter=jnp.where(fr.jitter > 0, fr.jitter, 0.3)))
     servos = [params.servo] * len(plans)  # each session's own (per_session)
