@@ -11,7 +11,11 @@ session strength, then estimators made of several of them, per set:
   averaging is not counted as the ensemble's gain): no choice at all, so nothing is tuned
   on the file it is judged on;
 * ``top k by the other fold``: the k candidates that scored best on the *other* fold's
-  held-out file, averaged: a choice judged on a file it did not see.
+  held-out file, averaged: a choice judged on a file it did not see;
+* (session 39) ``trimmed mean`` (the two lowest and highest masses per pair and set left
+  out), ``inverse-variance weights`` (each candidate weighted by the inverse of its mass's
+  variance over the sets of the file itself: no truth needed) and ``mean of the starts``
+  (each from-scratch start with its fine-tunings averaged first, then the starts).
 
     python experiments/candidate_ensemble.py --run DIR --lbipe-dir DIR [--out results.json]
 """
@@ -45,6 +49,34 @@ def _metrics(x: np.ndarray, obj, l_max: float) -> tuple[float, float, float]:
     m = inertial_metrics(x, obj.x[0], l_max)
     bias = 100 * float(np.mean(x[:, 0] - obj.x[0, 0]) / obj.x[0, 0])
     return m["mass_NMAE_pct"], m["com_NMAE_pct"], bias
+
+
+def _trimmed_mean(xs: np.ndarray, axis: int = 0, cut: int = 2) -> np.ndarray:
+    """The mean over ``axis`` (the candidates) with ``cut`` candidates of the lowest and of
+    the highest mass left out per pair and set (all four components of the same ones)."""
+    order = np.argsort(xs[..., 0], axis=axis)[cut:-cut]
+    return np.nanmean(np.take_along_axis(xs, order[..., None], axis=axis), axis=axis)
+
+
+def _inverse_variance_mean(xs: np.ndarray, axis: int = 0) -> np.ndarray:
+    """The candidates' weighted mean, each weighted by the inverse of its mass's variance
+    over every pair and set of the file (what the file alone tells, no truth)."""
+    var = np.nanvar(xs[..., 0].reshape(xs.shape[0], -1), axis=1)
+    w = (1.0 / var) / np.sum(1.0 / var)
+    return np.tensordot(w, xs, axes=(0, axis))
+
+
+def _starts(names: list[str]) -> dict[str, list[str]]:
+    """The candidate folders grouped by the start they were trained or fine-tuned from
+    (``models``: the paper network; ``models_physical[_current[_sessions]]`` and their
+    ``models_finetuned[_current[_sessions]]_N``); empty when a folder fits no group."""
+    groups: dict[str, list[str]] = {}
+    for n in names:
+        rest = n.removeprefix("models_physical").removeprefix("models_finetuned")
+        key = "paper" if n == "models" else (
+            "physical" + rest.rstrip("0123456789").rstrip("_") if rest != n else n)
+        groups.setdefault(key, []).append(n)
+    return groups if len(groups) > 1 else {}
 
 
 def folder_evaluations(fold_dir: Path, objects, sets, l_max, strengths=STRENGTHS):
@@ -107,9 +139,22 @@ def main() -> None:
                     singles[(fit_on, k[0], k[1], m)] = pooled
                 for s_sel, label in ((None, "all strengths"), (0.0, "@0"), (1.0, "@1")):
                     xs = np.stack([v for k, v in avg.items() if s_sel is None or k[1] == s_sel])
-                    for how, fn in (("mean", np.nanmean), ("median", np.nanmedian)):
+                    for how, fn in (("mean", np.nanmean), ("median", np.nanmedian),
+                                    ("trimmed mean", _trimmed_mean),
+                                    ("inverse-variance weights", _inverse_variance_mean)):
+                        if how == "trimmed mean" and len(xs) < 5:  # (2 + 2 left out)
+                            continue
                         rows.append((fit_on, f"{how} of all candidates, {label}", m, obj.name,
                                      *_metrics(fn(xs, axis=0), obj, f["l_max"][o])))
+                    # (per strength: a start's folders at one strength each)
+                    starts = {} if s_sel is None else _starts(
+                        [k[0] for k in avg if k[1] == s_sel])
+                    if starts:
+                        by = {k[0]: v for k, v in avg.items() if k[1] == s_sel}
+                        x = np.nanmean([np.nanmean([by[n] for n in ns], axis=0)
+                                        for ns in starts.values()], axis=0)
+                        rows.append((fit_on, f"mean of the starts, {label}", m, obj.name,
+                                     *_metrics(x, obj, f["l_max"][o])))
     # top k chosen on the other fold (two folds: each judges the other's choice)
     for fit_on, f in folds.items():
         other = [n for n in folds if n != fit_on]
