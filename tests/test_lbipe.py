@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import warnings
 from pathlib import Path
 
 import jax
@@ -178,6 +179,19 @@ def test_batched_evaluation_equals_the_authors_per_set_loop(lbipe_dir, lbipe_run
         assert_tree_close({"T": est["T"][o][:, :15], "T-A": est["T-A"][o][:, :15]},
                           {"T": xt, "T-A": xta}, **LOOP_TOL,
                           what=f"{obj.name}: batched vs the per-set loop")
+
+
+def test_evaluating_without_float64_says_so(lbipe_dir):
+    """A program of one's own that evaluates without ``jax_enable_x64`` is told that its
+    statics and least squares run in float32 (the attention-weighted answers move: the
+    warning's numbers, docs/results.md); with it (the tests' and the CLI's), nothing."""
+    obj = load_lbipe(lbipe_dir / "data" / "data_test_cube.npz")
+    sets = np.arange(128).reshape(2, 64)
+    with jax.enable_x64(False), pytest.warns(RuntimeWarning, match="jax_enable_x64 is off"):
+        assert stack([obj], [sets], LBIPE_FEATURES).A.dtype == jnp.float32
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert stack([obj], [sets], LBIPE_FEATURES).A.dtype == jnp.float64
 
 
 def test_metrics_equal_direct_numpy():
