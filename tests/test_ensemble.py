@@ -321,3 +321,40 @@ def test_shares_weigh_the_members_and_another_model_count_enters_by_its_pairs_me
     assert main(["estimate", "--models", str(flat), "--samples", str(path), "--set-size",
                  "32", "--max-mass", "1000", "--max-com", "1000"]) == 0
     assert "T-A answers as T" not in capsys.readouterr().out
+
+
+def test_members_side_by_side_give_the_loops_answers_in_its_order(folders, monkeypatch):
+    """``map_members`` runs the members in threads: the results in the members' order (the
+    first finishing last here), a failing member's error as the loop raises it (the first
+    in order), and an ensemble's evaluation and estimate the loop's, bit for bit."""
+    import time  # noqa: PLC0415
+
+    from jaxinertia.app import ensemble  # noqa: PLC0415
+
+    monkeypatch.setattr(ensemble.os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(ensemble, "MEMBER_THREADS", 4)
+    assert ensemble.map_members(lambda m: time.sleep(0.05 * (4 - m)) or m * m,
+                                range(4)) == [0, 1, 4, 9]
+
+    def failing(m):
+        if m in (1, 3):
+            raise ValueError(f"member {m}")
+        return m
+
+    with pytest.raises(ValueError, match="member 1"):
+        ensemble.map_members(failing, range(4))
+
+    d, path, models = folders
+    attach_members(models, MEMBERS)
+    sets, _ = choose_sets(d.by_object(), n_sets=8, set_size=32, seed=0)
+    kw = dict(set_size=32, n_sets=8, max_mass=1e3, max_com=1e3)
+    answers = {}
+    for threads in (4, 1):
+        monkeypatch.setattr(ensemble, "MEMBER_THREADS", threads)
+        answers[threads] = (evaluate_models(models, d.by_object(), sets, l_max=[0.1]),
+                            estimate(models, path, **kw))
+    (ev4, est4), (ev1, est1) = answers[4], answers[1]
+    for m in ("T", "T-A"):
+        np.testing.assert_array_equal(ev4["estimates"][m], ev1["estimates"][m])
+    (name,) = est1["objects"]
+    assert est4["objects"][name]["methods"] == est1["objects"][name]["methods"]

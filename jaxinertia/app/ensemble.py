@@ -21,7 +21,8 @@ from __future__ import annotations
 import copy
 import json
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +36,7 @@ from jaxinertia.samples import Samples
 from jaxinertia.uncertainty import SetUncertainty
 
 __all__ = ["ENSEMBLE_KEYS", "ENSEMBLE_MEMBERS", "ENSEMBLE_WEIGHTS", "NETWORK_METHODS",
-           "attach_members", "finite_estimates", "judge_mean", "mean_estimates",
+           "attach_members", "finite_estimates", "judge_mean", "map_members", "mean_estimates",
            "mean_evaluation", "mean_uncertainty", "members_of", "weights_of"]
 
 #: The ``config.json`` key naming the further members (relative to the folder).
@@ -48,11 +49,26 @@ ENSEMBLE_WEIGHTS = "ensemble_weights"
 ENSEMBLE_KEYS = (ENSEMBLE_MEMBERS, ENSEMBLE_WEIGHTS)
 #: The methods whose estimates are averaged.
 NETWORK_METHODS = ("T", "T-A")
+#: At most this many members read and judged at once (:func:`map_members`).
+MEMBER_THREADS = 8
 
 
 def members_of(models: str | os.PathLike, config: dict) -> list[Path]:
     """The further members that a model folder (its ``config``) names (none: [])."""
     return [Path(models) / name for name in config.get(ENSEMBLE_MEMBERS) or ()]
+
+
+def map_members(fn: Callable, members: Sequence) -> list:
+    """``[fn(m) for m in members]``, the members side by side in threads (at most
+    :data:`MEMBER_THREADS`, one a core): each member's checkpoint is read one at a time
+    (orbax, ``checkpoints._ORBAX``) while the others' objects are adapted, their programs
+    compiled and run. The results in the members' order; a member's error is raised as
+    the loop would raise it (the first failing member's, in order)."""
+    workers = min(MEMBER_THREADS, len(members), os.cpu_count() or 1)
+    if workers < 2:
+        return [fn(m) for m in members]
+    with ThreadPoolExecutor(workers, thread_name_prefix="jaxinertia-member") as pool:
+        return list(pool.map(fn, members))
 
 
 def _checked_shares(weights, n: int, where: str) -> np.ndarray:

@@ -5,6 +5,7 @@ refused with the reason, never printed as a number."""
 from __future__ import annotations
 
 import os
+from operator import methodcaller
 
 import jax.numpy as jnp
 import numpy as np
@@ -13,6 +14,7 @@ from jaxinertia.app.arm_options import samples_arm
 from jaxinertia.app.by_part import com_models_of, merge_answers
 from jaxinertia.app.ensemble import (
     NETWORK_METHODS,
+    map_members,
     mean_estimates,
     mean_uncertainty,
     members_of,
@@ -246,8 +248,8 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
     session = session_reference(folder.config, session_strength,
                                 simulated=is_simulated(meta))
     # An ensemble's further members (app.ensemble): each reads the objects in its session.
-    members = [_Member(m, objects, meta, session_strength, arm, reference)
-               for m in members_of(models, folder.config)]
+    members = map_members(lambda m: _Member(m, objects, meta, session_strength, arm,
+                                            reference), members_of(models, folder.config))
     weights = weights_of(folder.config, models)  # checked before any estimate
     # Each file's servo state against the folder's (and the reference's), as recorded.
     states = [servo_state_change(session, servo_session(o)) for o in objects]
@@ -273,7 +275,7 @@ def _estimate(models, sample_file, *, set_size, n_sets, seed, max_mass, max_com,
         size = spread_set_size(obj.n_samples, set_size)
         sets, _ = choose_sets([obj], n_sets=n_sets, set_size=size, seed=seed)
         spread = evaluated(obj, sets, **kw)
-        member_parts = [m.parts(o, all_samples, sets) for m in members]
+        member_parts = map_members(methodcaller("parts", o, all_samples, sets), members)
         if members:
             _average_members(res, unc, spread, member_parts,
                              [models, *(m.path for m in members)], weights)

@@ -21,7 +21,13 @@ import numpy as np
 
 from jaxinertia.app.arm_options import LBIPE_ARM, samples_arm
 from jaxinertia.app.by_part import COM_MODELS, com_models_of, merge_evaluations
-from jaxinertia.app.ensemble import ENSEMBLE_KEYS, mean_evaluation, members_of, weights_of
+from jaxinertia.app.ensemble import (
+    ENSEMBLE_KEYS,
+    map_members,
+    mean_evaluation,
+    members_of,
+    weights_of,
+)
 from jaxinertia.app.fit import EarlyStart, fit_pairs
 from jaxinertia.app.provenance import FITTED_ON, fitted_on
 from jaxinertia.checkpoints import (
@@ -308,9 +314,9 @@ def evaluate_models(models: str | os.PathLike, objects: Sequence[Samples],
     kw = dict(l_max=l_max, robot=robot, session_strength=session_strength,
               simulated=simulated, arm=arm, known=known)
     if members:  # each member reads the objects in its own session
-        res = mean_evaluation([res] + [evaluate_models(m, objects, sets, **kw)
-                                       for m in members], objects, [Path(models), *members],
-                              weights_of(folder.config, models))
+        res = mean_evaluation(
+            [res, *map_members(lambda m: evaluate_models(m, objects, sets, **kw), members)],
+            objects, [Path(models), *members], weights_of(folder.config, models))
     com = com_models_of(models, folder.config)
     if com is not None:
         part = evaluate_models(com, objects, sets, **kw)
