@@ -101,11 +101,15 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
         assert len(ident["replay_calibrated"]["k"]) == 4
         assert ident["history"][-1]["best"] <= ident["history"][0]["mean"]
         assert cal["identified"]["theta"] == ident["theta"]
-        # Fine-tuned on 30 real samples of the fold's object only, from the physical model.
+        # Fine-tuned on 30 real samples of the fold's object, the only real ones, beside 30
+        # of each simulated load of the start's own random data (FoldScale.finetune_anchor),
+        # from the physical model.
         fold = tmp_path / "folds" / f"fit_{fit_on}"
         config = load_models(fold / "models_finetuned_30").config
-        assert [Path(e["file"]).name for e in config["data"]] == [f"data_test_{fit_on}.npz"]
-        assert config["samples"]["train"] + config["samples"]["validation"] == 30
+        assert [Path(e["file"]).name for e in config["data"]] == [f"data_test_{fit_on}.npz",
+                                                                  "train_random.npz"]
+        assert Path(config["data"][1]["file"]).parent == fold / "data"
+        assert config["samples"]["train"] + config["samples"]["validation"] == 30 * (1 + 4)
         assert config["fine_tuned_from"]["folder"] == str((fold / "models_physical").resolve())
         assert config["training"]["trainable"] == "servo"
         assert config["torque_model"]["kind"] == "physical"
@@ -184,7 +188,8 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
     assert "| mean of every candidate |" in text
     assert "Calibrated and trained with cube only, judged on white" in text
     assert "white's real plan replayed in the simulator calibrated on cube" in text
-    assert "fine-tuned (servo part) on 24 + 6 (validation) real samples of cube" in text
+    assert ("fine-tuned (servo part) on 30 real samples of cube and as many of each load of "
+            "its start's simulated train_random.npz (120 + 30 (validation) in all)") in text
     # The models for a new real object are the folds' own folders (models_from_folds):
     # the mass from every candidate of every fold without the attention, the COM from one
     # candidate of every fold with it; each member the fold's folder as it was judged.

@@ -98,6 +98,11 @@ class FoldScale:
     #: (:func:`jaxinertia.sim.randomize.session_prior`): each session's current and torque
     #: per tick scaled alike, so the current, not the discrepancy, tells the torque.
     session_draws: int = 0
+    #: The fine-tunings also see their start's simulated random data (``n`` samples of
+    #: every simulated load beside the ``n`` real ones): the servo part fitted to one real
+    #: load keeps the load dependence the start learnt from four (docs/results.md, "The
+    #: simulator's loads beside the real one").
+    finetune_anchor: bool = True
 
 
 @dataclass(frozen=True)
@@ -371,13 +376,18 @@ def _finetuned(fold: _Fold, files: list[Path], current_input: bool = False,
                 seed=fold.seed, torque_model="physical", current_input=current_input),
                   overwrite=True, progress=fold.progress, session=fold.session, early=early)
 
+    # The real file, and with the anchor the start's simulated random data (its first file).
+    anchor = files[:1] if fold.scale.finetune_anchor else []
+    data = [fold.real.files[fold.index(fold.fit_on)], *anchor]
+
     def finetune(n: int) -> dict:
         models = fold.dir / f"models_finetuned{tag}_{n}"
         with fold.member("finetune", f"physical{tag}/{n}"):
-            info = train([fold.real.files[fold.index(fold.fit_on)]], models,
+            info = train(data, models,
                          fold.scale.finetune.replace(seed=fold.seed), overwrite=True,
                          progress=fold.progress, init=early or start, samples_per_object=n)
-        return {**fold.judge(models), "samples": info["samples"],
+        return {**fold.judge(models), "samples": info["samples"], "real_samples": n,
+                "anchor": [Path(getattr(f, "path", f)).name for f in anchor],
                 "best_epoch": info["best_epoch"],
                 "fit_session_ratio": info["data"][0]["session_ratio"]}
 

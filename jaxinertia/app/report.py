@@ -155,10 +155,9 @@ def format_folds(res: dict) -> str:
                 lines += [table1(f["physical" + key]["objects"], "The physics-structured "
                                  f"torque model{what}, on the same simulated data"), ""]
             for ft in (f.get("fine_tuned" + key) or {}).values():
-                used = ft["samples"]
                 lines += [table1(ft["objects"], f"It{what} fine-tuned (servo part) on "
-                                 f"{used['train']} + {used['validation']} (validation) real "
-                                 f"samples of {fit_on}; baselines refitted on them"), ""]
+                                 f"{_finetuning_samples(ft, fit_on)}; baselines refitted on "
+                                 "them"), ""]
         lines += [table1(f["released"], "The authors' released models, same sets"), ""]
         r, s = f["replay"]["real"], f["replay"]["sim"]
         rows = [[label, str(j + 1), f"{r[key][j] * scale:.{nd}f}", f"{s[key][j] * scale:.{nd}f}",
@@ -273,6 +272,17 @@ def reproduce_report(results: dict, figs: dict, *, full: bool, seed: int, scale,
               f"attention {tr['best_epoch']['attention']}.", "",
               f"![training]({figs['training'].name})", ""]
     return "\n".join(lines)
+
+
+def _finetuning_samples(ft: dict, fit_on: str) -> str:
+    """What a fold's fine-tuning saw: its real samples and, with the anchor
+    (``FoldScale.finetune_anchor``), its start's simulated ones."""
+    used = ft["samples"]
+    split = f"{used['train']} + {used['validation']} (validation)"
+    if not ft.get("anchor"):  # (a run before the anchor records no real_samples)
+        return f"{split} real samples of {fit_on}"
+    return (f"{ft['real_samples']} real samples of {fit_on} and as many of each load of its "
+            f"start's simulated {', '.join(ft['anchor'])} ({split} in all)")
 
 
 def _new_object_section(ft: dict | None) -> list[str]:
