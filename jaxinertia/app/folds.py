@@ -15,17 +15,15 @@ One fold per real file ``fit_on``:
    real objects (Sensor, PE, T, T-A) beside the authors' released models on the same sets;
 4. train the physics-structured torque model (``torque_model="physical"``) on the same
    simulated data, fine-tune its servo part on ``fit_on``'s real samples (64, 250, 1000
-   of them: a user's few minutes with a known object), refit the baselines on them, and
-   judge again on the held-out objects. Why the servo part: fine-tuning every parameter on
-   one real object teaches the network that object's torque as a function of the pose
-   (``experiments/finetune_ablation.py``).
+   of them: a user's few minutes with a known object) beside as many of each simulated
+   load, refit the baselines on them, and judge again on the held-out objects. Why the
+   servo part: fine-tuning every parameter on one real object teaches the network that
+   object's torque as a function of the pose (``experiments/finetune_ablation.py``).
 
-Every model folder is judged twice on each held-out file: with the session adaptation of
+Every model folder is judged on each held-out file at each session strength of
 :mod:`jaxinertia.session` (its discrepancy read in the training session, from its own
-current gain) and without. :func:`choose_recipe` then picks, from these held-out numbers
-alone, what ``reproduce`` trains the models for a new real object with
-(``models_real``): which candidate (simulator only, or fine-tuned on how many real samples)
-and whether to adapt sessions.
+current gain, or not); :func:`choose_recipe` then picks from these held-out numbers alone
+the recipe of ``models_real`` (which candidates, adapted or not, with the attention or not).
 """
 
 from __future__ import annotations
@@ -98,10 +96,8 @@ class FoldScale:
     #: (:func:`jaxinertia.sim.randomize.session_prior`): each session's current and torque
     #: per tick scaled alike, so the current, not the discrepancy, tells the torque.
     session_draws: int = 0
-    #: The fine-tunings also see their start's simulated random data (``n`` samples of
-    #: every simulated load beside the ``n`` real ones): the servo part fitted to one real
-    #: load keeps the load dependence the start learnt from four (docs/results.md, "The
-    #: simulator's loads beside the real one").
+    #: The fine-tunings also see ``n`` samples of each load of their start's simulated data
+    #: (docs/results.md, "The simulator's loads beside the real one").
     finetune_anchor: bool = True
 
 
@@ -289,9 +285,8 @@ def _run_fold(fold: _Fold, calibration: tuple | None = None) -> dict:
                   files, fold.dir / "models", fold.scale.train.replace(seed=fold.seed))
         return timed("evaluate", fold.judge, fold.dir / "models")
 
-    # The candidates trained on the fold's simulated data are independent of each other:
-    # side by side on an accelerator (their times then overlap, their trainings share
-    # programs), in this order on a CPU.
+    # The candidates trained on the fold's simulated data are independent of each other: side
+    # by side on an accelerator (their trainings share programs), in this order on a CPU.
     calls = [fold.branch(paper, "paper"),
              lambda: (timed("randomized", _randomized, fold, params, files)
                       if fold.scale.randomize_draws > 0 else None),
@@ -358,16 +353,16 @@ def _finetuned(fold: _Fold, files: list[Path], current_input: bool = False,
                tag: str | None = None) -> tuple[dict | None, dict]:
     """The physical model trained on the simulated files (``current_input``: with the
     servo's current as a fifth input), then its servo part fine-tuned on each number of
-    ``fit_on``'s real samples; all judged on the held-out objects. ``tag``: the model
-    folders' suffix (default: ``_current`` with the current input, none without)."""
+    ``fit_on``'s real samples (beside as many of each load of ``files[0]``: the anchor); all
+    judged on the held-out objects. ``tag``: the folders' suffix (default: ``_current``
+    with the current input, none without)."""
     if not fold.scale.finetune_samples:
         return None, {}
     if tag is None:
         tag = "_current" if current_input else ""
     start = fold.dir / f"models_physical{tag}"
-    # Side by side (an accelerator), the fine-tunings start from the start's torque models
-    # while its attention trains (they keep its attention: app.fit.EarlyStart); on a CPU
-    # once its folder is written.
+    # On an accelerator the fine-tunings start from the start's torque models while its
+    # attention trains (they keep it: app.fit.EarlyStart); on a CPU from its folder.
     early = EarlyStart(start) if fold.groups is not None else None
 
     def fit_start() -> None:
@@ -375,17 +370,15 @@ def _finetuned(fold: _Fold, files: list[Path], current_input: bool = False,
             train(files, start, fold.scale.train.replace(
                 seed=fold.seed, torque_model="physical", current_input=current_input),
                   overwrite=True, progress=fold.progress, session=fold.session, early=early)
-
-    # The real file, and with the anchor the start's simulated random data (its first file).
     anchor = files[:1] if fold.scale.finetune_anchor else []
     data = [fold.real.files[fold.index(fold.fit_on)], *anchor]
 
     def finetune(n: int) -> dict:
         models = fold.dir / f"models_finetuned{tag}_{n}"
         with fold.member("finetune", f"physical{tag}/{n}"):
-            info = train(data, models,
-                         fold.scale.finetune.replace(seed=fold.seed), overwrite=True,
-                         progress=fold.progress, init=early or start, samples_per_object=n)
+            info = train(data, models, fold.scale.finetune.replace(seed=fold.seed),
+                         overwrite=True, progress=fold.progress, init=early or start,
+                         samples_per_object=n)
         return {**fold.judge(models), "samples": info["samples"], "real_samples": n,
                 "anchor": [Path(getattr(f, "path", f)).name for f in anchor],
                 "best_epoch": info["best_epoch"],
