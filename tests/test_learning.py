@@ -354,19 +354,24 @@ def test_tiny_end_to_end_report_numbers_come_from_the_run(tmp_path, small_lbipe_
     # Sim-to-real ran on the real files, beside the released models on the same sets.
     assert set(tables["real"]["ours"]["objects"]) == {"cube", "white"}
     assert set(tables["real"]["released"]) == {"cube", "white"}
-    # The models for a new real object: fine-tuned on 30 samples of every real file.
+    # The models for a new real object: fine-tuned on 30 samples of every real file and as
+    # many of each of the four loads of the run's simulated random data (the anchor).
     ft = tables["real_finetuned"]
     assert set(ft["objects"]) == {"cube", "white"}
-    assert ft["samples"]["train"] + ft["samples"]["validation"] == 2 * 30
+    assert ft["samples"]["train"] + ft["samples"]["validation"] == 2 * 30 + 4 * 30
+    assert ft["real_samples"] == 30 and ft["anchor"] == ["train_random.npz"]
     config = json.loads((run / "models_real" / "config.json").read_text())
     assert config["torque_model"]["kind"] == "physical"
     assert config["training"]["trainable"] == "servo" and config["samples_per_object"] == 30
     # Fine-tuned beside it and written with the recipe's strength (the default recipe's: 1).
     assert Path(config["copied_from"]).name == "models_real_finetuned_30"
     assert config["session"]["strength"] == 1.0
-    assert {Path(d["file"]).name for d in config["data"]} == {"data_test_cube.npz",
-                                                             "data_test_white.npz"}
+    assert {Path(d["file"]).name for d in config["data"]} == {
+        "data_test_cube.npz", "data_test_white.npz", "train_random.npz"}
     assert "## Models for a new real object" in report and "**not held out**" in report
+    assert ("on 30 real samples of each of cube, white and as many of each load of the run's "
+            f"simulated train_random.npz ({ft['samples']['train']} + "
+            f"{ft['samples']['validation']} (validation) in all)") in report
     v = ft["objects"]["white"]["T-A"]["mass_NMAE_pct"]
     assert np.isfinite(v) and f"{v:.2f}" in report
     # The models load back and estimate an object from the run's own test file.

@@ -79,21 +79,27 @@ def models_real(out: Path, train_files: list[Path], real: RealData, scale,
     for): ``recipe`` (:data:`DEFAULT_RECIPE`) on the shipped calibration. The physical
     model trained on the run's simulated files (``out/models_physical``), its servo part
     fine-tuned on every real file (``out/models_real_finetuned_<n>``), written with the
-    recipe's session strength. Evaluated on the real files (not held out)."""
+    recipe's session strength. Its fine-tuning also sees as many samples of each load of
+    the run's simulated random data (``train_files[0]``) as of each real file, as the
+    folds' fine-tunings do (``FoldScale.finetune_anchor``; docs/results.md, "The
+    simulator's loads beside the real one"). Evaluated on the real files (not held out)."""
     start = out / "models_physical"
     train(train_files, start, scale.train.replace(seed=seed, torque_model="physical"),
           overwrite=True, progress=progress, session=session)
     record_fitted_on(start, sim_fit_files(real))  # its simulator's real files, passed on
     n = recipe.get("finetune_samples") or scale.real_finetune_samples
     tuned = out / f"models_real_finetuned_{n}"
-    info = train(real.files, tuned, TrainConfig(**FINETUNE_DEFAULTS, seed=seed,
-                                                trainable="servo"),
+    anchor = train_files[:1]
+    info = train([*real.files, *anchor], tuned, TrainConfig(**FINETUNE_DEFAULTS, seed=seed,
+                                                            trainable="servo"),
                  overwrite=True, progress=progress, init=start, samples_per_object=n)
     dst = copy_models(tuned, out / "models_real",
                       session_strength=float(recipe["session_strength"]))
     res = evaluate_models(dst, real.objects, real.sets, l_max=real.l_max)
     return {"objects": res["objects"], "files": [str(f.path) for f in real.files],
-            "samples": info["samples"], "models": str(dst), "recipe": recipe,
+            "samples": info["samples"], "real_samples": n,
+            "anchor": [Path(getattr(f, "path", f)).name for f in anchor], "models": str(dst),
+            "recipe": recipe,
             "session_ratio": res["session_ratio"]}
 
 

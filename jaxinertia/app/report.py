@@ -292,6 +292,11 @@ def _new_object_section(ft: dict | None) -> list[str]:
     recipe = ft["recipe"]
     used = ("" if ft["samples"] is None else f" on {ft['samples']['train']} + "
             f"{ft['samples']['validation']} (validation) real samples of {names}")
+    if ft["samples"] is not None and ft.get("anchor"):  # (models_real.models_real)
+        used = (f" on {ft['real_samples']} real samples of each of {names} and as many of "
+                f"each load of the run's simulated {', '.join(ft['anchor'])} "
+                f"({ft['samples']['train']} + {ft['samples']['validation']} (validation) "
+                "in all)")
     com = recipe.get("com")
     com_text = ("" if not com else
                 f"; the COM of T and T-A from `{ft['models']}/com`: {com['candidate']}, "

@@ -88,7 +88,8 @@ class Scale:
     #: The models for a new real object (0: left out): where the folds ran, their own
     #: folders (``models_real.models_from_folds``); else the physical torque model trained
     #: on the run's simulated data, its servo part fine-tuned on this many samples of
-    #: *every* real object in the lbipe folder. Their numbers on those objects are not
+    #: *every* real object in the lbipe folder (beside as many of each simulated training
+    #: load, as the folds' fine-tunings). Their numbers on those objects are not
     #: held out; the folds' rows are the honest estimate of such models.
     real_finetune_samples: int = 1000
     #: The folds also judge the physical model with the servo's current as an input
