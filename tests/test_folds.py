@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import threading
 from pathlib import Path
 from types import SimpleNamespace
@@ -20,14 +21,16 @@ from jaxinertia import samples
 from jaxinertia.app import fold_calibration, folds
 from jaxinertia.app import recipe as R
 from jaxinertia.app.cli import main
+from jaxinertia.app.draws import models_from_runs
 from jaxinertia.app.folds import FoldScale, run_folds
-from jaxinertia.app.models_real import models_from_folds
+from jaxinertia.app.models_real import models_from_folds, recipe_of
 from jaxinertia.app.pipeline import evaluate_models, load_real, train
 from jaxinertia.app.programs import folds_side_by_side
 from jaxinertia.app.provenance import fitted_on, seen_by
 from jaxinertia.app.report import format_folds
 from jaxinertia.checkpoints import load_models
 from jaxinertia.errors import UsageError, WeightsError
+from jaxinertia.fileio import write_json
 from jaxinertia.metrics import inertial_metrics
 from jaxinertia.samples import load_native, save_lbipe, save_native
 from jaxinertia.sim import real_fit
@@ -251,6 +254,45 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
     assert drop_with_released(tmp_path) == tmp_path / "models_real_with_released"
     assert not (tmp_path / "models_real_with_released").exists()
     assert drop_with_released(tmp_path) is None
+    _check_draws(tmp_path, res, small_lbipe_dir)
+
+
+def _check_draws(tmp_path, res, lbipe_dir):
+    """``models-real`` from several runs' folds (app.draws), here the same run twice: the
+    recipe is the run's own, every member is there twice, and its held-out score (each file
+    judged by the members that did not see it) is the run's own recipe score."""
+    write_json(tmp_path / "tables.json", {"held_out": res})
+    twin = tmp_path / "twin"
+    shutil.copytree(tmp_path / "folds", twin / "folds")
+    shutil.copy(tmp_path / "tables.json", twin / "tables.json")
+    got = models_from_runs([tmp_path, twin], tmp_path / "draws", lbipe_dir)
+    own = recipe_of(res, SimpleNamespace(recipe_by_part=True))
+    same = ("candidate", "session_strength", "attention", "members", "com")
+    assert {k: got["recipe"].get(k) for k in same} == {k: own.get(k) for k in same}
+    assert got["held_out"]["score"] == pytest.approx(own["score"], rel=1e-9)
+    assert got["each_run"] == [res["recipe"]["by_part"]["score"]] * 2
+    for part, sources in got["from_folds"].items():  # each folder of the run and its twin
+        theirs = [Path(s).relative_to(twin) for s in sources if Path(s).is_relative_to(twin)]
+        mine = [Path(s).relative_to(tmp_path) for s in sources
+                if not Path(s).is_relative_to(twin)]
+        assert mine == theirs and 2 * len(mine) == len(sources) > 0, part
+        assert {p.parts[1] for p in mine} == {"fit_cube", "fit_white"}
+    assert set(got["objects"]) == {"cube", "white"}
+    assert not (tmp_path / "draws" / ".draws_judged").exists()
+    # Draws of another protocol, or no draws at all, are refused, naming the run.
+    bad = json.loads((twin / "tables.json").read_text())
+    bad["held_out"]["sets"] = {"cube": "random", "white": "random"}
+    write_json(twin / "tables.json", bad)
+    with pytest.raises(UsageError, match="the held-out sets differ"):
+        models_from_runs([tmp_path, twin], tmp_path / "draws", lbipe_dir)
+    with pytest.raises(UsageError, match="two or more"):
+        models_from_runs([tmp_path], tmp_path / "draws", lbipe_dir)
+    # The command refuses to replace the folder it wrote without --overwrite, before any
+    # work (exit code 2: the user's to fix).
+    before = (tmp_path / "draws" / "models_real" / "config.json").read_bytes()
+    assert main(["models-real", "--runs", str(tmp_path), str(twin), "--out",
+                 str(tmp_path / "draws"), "--lbipe-dir", str(lbipe_dir)]) == 2
+    assert (tmp_path / "draws" / "models_real" / "config.json").read_bytes() == before
 
 
 def _finite_metrics(x, obj, l_max) -> dict:

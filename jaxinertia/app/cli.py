@@ -43,6 +43,8 @@ COMMANDS = {
                  "data"),
     "reproduce": ("commands", "simulate, train, evaluate, switching loads, sim-to-real, "
                   "report"),
+    "models-real": ("draws", "models_real from several reproduce runs (training draws) on "
+                    "the same real files"),
     "estimate": ("estimate_commands", "mass and COM of an unknown object from a sample file"),
     "plan-poses": ("estimate_commands", "choose the N most informative poses (D-optimal) for "
                    "an estimate"),

@@ -103,7 +103,8 @@ def models_real(out: Path, train_files: list[Path], real: RealData, scale,
             "session_ratio": res["session_ratio"]}
 
 
-def models_from_folds(out: Path, folds: dict, real: RealData, recipe: dict) -> dict:
+def models_from_folds(out: Path, folds: dict, real: RealData, recipe: dict, *,
+                      fold_dirs: list[Path] | None = None, dst: Path | None = None) -> dict:
     """``out/models_real`` made of the held-out folds' own model folders
     (``out/folds/fit_<object>/models*``): for each part of ``recipe`` (the mass's, and the
     COM's under ``com``), every candidate it names (one, or every member of the folds'
@@ -113,9 +114,13 @@ def models_from_folds(out: Path, folds: dict, real: RealData, recipe: dict) -> d
     (:mod:`jaxinertia.app.ensemble`). Each member is the very folder a fold judged on the
     real files it did not see: calibrated from the datasheet, trained and fine-tuned on
     one real file, so each keeps that file's session as its reference. Evaluated on the
-    real files (not held out: each was seen by its own fold's members)."""
-    dst = out / "models_real"
-    fold_dirs = [out / "folds" / f"fit_{name}" for name in folds["folds"]]
+    real files (not held out: each was seen by its own fold's members). ``fold_dirs``: the
+    folds' folders (default: ``folds``' in ``out/folds``; several runs' folds,
+    :mod:`jaxinertia.app.draws`); ``dst``: the folder written (default
+    ``out/models_real``)."""
+    dst = dst or out / "models_real"
+    if fold_dirs is None:
+        fold_dirs = [out / "folds" / f"fit_{name}" for name in folds["folds"]]
     by_candidate = []
     for d in fold_dirs:
         found = {}
@@ -150,7 +155,8 @@ def models_from_folds(out: Path, folds: dict, real: RealData, recipe: dict) -> d
                 record_fitted_on(where[part] / name, [seen[src.parent.name]])
             if len(names) > 1:
                 attach_members(where[part], names[1:])
-            made[part] = [str(s.relative_to(out)) for s in sources]
+            made[part] = [str(s.relative_to(out)) if s.is_relative_to(out) else str(s)
+                          for s in sources]
         if "com" in parts:
             attach_com_models(tmp, "com")
     res = evaluate_models(dst, real.objects, real.sets, l_max=real.l_max)

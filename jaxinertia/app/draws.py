@@ -1,0 +1,146 @@
+"""``jaxinertia models-real``: ``models_real`` from several training draws, the held-out
+folds of finished ``reproduce`` runs on the same real files with different ``--seed``.
+
+A run's training draw (its simulated data, the calibrations' and the trainings' random
+draws) moves the folds' score by up to 0.05 (session 41, one tree: 0.963, 0.998 and 1.005
+for seeds 0, 1 and 2), more than any recipe change did; the same recipe with the members of
+the three draws averaged scored 0.940 on the same held-out files (docs/results.md, "Other
+training draws"). :func:`models_from_runs` chooses the recipe over every run's folds (each
+run's fold one more fold of :func:`jaxinertia.app.recipe.choose_recipe`), writes
+``models_real`` of every run's folders that the recipe names, each a member of its mean
+(:func:`jaxinertia.app.models_real.models_from_folds`), and judges it the folds' way: on
+each real file, the members of every run's fold that did not see it, together."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from types import SimpleNamespace
+
+from jaxinertia.app.commands import LBIPE_DIR_HELP, lbipe_dir_of
+from jaxinertia.app.options import enable_x64, write_json_option
+from jaxinertia.errors import UsageError
+from jaxinertia.fileio import check_output
+
+__all__ = ["models_from_runs", "register"]
+
+
+def _held_out(run: Path) -> dict:
+    """A finished ``reproduce`` run's held-out folds (its ``tables.json``)."""
+    tables = run / "tables.json"
+    if not tables.is_file():
+        raise UsageError(f"{run}: no tables.json (the output folder of a finished "
+                         "`jaxinertia reproduce`)")
+    held = json.loads(tables.read_text()).get("held_out")
+    if not held:
+        raise UsageError(f"{run}: its reproduce ran no held-out folds (they need two or more "
+                         "real files in the lbipe folder)")
+    return held
+
+
+def _same_protocol(runs: list[Path], records: list[dict]) -> None:
+    """Every run's folds are the same folds, judged on the same files and sets."""
+    first = records[0]
+    for run, rec in zip(runs[1:], records[1:]):
+        for key, what in (("sets", "the held-out sets"), ("folds", "the folds")):
+            a, b = first[key], rec[key]
+            if key == "folds":
+                a, b = ({f: sorted(r["held_out"]) for f, r in x.items()} for x in (a, b))
+            if a != b:
+                raise UsageError(f"{run}: {what} differ from {runs[0]}'s ({b} against {a}): "
+                                 "draws of one protocol only (the same lbipe folder)")
+
+
+def models_from_runs(runs: list[str | Path], out: str | Path, lbipe_dir: str | Path) -> dict:
+    """``out/models_real`` from the held-out folds of every run in ``runs`` (the folders of
+    finished ``reproduce`` runs on the real files of ``lbipe_dir``, e.g. ``--seed`` 0, 1
+    and 2), the recipe chosen over all of them; its score on each held-out file from the
+    members that did not see it. Returns the recipe, the score and each run's own."""
+    # The work's modules (JAX), not for --help.
+    from jaxinertia.app.models_real import models_from_folds, recipe_of  # (JAX)
+    from jaxinertia.app.pipeline import evaluate_models, load_real  # (JAX)
+    from jaxinertia.app.recipe import choose_recipe  # (JAX: numpy, with the above)
+
+    runs, out = [Path(r) for r in runs], Path(out)
+    if len(runs) < 2:
+        raise UsageError(f"{len(runs)} run given: models from several draws need two or more")
+    records = [_held_out(r) for r in runs]
+    _same_protocol(runs, records)
+    real = load_real(lbipe_dir)
+    names = [o.name for o in real.objects]
+    fits = list(records[0]["folds"])
+    missing = sorted({*fits, *(h for f in records[0]["folds"].values() for h in f["held_out"])}
+                     - set(names))
+    if missing:
+        raise UsageError(f"{lbipe_dir}: no real file of {', '.join(missing)} (the runs' folds "
+                         f"fit on and judge {', '.join(sorted(set(fits)))})")
+    pooled = {f"{i}/{fit}": rec["folds"][fit] for i, rec in enumerate(records) for fit in fits}
+    recipe = recipe_of({"recipe": choose_recipe(pooled)}, SimpleNamespace(recipe_by_part=True))
+    recipe = {**recipe, "chosen_by": f"held-out folds of {len(runs)} training draws"}
+    dirs = {fit: [r / "folds" / f"fit_{fit}" for r in runs] for fit in fits}
+    made = models_from_folds(out, {"folds": fits}, real, recipe,
+                             fold_dirs=[d for fit in fits for d in dirs[fit]])
+    # Judged as the folds judge: on each real file, only the members of the folds that did
+    # not see it (every run's), averaged as models_real averages them.
+    held, ratios = {}, {"mass": [], "com": []}
+    judge = out / ".draws_judged"
+    try:
+        for fit in fits:
+            part = models_from_folds(out, {"folds": [fit]}, real, recipe, fold_dirs=dirs[fit],
+                                     dst=judge / f"fit_{fit}")
+            for name in records[0]["folds"][fit]["held_out"]:
+                ours = part["objects"][name]["T-A"]
+                ref = records[0]["folds"][fit]["released"][name]["T-A"]
+                held.setdefault(fit, {})[name] = {k: ours[k] for k in (
+                    "mass_NMAE_pct", "com_NMAE_pct", "mass_MAE_g", "com_MAE_mm")}
+                ratios["mass"].append(ours["mass_NMAE_pct"] / ref["mass_NMAE_pct"])
+                ratios["com"].append(ours["com_NMAE_pct"] / ref["com_NMAE_pct"])
+    finally:
+        shutil.rmtree(judge, ignore_errors=True)
+    mass, com = (sum(v) / len(v) for v in (ratios["mass"], ratios["com"]))
+    res = evaluate_models(out / "models_real", real.objects, real.sets, l_max=real.l_max)
+    return {"runs": [str(r) for r in runs], "models": str(out / "models_real"),
+            "recipe": recipe, "from_folds": made["from_folds"],
+            "held_out": {"folds": held, "mass_score": mass, "com_score": com,
+                         "score": 0.5 * (mass + com)},
+            "each_run": [rec["recipe"]["by_part"]["score"] for rec in records],
+            "objects": res["objects"]}
+
+
+def cmd_models_real(args) -> int:
+    check_output(args.out / "models_real", overwrite=args.overwrite, folder=True)
+    enable_x64()
+    res = models_from_runs(args.runs, args.out, lbipe_dir_of(args))
+    h = res["held_out"]
+    print(f"{res['models']}: {len(res['runs'])} training draws; the mass: "
+          f"{res['recipe']['candidate']}; the COM: "
+          f"{res['recipe'].get('com', res['recipe'])['candidate']}")
+    print("held out (each file judged by the members that did not see it), T-A NMAE [%]:")
+    for fit, objects in h["folds"].items():
+        for name, r in objects.items():
+            print(f"  fit on {fit}, judged on {name}: mass {r['mass_NMAE_pct']:.2f}, "
+                  f"COM {r['com_NMAE_pct']:.2f}")
+    print(f"score over the released models' T-A: {h['score']:.4f} (mass {h['mass_score']:.4f}"
+          f", COM {h['com_score']:.4f}); each run's own models_real: "
+          + ", ".join(f"{s:.4f}" for s in res["each_run"]))
+    return write_json_option(args, res)
+
+
+def register(sub) -> None:
+    """Adds this module's subcommand to the ``jaxinertia`` argparse subparsers."""
+    p = sub.add_parser(
+        "models-real",
+        help="models_real from several reproduce runs (training draws) on the same real files",
+        description="Writes OUT/models_real from the held-out folds of finished `jaxinertia "
+        "reproduce` runs on the same real files with different --seed: the recipe chosen "
+        "over every run's folds, every run's folders it names averaged, and its held-out "
+        "score (each real file judged by the members that did not see it).")
+    p.add_argument("--runs", type=Path, nargs="+", required=True, metavar="RUN",
+                   help="output folders of finished reproduce runs (two or more)")
+    p.add_argument("--out", type=Path, required=True, help="write OUT/models_real here")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing OUT/models_real")
+    p.add_argument("--lbipe-dir", type=Path, help=LBIPE_DIR_HELP)
+    p.add_argument("--json", type=Path, help="write the recipe and scores here")
+    p.set_defaults(func=cmd_models_real)
