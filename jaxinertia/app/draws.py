@@ -59,7 +59,7 @@ def models_from_runs(runs: list[str | Path], out: str | Path, lbipe_dir: str | P
     members that did not see it. Returns the recipe, the score and each run's own."""
     # The work's modules (JAX), not for --help.
     from jaxinertia.app.models_real import models_from_folds, recipe_of  # (JAX)
-    from jaxinertia.app.pipeline import evaluate_models, load_real  # (JAX)
+    from jaxinertia.app.pipeline import load_real  # (JAX)
     from jaxinertia.app.recipe import choose_recipe  # (JAX: numpy, with the above)
 
     runs, out = [Path(r) for r in runs], Path(out)
@@ -76,7 +76,8 @@ def models_from_runs(runs: list[str | Path], out: str | Path, lbipe_dir: str | P
         raise UsageError(f"{lbipe_dir}: no real file of {', '.join(missing)} (the runs' folds "
                          f"fit on and judge {', '.join(sorted(set(fits)))})")
     pooled = {f"{i}/{fit}": rec["folds"][fit] for i, rec in enumerate(records) for fit in fits}
-    recipe = recipe_of({"recipe": choose_recipe(pooled)}, SimpleNamespace(recipe_by_part=True))
+    by_part = SimpleNamespace(recipe_by_part=True)  # (reproduce's Scale, as every run's)
+    recipe = recipe_of({"recipe": choose_recipe(pooled)}, by_part)
     recipe = {**recipe, "chosen_by": f"held-out folds of {len(runs)} training draws"}
     dirs = {fit: [r / "folds" / f"fit_{fit}" for r in runs] for fit in fits}
     made = models_from_folds(out, {"folds": fits}, real, recipe,
@@ -99,13 +100,12 @@ def models_from_runs(runs: list[str | Path], out: str | Path, lbipe_dir: str | P
     finally:
         shutil.rmtree(judge, ignore_errors=True)
     mass, com = (sum(v) / len(v) for v in (ratios["mass"], ratios["com"]))
-    res = evaluate_models(out / "models_real", real.objects, real.sets, l_max=real.l_max)
-    return {"runs": [str(r) for r in runs], "models": str(out / "models_real"),
-            "recipe": recipe, "from_folds": made["from_folds"],
+    return {"runs": [str(r) for r in runs], "models": made["models"], "recipe": recipe,
+            "from_folds": made["from_folds"],
             "held_out": {"folds": held, "mass_score": mass, "com_score": com,
                          "score": 0.5 * (mass + com)},
-            "each_run": [rec["recipe"]["by_part"]["score"] for rec in records],
-            "objects": res["objects"]}
+            "each_run": [recipe_of(rec, by_part)["score"] for rec in records],
+            "objects": made["objects"]}  # (not held out: each file seen by half the members)
 
 
 def cmd_models_real(args) -> int:
