@@ -11,16 +11,18 @@ sessions 24-41:
   (``models_physical_current_sessions``), T-A (its attention), strength 1.
 
 For each run alone, then with the members of every run averaged per model pair and set (the
-way ``models_real`` averages its members). Scores as the folds' recipe scores them: NMAE
+way ``models_real`` averages its members), and (``--subsets``) of every subset of two or
+more runs. Scores as the folds' recipe scores them: NMAE
 over the released models' T-A on the same sets, the mean of both folds (mass and COM
 apart). Nothing is chosen here: the recipe is fixed beforehand.
 
-    python experiments/draws_averaged.py --runs DIR [DIR ...] --lbipe-dir DIR
+    python experiments/draws_averaged.py --runs DIR [DIR ...] --lbipe-dir DIR [--subsets]
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 from pathlib import Path
 
@@ -61,6 +63,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--runs", nargs="+", required=True, help="reproduce --full output folders")
     p.add_argument("--lbipe-dir", required=True)
+    p.add_argument("--subsets", action="store_true",
+                   help="also every subset of two or more runs, averaged")
     a = p.parse_args()
     real = load_real(a.lbipe_dir)
     names = [o.name for o in real.objects]
@@ -72,9 +76,12 @@ def main() -> None:
         o = names.index(held)
         ref = released[fit]["released"][held]["T-A"]
         parts = [_fold_parts(r, fit, real, o) for r in runs]
-        labels = [r.name for r in runs] + [f"{len(runs)} draws averaged"]
-        for label, x in zip(labels, [*parts, {k: np.mean([q[k] for q in parts], axis=0)
-                                              for k in ("mass", "com")}]):
+        groups = [(i,) for i in range(len(runs))] + (
+            [c for n in range(2, len(runs) + 1) for c in itertools.combinations(
+                range(len(runs)), n)] if a.subsets else [tuple(range(len(runs)))])
+        for g in groups:
+            label = " + ".join(runs[i].name for i in g)
+            x = {k: np.mean([parts[i][k] for i in g], axis=0) for k in ("mass", "com")}
             mass, _, bias = _metrics(x["mass"], real.objects[o], real.l_max[o])
             _, com, _ = _metrics(x["com"], real.objects[o], real.l_max[o])
             r = rows.setdefault(label, {"mass": [], "com": []})
