@@ -287,6 +287,14 @@ def _check_draws(tmp_path, res, lbipe_dir):
         models_from_runs([tmp_path, twin], tmp_path / "draws", lbipe_dir)
     with pytest.raises(UsageError, match="two or more"):
         models_from_runs([tmp_path], tmp_path / "draws", lbipe_dir)
+    write_json(twin / "tables.json", {"held_out": res})  # (the same protocol again)
+    tuned = twin / "folds" / "fit_white" / "models_finetuned_30" / "config.json"
+    config = json.loads(tuned.read_text())
+    (entry,) = [d for d in config["data"] if Path(d["file"]).name == "data_test_white.npz"]
+    entry["sha256"] = "0" * 64  # fitted on another recording of white
+    write_json(tuned, config)
+    with pytest.raises(UsageError, match="fitted on another data_test_white.npz"):
+        models_from_runs([tmp_path, twin], tmp_path / "draws", lbipe_dir)
     # The command refuses to replace the folder it wrote without --overwrite, before any
     # work (exit code 2: the user's to fix).
     before = (tmp_path / "draws" / "models_real" / "config.json").read_bytes()

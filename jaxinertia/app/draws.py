@@ -52,6 +52,22 @@ def _same_protocol(runs: list[Path], records: list[dict]) -> None:
                                  "draws of one protocol only (the same lbipe folder)")
 
 
+def _same_files(runs: list[Path], fits: list[str], real) -> None:
+    """Every run's fold was fitted on the very real file of ``real`` it is named after, as
+    far as its folders record (a fine-tuning's ``data``: the file's SHA-256)."""
+    sha = {o.name: f.meta.get("sha256") for o, f in zip(real.objects, real.files)}
+    for run in runs:
+        for fit in fits:
+            for config in sorted((run / "folds" / f"fit_{fit}").glob("models*/config.json")):
+                for entry in json.loads(config.read_text()).get("data") or ():
+                    name = Path(str(entry.get("file", ""))).name
+                    if name == f"data_test_{fit}.npz" and entry.get("sha256") != sha[fit]:
+                        raise UsageError(
+                            f"{config.parent}: fitted on another {name} than the lbipe "
+                            "folder's (its SHA-256 differs): draws of the same real files "
+                            "only")
+
+
 def models_from_runs(runs: list[str | Path], out: str | Path, lbipe_dir: str | Path) -> dict:
     """``out/models_real`` from the held-out folds of every run in ``runs`` (the folders of
     finished ``reproduce`` runs on the real files of ``lbipe_dir``, e.g. ``--seed`` 0, 1
@@ -75,6 +91,7 @@ def models_from_runs(runs: list[str | Path], out: str | Path, lbipe_dir: str | P
     if missing:
         raise UsageError(f"{lbipe_dir}: no real file of {', '.join(missing)} (the runs' folds "
                          f"fit on and judge {', '.join(sorted(set(fits)))})")
+    _same_files(runs, fits, real)
     pooled = {f"{i}/{fit}": rec["folds"][fit] for i, rec in enumerate(records) for fit in fits}
     by_part = SimpleNamespace(recipe_by_part=True)  # (reproduce's Scale, as every run's)
     recipe = recipe_of({"recipe": choose_recipe(pooled)}, by_part)
