@@ -414,6 +414,73 @@ def test_training_on_the_authors_layout_gives_the_models_of_the_native_files(tmp
         np.testing.assert_array_equal(np.asarray(leaf_a), np.asarray(leaf_b))
 
 
+def test_folds_of_several_training_draws_are_each_their_seeds_own_and_averaged(
+        small_lbipe_dir, tmp_path):
+    """``run_folds(draws=2)`` (``reproduce --draws``): each draw's folds are what ``--seed``
+    of that draw makes alone, judged on the same sets; the recipe is chosen over every
+    draw's folds; ``models_real`` is the mean of every draw's folders, and its held-out
+    judgement from the folds' estimates in memory is the judgement of those folders on
+    disk (each file by the members that did not see it)."""
+    from jaxinertia.app.report import reproduce_section_new_object  # noqa: PLC0415
+    from jaxinertia.app.with_released import judge_draws  # noqa: PLC0415
+
+    scale = FoldScale(calibration_iterations=1, random_per_load=N_TRAIN // 4,
+                      planning=False, train=TRAIN, finetune_samples=(30,),
+                      finetune=TRAIN.replace(trainable="servo", val_fraction=0.2),
+                      session_strengths=(0.0, 1.0))
+    real = load_real(small_lbipe_dir, seed=5)
+    keep: dict = {}
+    res = run_folds(tmp_path / "folds", small_lbipe_dir, scale, seed=5, draws=2,
+                    progress=False, log=lambda m: None, real=real, keep=keep)
+    alone = run_folds(tmp_path / "alone", small_lbipe_dir, scale, seed=6, progress=False,
+                      log=lambda m: None, real=real)
+    assert res["seeds"] == [5, 6] and alone["seeds"] == [6] and "draws" not in alone
+    assert [(d["seed"], d["dir"]) for d in res["draws"]] == [(5, ""), (6, "seed6")]
+    assert res["draws"][0]["folds"] == res["folds"]
+    second = res["draws"][1]["folds"]
+    for fit in ("cube", "white"):  # the second draw is seed 6's, bit for bit on a CPU
+        assert second[fit]["ours"] == alone["folds"][fit]["ours"]
+        assert second[fit]["fine_tuned"]["30"]["objects"] == \
+            alone["folds"][fit]["fine_tuned"]["30"]["objects"]
+        assert second[fit]["ours"] != res["folds"][fit]["ours"]  # another draw
+        for d, seed in (("", 5), ("seed6", 6)):
+            cal = json.loads((tmp_path / "folds" / d / f"fit_{fit}" / "calibration.json"
+                              ).read_text())
+            assert cal["fit_on"] == fit and cal["fit"]["seed"] == seed
+    assert res["recipe"] == R.choose_recipe({
+        "cube": res["folds"]["cube"], "white": res["folds"]["white"],
+        "seed6/cube": second["cube"], "seed6/white": second["white"]})
+    assert [len(keep["estimates"][f]) for f in ("cube", "white")] == [2, 2]
+    # models_real: the recipe's candidates from every draw's every fold.
+    recipe = {**R._recipe("physical, simulator only", 0.0, attention=False),
+              "com": R._recipe("physical, servo part fine-tuned on 30 real samples", 1.0)}
+    made = models_from_folds(tmp_path, res, real, recipe)
+    assert made["from_folds"] == {
+        "mass": [f"folds/{d}fit_{f}/models_physical" for d in ("", "seed6/")
+                 for f in ("cube", "white")],
+        "com": [f"folds/{d}fit_{f}/models_finetuned_30" for d in ("", "seed6/")
+                for f in ("cube", "white")]}
+    judged = judge_draws(res, keep["estimates"], real, recipe)
+    assert judged["draws"] == 2
+    ratios = []
+    for fit, other in (("cube", "white"), ("white", "cube")):
+        dirs = [tmp_path / "folds" / d / f"fit_{fit}" for d in ("", "seed6")]
+        part = models_from_folds(tmp_path, {"folds": [fit]}, real, recipe, fold_dirs=dirs,
+                                 dst=tmp_path / f"judge_{fit}")
+        got, want = judged["folds"][fit][other], part["objects"][other]["T-A"]
+        for k in ("mass_NMAE_pct", "com_NMAE_pct"):
+            assert got[k] == pytest.approx(want[k], rel=1e-6), (fit, k)
+        ref = res["folds"][fit]["released"][other]["T-A"]
+        ratios += [got["mass_NMAE_pct"] / ref["mass_NMAE_pct"],
+                   got["com_NMAE_pct"] / ref["com_NMAE_pct"]]
+    assert judged["score"] == pytest.approx(np.mean(ratios), rel=1e-12)
+    # The report says what ran and how models_real is judged.
+    assert "The folds of 2 training draws (seeds 5, 6)" in format_folds(res)
+    text = reproduce_section_new_object({**made, "held_out": judged})
+    assert "of 2 training draws), averaged as" in text
+    assert f"**{judged['score']:.3f}**" in text
+
+
 def test_side_by_side_keeps_the_order_and_raises_what_a_stage_raised():
     """The folds (and a fold's fine-tunings) run side by side on an accelerator: results
     in the order of the calls, every call ended before an error is raised."""
@@ -567,15 +634,18 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     made.clear()
     calls.clear()
     calibrations.clear()
-    run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False, log=lambda m: None)
-    # Side by side, the folds' calibrations run first, together (one call for both folds).
-    assert calibrations == [(["cube", "white"], True)]
-    want = {("scratch", f"{n}/{b}", f) for n in ("cube", "white") for b, f in (
+    run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False, log=lambda m: None,
+              draws=2)
+    # Side by side, the folds' calibrations run first, together (one call for every fold of
+    # both training draws), and every draw's trainings meet in the same groups.
+    assert calibrations == [(["cube", "white", "cube", "white"], True)]
+    keys = ("cube", "white", "seed1/cube", "seed1/white")
+    want = {("scratch", f"{n}/{b}", f) for n in keys for b, f in (
         ("paper", "models"), ("physical", "models_physical"),
         ("physical_current", "models_physical_current"),
         ("physical_current_sessions", "models_physical_current_sessions"))}
     want |= {("finetune", f"{n}/physical{t}/{k}", f"models_finetuned{t}_{k}")
-             for n in ("cube", "white") for t in ("", "_current", "_current_sessions")
+             for n in keys for t in ("", "_current", "_current_sessions")
              for k in (30, 60)}
     assert sorted(calls) == sorted(want)
     groups = made[0]

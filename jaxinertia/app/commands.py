@@ -255,7 +255,7 @@ def cmd_reproduce(args) -> int:
     from jaxinertia.app.reproduce import reproduce
 
     reproduce(args.out, full=args.full, seed=args.seed, lbipe_dir=lbipe_dir_of(args),
-              arm=arm_of(args))
+              arm=arm_of(args), draws=args.draws)
     return 0
 
 
@@ -311,6 +311,10 @@ def register(sub) -> None:
     r.add_argument("--out", type=Path, default=Path("runs/reproduce"))
     r.add_argument("--full", action="store_true")
     r.add_argument("--seed", type=seed_int, default=0)
+    r.add_argument("--draws", type=positive_int, metavar="N",
+                   help="the held-out folds of N training draws (seeds SEED, SEED+1, ...), "
+                   "models_real the mean of every draw's; default: the scale's (quick 1, "
+                   "full 1)")
     r.add_argument("--lbipe-dir", type=Path, help=LBIPE_DIR_HELP)
     add_arm_option(r)
     r.set_defaults(func=cmd_reproduce)

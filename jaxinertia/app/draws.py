@@ -20,6 +20,7 @@ from types import SimpleNamespace
 
 from jaxinertia.app.commands import LBIPE_DIR_HELP, lbipe_dir_of
 from jaxinertia.app.options import enable_x64, write_json_option
+from jaxinertia.app.recipe import choose_recipe, fold_draws, pooled_folds
 from jaxinertia.errors import UsageError
 from jaxinertia.fileio import check_output
 
@@ -52,13 +53,19 @@ def _same_protocol(runs: list[Path], records: list[dict]) -> None:
                                  "draws of one protocol only (the same lbipe folder)")
 
 
-def _same_files(runs: list[Path], fits: list[str], real) -> None:
+def _fold_dirs(run: Path, record: dict, fit: str) -> list[Path]:
+    """The run's folders of the folds fitted on ``fit``, one per training draw."""
+    return [run / "folds" / d / f"fit_{fit}" for d, _ in fold_draws(record)]
+
+
+def _same_files(runs: list[Path], records: list[dict], fits: list[str], real) -> None:
     """Every run's fold was fitted on the very real file of ``real`` it is named after, as
     far as its folders record (a fine-tuning's ``data``: the file's SHA-256)."""
     sha = {o.name: f.meta.get("sha256") for o, f in zip(real.objects, real.files)}
-    for run in runs:
+    for run, record in zip(runs, records):
         for fit in fits:
-            for config in sorted((run / "folds" / f"fit_{fit}").glob("models*/config.json")):
+            for config in sorted(c for d in _fold_dirs(run, record, fit)
+                                 for c in d.glob("models*/config.json")):
                 for entry in json.loads(config.read_text()).get("data") or ():
                     name = Path(str(entry.get("file", ""))).name
                     if name == f"data_test_{fit}.npz" and entry.get("sha256") != sha[fit]:
@@ -76,7 +83,6 @@ def models_from_runs(runs: list[str | Path], out: str | Path, lbipe_dir: str | P
     # The work's modules (JAX), not for --help.
     from jaxinertia.app.models_real import models_from_folds, recipe_of  # (JAX)
     from jaxinertia.app.pipeline import load_real  # (JAX)
-    from jaxinertia.app.recipe import choose_recipe  # (JAX: numpy, with the above)
 
     runs, out = [Path(r) for r in runs], Path(out)
     if len(runs) < 2:
@@ -91,12 +97,14 @@ def models_from_runs(runs: list[str | Path], out: str | Path, lbipe_dir: str | P
     if missing:
         raise UsageError(f"{lbipe_dir}: no real file of {', '.join(missing)} (the runs' folds "
                          f"fit on and judge {', '.join(sorted(set(fits)))})")
-    _same_files(runs, fits, real)
-    pooled = {f"{i}/{fit}": rec["folds"][fit] for i, rec in enumerate(records) for fit in fits}
+    _same_files(runs, records, fits, real)
+    pooled = {f"{i}/{name}": fold for i, rec in enumerate(records)
+              for name, fold in pooled_folds(rec)}
     by_part = SimpleNamespace(recipe_by_part=True)  # (reproduce's Scale, as every run's)
     recipe = recipe_of({"recipe": choose_recipe(pooled)}, by_part)
     recipe = {**recipe, "chosen_by": f"held-out folds of {len(runs)} training draws"}
-    dirs = {fit: [r / "folds" / f"fit_{fit}" for r in runs] for fit in fits}
+    dirs = {fit: [d for r, rec in zip(runs, records) for d in _fold_dirs(r, rec, fit)]
+            for fit in fits}
     made = models_from_folds(out, {"folds": fits}, real, recipe,
                              fold_dirs=[d for fit in fits for d in dirs[fit]])
     # Judged as the folds judge: on each real file, only the members of the folds that did

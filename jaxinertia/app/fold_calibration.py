@@ -41,19 +41,21 @@ def fit_simulators(folds: Sequence, *, together: bool = False) -> list[tuple]:
     "identified"})]``. ``together``: every fold's replays in one
     program each (:func:`jaxinertia.sim.real_fit.fit_servo_friction_many`; an accelerator,
     where the folds' replays side by side in threads would wait behind each other's)."""
-    scale, seed = folds[0].scale, folds[0].seed
+    scale = folds[0].scale  # (every fold's; the seeds their own: the training draws')
     starts = []
     for fold in folds:
         params = datasheet_sim_params()
         fit = [fold.record(fold.fit_on)]  # the only real samples the fold's fits look at
         robot, gravity = fit_link_gravity(params.robot, fit)
         starts.append((params.replace(robot=robot), fit, gravity))
-    kw = dict(iterations=scale.calibration_iterations, seed=seed, fit_offset=True,
-              log=lambda m: None, programs=stream_programs())
+    kw = dict(iterations=scale.calibration_iterations, fit_offset=True, log=lambda m: None,
+              programs=stream_programs())
     if together and len(folds) > 1:
-        fitted = fit_servo_friction_many([(p, fit) for p, fit, _ in starts], **kw)
+        fitted = fit_servo_friction_many([(p, fit) for p, fit, _ in starts],
+                                         seed=[f.seed for f in folds], **kw)
     else:
-        fitted = [fit_servo_friction(p, fit, progress=False, **kw) for p, fit, _ in starts]
+        fitted = [fit_servo_friction(p, fit, progress=False, seed=f.seed, **kw)
+                  for f, (p, fit, _) in zip(folds, starts)]
     params = [p for p, _ in fitted]
     held = [real_plan(p.robot, [fold.record(n) for n in fold.held])
             for fold, p in zip(folds, params)]
@@ -62,7 +64,8 @@ def fit_simulators(folds: Sequence, *, together: bool = False) -> list[tuple]:
                  for plans in held]
 
     def replays(ps) -> list[dict]:  # the held-out objects' real plans replayed in each
-        requests = [(p, plans, jax.random.key(seed + 7)) for p, plans in zip(ps, held)]
+        requests = [(p, plans, jax.random.key(f.seed + 7)) for f, p, plans in
+                    zip(folds, ps, held)]
         sims = (simulate_real_plans(requests, programs=stream_programs()) if together else
                 [simulate_real_plan(*r, programs=stream_programs()) for r in requests])
         return [_stats({k: v[sim["at_rest"]] for k, v in sim.items()}) for sim in sims]
@@ -73,12 +76,13 @@ def fit_simulators(folds: Sequence, *, together: bool = False) -> list[tuple]:
         for i in range(len(folds)):
             _, obj_fit, d_fit = real_plan(params[i].robot, starts[i][1])[0]
             if 0 < scale.identify_samples < d_fit.n_samples:
-                d_fit = d_fit.take(np.sort(np.random.default_rng(seed).choice(
+                d_fit = d_fit.take(np.sort(np.random.default_rng(folds[i].seed).choice(
                     d_fit.n_samples, scale.identify_samples, replace=False)))
             t_id = time.perf_counter()
             params[i], ident = identify(params[i], obj_fit, d_fit, config=ESConfig(
                 population=scale.identify_population,
-                generations=scale.identify_generations, seed=seed), log=lambda m: None)
+                generations=scale.identify_generations, seed=folds[i].seed),
+                log=lambda m: None)
             identified[i] = {**ident, "wall_time_s": time.perf_counter() - t_id,
                              "replay_calibrated": calibrated[i]}
     for fold, p, (_, info), (_, _, gravity), ident in zip(folds, params, fitted, starts,
@@ -87,6 +91,7 @@ def fit_simulators(folds: Sequence, *, together: bool = False) -> list[tuple]:
             "robot": "open_manipulator_x", "fit_on": fold.fit_on,
             "link_gravity": gravity, "servo_friction": params_to_dict(p),
             "fit": {"iterations": scale.calibration_iterations, "real_objects": [fold.fit_on],
+                    "seed": fold.seed,
                     "real": info["real"], "final_sim": info["history"][-1]["sim"]},
             "identified": None if ident is None else {
                 k: ident[k] for k in ("theta", "parameters", "history")}})

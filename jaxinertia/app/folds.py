@@ -32,7 +32,7 @@ import contextlib
 import os
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 
@@ -52,7 +52,7 @@ from jaxinertia.app.pipeline import (
     train,
 )
 from jaxinertia.app.programs import folds_side_by_side, side_by_side
-from jaxinertia.app.recipe import choose_recipe
+from jaxinertia.app.recipe import choose_recipe, pooled_folds
 from jaxinertia.app.simdata import simulate_files
 from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import evaluate
@@ -113,6 +113,9 @@ class _Fold:
     seed: int
     progress: bool
     groups: FoldGroups | None = None
+    #: The fold's training draw (:func:`run_folds`' ``draws``): "" for the first, else
+    #: ``seed<seed>`` (the folder its folds write under).
+    draw: str = ""
     #: (folder name, strength) -> {method: held-out estimates (O, K, B, 4)} of every folder
     #: judged: the members of the candidates' mean (:func:`_ensemble`).
     estimates: dict = field(default_factory=dict)
@@ -122,7 +125,7 @@ class _Fold:
         ("scratch" or "finetune"), when trainings are grouped."""
         if self.groups is None:
             return contextlib.nullcontext()
-        return getattr(self.groups, group).member(f"{self.fit_on}/{name}")
+        return getattr(self.groups, group).member(f"{self.key}/{name}")
 
     def branch(self, fn, name: str | None = None):
         """``fn`` as a call whose end (normal or not) releases the fold's members under
@@ -132,8 +135,13 @@ class _Fold:
                 return fn()
             finally:
                 if self.groups is not None:
-                    self.groups.leave(self.fit_on if name is None else f"{self.fit_on}/{name}")
+                    self.groups.leave(self.key if name is None else f"{self.key}/{name}")
         return call
+
+    @property
+    def key(self) -> str:
+        """The fold's name in its training groups: ``[seed<seed>/]fit_on``."""
+        return f"{self.draw}/{self.fit_on}" if self.draw else self.fit_on
 
     def workers(self, n_calls: int) -> int | None:
         """Side by side for ``n_calls`` calls that hold group members: a thread each
@@ -183,21 +191,29 @@ class _Fold:
 
 
 def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldScale, *,
-              seed: int = 0, progress: bool = True, log=print,
+              seed: int = 0, draws: int = 1, progress: bool = True, log=print,
               real: RealData | None = None, keep: dict | None = None) -> dict | None:
     """Every fold into ``out/fit_<object>/`` (calibration.json, data, models); returns the
     held-out results and the recipe they choose (None when there is no real data, or only
-    one object). ``real``: the folder's real data when already loaded. ``keep``: filled
-    with the estimates the folds judged (``estimates``: fold -> (folder, strength) ->
-    {method: (held objects, K, B, 4)}; ``released``: the released models' {method:
-    (objects, K, B, 4)}), for judgements made after the recipe
-    (:func:`jaxinertia.app.with_released.judge_with_released`)."""
+    one object). ``draws`` > 1: the folds of that many training draws (seeds ``seed``,
+    ``seed + 1``, ...; each draw's calibrations, simulated data and trainings its own, as
+    ``--seed`` would make them; the later draws' under ``out/seed<s>/``), all side by side
+    (on an accelerator their trainings in the same groups) and judged on the same sets;
+    the recipe is chosen over every draw's folds
+    (:func:`jaxinertia.app.recipe.pooled_folds`). ``real``: the
+    folder's real data when already loaded. ``keep``: filled with the estimates the folds
+    judged (``estimates``: fold -> one per draw: (folder, strength) -> {method: (held
+    objects, K, B, 4)}; ``released``: the released models' {method: (objects, K, B, 4)}),
+    for judgements made after the recipe (:func:`jaxinertia.app.with_released.judge_draws`)."""
+    if draws < 1:
+        raise ValueError(f"draws must be 1 or more, not {draws}")
     if real is None and not Path(lbipe_dir).is_dir():
         return None
     real = real or load_real(lbipe_dir, seed=seed)
     names = [o.name for o in real.objects]
     if len(names) < 2:
         return None
+    seeds = [seed + k for k in range(draws)]
     # The released models' benchmark is needed only once a fold judges: it runs beside the
     # calibrations instead of before them (on an accelerator 7 s of tracing and compiling
     # off the folds' critical path: docs/benchmarks.md, "Session 33"). Their weights are
@@ -206,23 +222,40 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
     released = read_released_pairs(real.layout.weights_dir, prefer=real.layout.prefer)
     with ThreadPoolExecutor(1, thread_name_prefix="jaxinertia-released") as pool:
         benchmark = pool.submit(released_benchmark, lbipe_dir, real=real, pairs=released)
-        folds, todo, workers = _run_all(out, names, real, scale, seed, progress, log,
-                                        benchmark)
+        by_draw, todo, workers = _run_all(out, names, real, scale, seeds, progress, log,
+                                          benchmark)
     if keep is not None:
-        keep.update(estimates={f.fit_on: f.estimates for f in todo},
+        keep.update(estimates={n: [f.estimates for f in todo if f.fit_on == n] for n in names},
                     released={m: np.asarray(x)
                               for m, x in benchmark.result()["estimates"].items()})
-    return {"folds": folds, "sets": dict(zip(names, real.sources)),
-            "recipe": choose_recipe(folds), "side_by_side": workers}
+    res = {"folds": by_draw[0], "sets": dict(zip(names, real.sources)), "seeds": seeds,
+           "side_by_side": workers}
+    if draws > 1:
+        res["draws"] = [{"seed": s, "dir": _draw_dir(k, s), "folds": f}
+                        for k, (s, f) in enumerate(zip(seeds, by_draw))]
+    return {**res, "recipe": choose_recipe(dict(pooled_folds(res)))}
 
 
-def _run_all(out, names, real, scale, seed, progress, log, benchmark: Future
-             ) -> tuple[dict[str, dict], list[_Fold], int]:
-    """Every fold's stages: their results by name, the folds, and how many ran side by
-    side; ``benchmark``: the released models' on the real files, awaited when judged."""
-    groups = FoldGroups.of(names, scale)
-    todo = [_Fold(Path(out) / f"fit_{fit_on}", fit_on, [n for n in names if n != fit_on],
-                  real, scale, seed, progress, groups) for fit_on in names]
+def _draw_dir(k: int, seed: int) -> str:
+    """The k-th training draw's folder under the folds' (the first: the folds' own)."""
+    return "" if k == 0 else f"seed{seed}"
+
+
+def _run_all(out, names, real, scale, seeds, progress, log, benchmark: Future
+             ) -> tuple[list[dict[str, dict]], list[_Fold], int]:
+    """Every draw's folds' stages: their results by name (one dict per draw), the folds,
+    and how many ran side by side; ``benchmark``: the released models' on the real files,
+    awaited when judged."""
+    todo = [_Fold(Path(out) / _draw_dir(k, s) / f"fit_{fit_on}", fit_on,
+                  [n for n in names if n != fit_on], real, scale, s, progress,
+                  draw=_draw_dir(k, s))
+            for k, s in enumerate(seeds) for fit_on in names]
+    groups = FoldGroups.of([f.key for f in todo], scale)
+    todo = [replace(f, groups=groups) for f in todo]
+
+    def announce(fold: _Fold) -> None:
+        log(f"-- fold{f' ({fold.draw})' if fold.draw else ''}: calibrate on {fold.fit_on}, "
+            f"judge on {', '.join(fold.held)}")
 
     # Side by side (an accelerator), the folds' calibrations run first, together: each of
     # their replays one program for every fold (on a CPU each fold calibrates in its own
@@ -230,14 +263,14 @@ def _run_all(out, names, real, scale, seed, progress, log, benchmark: Future
     calibrated: list = [None] * len(todo)
     if groups is not None:
         for fold in todo:
-            log(f"-- fold: calibrate on {fold.fit_on}, judge on {', '.join(fold.held)}")
+            announce(fold)
         t = time.perf_counter()
         fitted = fit_simulators(todo, together=True)
         calibrated = [(*c, time.perf_counter() - t) for c in fitted]
 
     def run(fold: _Fold, calibration) -> dict:
         if calibration is None:
-            log(f"-- fold: calibrate on {fold.fit_on}, judge on {', '.join(fold.held)}")
+            announce(fold)
         res = _run_fold(fold, calibration)
         released = benchmark.result()["objects"]
         return {**res, "released": {n: {m: released[n][m] for m in ("T", "T-A")}
@@ -247,7 +280,9 @@ def _run_all(out, names, real, scale, seed, progress, log, benchmark: Future
     # accelerator their trainings grouped into few programs; on a CPU one fold per core).
     calls = [fold.branch(partial(run, fold, c)) for fold, c in zip(todo, calibrated)]
     workers = todo[0].workers(len(calls)) or folds_side_by_side(len(calls))
-    return dict(zip(names, side_by_side(calls, workers))), todo, workers
+    done = side_by_side(calls, workers)
+    n = len(names)
+    return [dict(zip(names, done[k:k + n])) for k in range(0, len(done), n)], todo, workers
 
 
 def _run_fold(fold: _Fold, calibration: tuple | None = None) -> dict:

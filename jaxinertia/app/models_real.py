@@ -19,7 +19,7 @@ from jaxinertia.app.by_part import attach_com_models
 from jaxinertia.app.ensemble import attach_members
 from jaxinertia.app.pipeline import RealData, copy_models, evaluate_models, train
 from jaxinertia.app.provenance import record_fitted_on
-from jaxinertia.app.recipe import candidate_of_folder
+from jaxinertia.app.recipe import candidate_of_folder, fold_draws
 from jaxinertia.fileio import replacing_dir
 from jaxinertia.open_manipulator_x import load_sim_fit
 from jaxinertia.session import ServoSession, servo_session
@@ -115,12 +115,13 @@ def models_from_folds(out: Path, folds: dict, real: RealData, recipe: dict, *,
     real files it did not see: calibrated from the datasheet, trained and fine-tuned on
     one real file, so each keeps that file's session as its reference. Evaluated on the
     real files (not held out: each was seen by its own fold's members). ``fold_dirs``: the
-    folds' folders (default: ``folds``' in ``out/folds``; several runs' folds,
-    :mod:`jaxinertia.app.draws`); ``dst``: the folder written (default
+    folds' folders (default: every training draw's of ``folds`` in ``out/folds``; several
+    runs' folds, :mod:`jaxinertia.app.draws`); ``dst``: the folder written (default
     ``out/models_real``)."""
     dst = dst or out / "models_real"
-    if fold_dirs is None:
-        fold_dirs = [out / "folds" / f"fit_{name}" for name in folds["folds"]]
+    if fold_dirs is None:  # every training draw's (the first's under out/folds itself)
+        fold_dirs = [out / "folds" / d / f"fit_{name}" for d, by_fit in fold_draws(folds)
+                     for name in by_fit]
     by_candidate = []
     for d in fold_dirs:
         found = {}

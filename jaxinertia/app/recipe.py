@@ -13,7 +13,7 @@ from functools import partial
 import numpy as np
 
 __all__ = ["ATTENTION", "CURRENT", "ENSEMBLE", "SESSIONS", "candidate_of_folder",
-           "candidates", "choose_recipe"]
+           "candidates", "choose_recipe", "fold_draws", "pooled_folds"]
 
 
 def candidates(fold: dict) -> dict[str, dict]:
@@ -29,6 +29,21 @@ def candidates(fold: dict) -> dict[str, dict]:
         for n, ft in (fold.get(f"fine_tuned_{key}") or {}).items():
             out[f"{what}, servo part fine-tuned on {n} real samples"] = ft["by_strength"]
     return out
+
+
+def fold_draws(held: dict) -> list[tuple[str, dict]]:
+    """The training draws of :func:`jaxinertia.app.folds.run_folds`' result ``held`` (a
+    ``tables.json``'s ``held_out``): ``[(folder under the folds' folder, {fit_on: fold
+    result})]``, one item for a run of one draw."""
+    return [(d["dir"], d["folds"]) for d in held["draws"]] if held.get("draws") else [
+        ("", held["folds"])]
+
+
+def pooled_folds(held: dict) -> list[tuple[str, dict]]:
+    """Every draw's every fold, ``[("[seed<s>/]fit_on", fold result)]``: the folds that
+    :func:`choose_recipe` chooses over."""
+    return [(f"{d}/{fit}" if d else fit, fold) for d, folds in fold_draws(held)
+            for fit, fold in folds.items()]
 
 
 #: The name of the candidates with the current input (``FoldScale.current_input``).

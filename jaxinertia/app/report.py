@@ -132,6 +132,15 @@ def format_folds(res: dict) -> str:
     session-adapted and not, beside the released models on the same sets), the replayed
     baseline statistics; then the recipe they choose for the models of a new object."""
     lines = []
+    if res.get("draws"):
+        d = res["draws"]
+        lines += [f"The folds of {len(d)} training draws (seeds "
+                  f"{', '.join(str(x['seed']) for x in d)}): each draw's calibrations, "
+                  "simulated data and trainings drawn with its own seed, every draw judged "
+                  f"on the same sets. The tables below are the first draw's (`folds/`), the "
+                  "others' are in tables.json (`held_out.draws`) and their folders under "
+                  f"`folds/seed<s>/`; the recipe is ranked over all {len(d) * len(d[0]['folds'])} "
+                  "folds.", ""]
     for fit_on, f in res["folds"].items():
         held = ", ".join(f["held_out"])
         ratio = "; ".join(f"{o} {np.round(r, 3).tolist()}" for o, r in
@@ -333,7 +342,8 @@ def _new_object_section(ft: dict | None) -> list[str]:
             "folds below measure.", "",
             table1(ft["objects"], f"On {names}: **not held out** (" + (
                 "each file was seen by the members its own fold made" if ft.get("from_folds")
-                else "the models saw these files") + ")"), ""] + _with_released(
+                else "the models saw these files") + ")"), ""] + _judged(
+                    ft.get("held_out"), ft["models"]) + _with_released(
                     ft.get("with_released"), ft["models"])
 
 
@@ -343,21 +353,37 @@ def reproduce_section_new_object(ft: dict | None) -> str:
     return "\n".join(_new_object_section(ft))
 
 
+def _held_out_rows(h: dict) -> list[str]:
+    """A held-out judgement's (:func:`jaxinertia.app.with_released.judge_draws`) table."""
+    return ["| fit on | judged on | T-A mass NMAE [%] | T-A COM NMAE [%] |",
+            "| --- | --- | ---: | ---: |",
+            *(f"| {fit} | {held} | {r['mass_NMAE_pct']:.2f} | {r['com_NMAE_pct']:.2f} |"
+              for fit, f in h["folds"].items() for held, r in f.items()), ""]
+
+
+def _judged(h: dict | None, models: str) -> list[str]:
+    """``models_real`` judged held out (:func:`jaxinertia.app.with_released.judge_draws`)."""
+    if h is None:
+        return []
+    return [f"`{models}` judged held out: on each real file, the members that did not see it "
+            f"(those of the folds fitted on the other file, of {h['draws']} training "
+            f"draw{'s' if h['draws'] > 1 else ''}), averaged as `{models}` averages them: "
+            f"score over the released models' T-A **{h['score']:.3f}** (mass "
+            f"{h['mass_score']:.3f}, COM {h['com_score']:.3f}).", "", *_held_out_rows(h)]
+
+
 def _with_released(w: dict | None, models: str) -> list[str]:
     """``models_real_with_released`` (:mod:`jaxinertia.app.with_released`)."""
     if w is None:
         return []
     h = w["held_out"]
-    rows = [f"| {fit} | {held} | {r['mass_NMAE_pct']:.2f} | {r['com_NMAE_pct']:.2f} |"
-            for fit, f in h["folds"].items() for held, r in f.items()]
     return [f"`{w['models']}`: `{models}` averaged with the authors' released models, "
             f"{w['released_share']:g} each per model pair and set (T and T-A; the share "
             "fixed beforehand), a second folder beside it, never a candidate of the recipe. "
             "Judged by the same folds (each fold's own models of the recipe's parts, the "
             "released models on the same sets): score over the released models' T-A "
             f"{h['score']:.3f} (mass {h['mass_score']:.3f}, COM {h['com_score']:.3f}).", "",
-            "| fit on | judged on | T-A mass NMAE [%] | T-A COM NMAE [%] |",
-            "| --- | --- | ---: | ---: |", *rows, "",
+            *_held_out_rows(h),
             table1(w["objects"], f"`{w['models']}` on the real files: **not held out** "
                    "(each file was seen by the members of `models_real` its own fold made)"),
             ""]

@@ -47,12 +47,14 @@ from jaxinertia.app.report import reproduce_report
 from jaxinertia.app.simdata import cached, params_digest, simulate_files
 from jaxinertia.app.with_released import (
     drop_with_released,
+    judge_draws,
     judge_with_released,
     models_with_released,
 )
 from jaxinertia.arm import Arm
 from jaxinertia.arms import DEFAULT_ARM, get_arm
 from jaxinertia.checkpoints import load_models
+from jaxinertia.errors import UsageError
 from jaxinertia.evaluation import choose_sets, continuous_force
 from jaxinertia.fileio import replacing, write_json, write_text
 from jaxinertia.lbipe import default_lbipe_dir
@@ -98,6 +100,11 @@ class Scale:
     #: With ``fold_current_input``: also the current-input candidates trained on this many
     #: drawn recording sessions (``FoldScale.session_draws``; 0: left out).
     fold_session_draws: int = 0
+    #: The held-out folds of that many training draws (seeds ``seed``, ``seed + 1``, ...;
+    #: ``run_folds``' ``draws``): the recipe chosen over all of them and ``models_real`` the
+    #: mean of every draw's folders it names (docs/results.md, "Several training draws
+    #: averaged").
+    fold_draws: int = 1
     #: ``models_real`` takes the mass and the COM each from the candidate the folds judge
     #: best for it, where those differ (:mod:`jaxinertia.app.by_part`).
     recipe_by_part: bool = True
@@ -209,7 +216,8 @@ class _Stages:
 
 def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
               lbipe_dir: str | os.PathLike | None = None, scale: Scale | None = None,
-              progress: bool = True, arm: Arm | str | None = None) -> dict:
+              progress: bool = True, arm: Arm | str | None = None,
+              draws: int | None = None) -> dict:
     """Runs every stage into the folder ``out``; returns the results (also in tables.json).
     The real-data folder is read once, here, and handed down. ``arm``: the simulated arm
     (default the OpenMANIPULATOR-X); the real-data stages (sim-to-real, held-out folds,
@@ -219,8 +227,13 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
     The held-out folds need nothing of the simulated stages: on an accelerator they run
     beside them (:func:`jaxinertia.app.programs.side_by_side`; the stage times then
     overlap), on a CPU after them. The models for a new real object are then the folds' own
-    (:func:`jaxinertia.app.models_real.models_from_folds`): nothing more is trained."""
+    (:func:`jaxinertia.app.models_real.models_from_folds`): nothing more is trained.
+    ``draws``: the folds' training draws (default the scale's ``fold_draws``)."""
     scale = scale or (FULL if full else QUICK)
+    if draws is not None:
+        if draws < 1:
+            raise UsageError(f"--draws {draws}: one training draw or more")
+        scale = dataclasses.replace(scale, fold_draws=draws)
     out = Path(out)
     stage = _Stages()
     arm = get_arm(arm)
@@ -244,7 +257,7 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
                 train=scale.train, finetune_samples=scale.fold_finetune_samples,
                 current_input=scale.fold_current_input,
                 session_draws=scale.fold_session_draws),
-                seed=seed, progress=progress, real=real, keep=judged)
+                seed=seed, draws=scale.fold_draws, progress=progress, real=real, keep=judged)
 
     sim, folds = side_by_side([
         partial(_simulated_stages, out, scale, arm, real, lbipe_dir, real_skipped, seed,
@@ -258,7 +271,9 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
             real_ft = (models_from_folds(out, folds, real, recipe) if folds else
                        models_real(out, sim["train_files"], real, scale, recipe, seed,
                                    progress, sim["session"]))
-            if folds:  # (the folds judged the released models: their weights are there)
+            if folds:  # judged held out, each file by the members that did not see it
+                real_ft["held_out"] = judge_draws(folds, judged["estimates"], real, recipe)
+                # (the folds judged the released models: their weights are there)
                 # Beside them, half and half with the authors' released models, judged by
                 # the same folds (app.with_released).
                 real_ft["with_released"] = {

@@ -40,7 +40,7 @@ from jaxinertia.fileio import replacing_dir
 from jaxinertia.lbipe import load_released_models
 from jaxinertia.metrics import inertial_metrics
 
-__all__ = ["RELEASED", "RELEASED_SHARE", "drop_with_released", "judge_with_released",
+__all__ = ["RELEASED", "RELEASED_SHARE", "drop_with_released", "judge_draws", "judge_with_released",
            "models_with_released", "released_folder"]
 
 #: The released models' share of the mean (the rest: ``models_real``'s members alike).
@@ -96,18 +96,32 @@ def judge_with_released(folds: dict, estimates: dict, released: dict, real: Real
                         recipe: dict, share: float = RELEASED_SHARE) -> dict:
     """The held-out folds' judgement of ``models_real_with_released``: per fold and
     held-out object, each part of ``recipe`` (``models_real``'s: the mass's, and the COM's
-    under ``com``) from that fold's own models, as the fold judged them (``estimates``:
-    fold -> (folder name, strength) -> {method: (held objects, K, B, 4)}), averaged with
-    ``released`` (the released models' estimates ``{method: (objects, K, B, 4)}`` on the
-    same sets) at ``share``; scored as the recipe is (NMAE over the released models' T-A)."""
+    under ``com``) from that fold's own models of every training draw, as the fold judged
+    them (``estimates``: fold -> one per draw: (folder name, strength) -> {method: (held
+    objects, K, B, 4)}), averaged with ``released`` (the released models' estimates
+    ``{method: (objects, K, B, 4)}`` on the same sets) at ``share``; scored as the recipe
+    is (NMAE over the released models' T-A)."""
+    return {"released_share": share,
+            **judge_draws(folds, estimates, real, recipe, released=released, share=share)}
+
+
+def judge_draws(folds: dict, estimates: dict, real: RealData, recipe: dict, *,
+                released: dict | None = None, share: float = 0.0) -> dict:
+    """``models_real`` judged by the held-out folds from their estimates in memory
+    (:func:`jaxinertia.app.folds.run_folds`' ``keep``): on each held-out file, each part of
+    ``recipe`` averaged over the members that did not see it (its candidates, of every
+    training draw's fold fitted on the other file), as :func:`jaxinertia.app.models_real.
+    models_from_folds` averages them; with ``released``, that mean and the released models'
+    at ``share``. Scored as the recipe is (NMAE over the released models' T-A): with one
+    draw and no released models, the recipe's own score."""
     names = [o.name for o in real.objects]
     parts = {"mass": recipe, "com": recipe.get("com") or recipe}
     ratios: dict[str, list[float]] = {"mass": [], "com": []}
     out: dict = {}
     for fit_on, fold in folds["folds"].items():
-        est = estimates[fit_on]
+        draws = estimates[fit_on]
         folder_of = {}
-        for folder, _ in est:
+        for folder, _ in draws[0]:
             try:
                 folder_of[candidate_of_folder(folder)] = folder
             except ValueError:  # not a candidate (the randomized models)
@@ -116,12 +130,15 @@ def judge_with_released(folds: dict, estimates: dict, released: dict, real: Real
             g = names.index(held)
             row = {}
             for part, r in parts.items():
-                s = next(k for _, k in est if float(k) == float(r["session_strength"]))
+                s = next(k for _, k in draws[0] if float(k) == float(r["session_strength"]))
                 method = "T-A" if r.get("attention", True) else "T"
                 units = r.get("members") or [r]
-                ours = [est[(folder_of[u["candidate"]], s)][method][i] for u in units]
-                x = mean_estimates([mean_estimates(ours, units), released["T-A"][g]],
-                                   ["models_real", "released"], [1 - share, share])
+                ours = [est[(folder_of[u["candidate"]], s)][method][i] for est in draws
+                        for u in units]
+                x = mean_estimates(ours, [u["candidate"] for _ in draws for u in units])
+                if released is not None:
+                    x = mean_estimates([x, released["T-A"][g]], ["models_real", "released"],
+                                       [1 - share, share])
                 row[part] = inertial_metrics(finite_estimates(x), real.objects[g].x[0],
                                              real.l_max[g])
                 ref = fold["released"][held]["T-A"][f"{part}_NMAE_pct"]
@@ -131,5 +148,5 @@ def judge_with_released(folds: dict, estimates: dict, released: dict, real: Real
                 "com_NMAE_pct": row["com"]["com_NMAE_pct"], "mass_part": row["mass"],
                 "com_part": row["com"]}
     mass, com = float(np.mean(ratios["mass"])), float(np.mean(ratios["com"]))
-    return {"released_share": share, "folds": out, "mass_score": mass, "com_score": com,
-            "score": 0.5 * (mass + com)}
+    return {"draws": len(next(iter(estimates.values()))), "folds": out, "mass_score": mass,
+            "com_score": com, "score": 0.5 * (mass + com)}

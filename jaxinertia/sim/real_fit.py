@@ -268,7 +268,8 @@ def fit_servo_friction(params, data: Sequence[Samples], *, iterations: int = 6,
 
 
 def fit_servo_friction_many(fits: Sequence[tuple[SimParams, Sequence[Samples]]], *,
-                            iterations: int = 6, seed: int = 0, kinetic_ratio: float = 0.6,
+                            iterations: int = 6, seed: int | Sequence[int] = 0,
+                            kinetic_ratio: float = 0.6,
                             fit_offset: bool = False, sessions: bool = False,
                             dead_band: bool = False, log=print,
                             programs: StreamPrograms | None = None) -> list[tuple]:
@@ -276,11 +277,15 @@ def fit_servo_friction_many(fits: Sequence[tuple[SimParams, Sequence[Samples]]],
     held-out folds, each on its own real file) in lockstep: each iteration simulates every
     fit's real plan in one program (:func:`simulate_real_plans`), instead of one fit's
     small programs waiting behind another's. Each fit's result is what it would be alone,
-    up to the last bits of the simulated torques' statics. Returns ``[(params, history)]``."""
-    return _drive([_fixed_point(p, d, iterations=iterations, seed=seed,
+    up to the last bits of the simulated torques' statics. ``seed``: every fit's, or each
+    its own (the held-out folds of several training draws). Returns ``[(params, history)]``."""
+    seeds = [seed] * len(fits) if isinstance(seed, int) else list(seed)
+    if len(seeds) != len(fits):
+        raise ValueError(f"{len(seeds)} seeds for {len(fits)} fits")
+    return _drive([_fixed_point(p, d, iterations=iterations, seed=s,
                                 kinetic_ratio=kinetic_ratio, fit_offset=fit_offset,
                                 sessions=sessions, dead_band=dead_band, log=log)
-                   for p, d in fits],
+                   for (p, d), s in zip(fits, seeds)],
                   programs, together=True)
 
 
