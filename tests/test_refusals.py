@@ -479,6 +479,19 @@ def test_bad_seeds_are_refused_when_parsed(base, value, tmp_path, capsys, monkey
     assert not any(tmp_path.iterdir())
 
 
+def test_reproduce_refuses_no_training_draw_and_its_help_gives_each_scales(
+        tmp_path, capsys, monkeypatch):
+    from jaxinertia.app.reproduce import FULL, QUICK
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["reproduce", "--draws", "0"]) == 2
+    _one_line(capsys, "--draws")
+    assert not any(tmp_path.iterdir())
+    assert main(["reproduce", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert f"(quick {QUICK.fold_draws}, full {FULL.fold_draws})" in text
+
+
 def test_ctrl_c_in_train_ends_in_one_line(tmp_path, capsys, monkeypatch):
     from jaxinertia.app import pipeline
 

@@ -314,7 +314,7 @@ def register(sub) -> None:
     r.add_argument("--draws", type=positive_int, metavar="N",
                    help="the held-out folds of N training draws (seeds SEED, SEED+1, ...), "
                    "models_real the mean of every draw's; default: the scale's (quick 1, "
-                   "full 1)")
+                   "full 3)")
     r.add_argument("--lbipe-dir", type=Path, help=LBIPE_DIR_HELP)
     add_arm_option(r)
     r.set_defaults(func=cmd_reproduce)

@@ -119,7 +119,7 @@ QUICK = Scale(planning=False, random_per_load=800, test_per_object=300,
 FULL = Scale(planning=True, random_per_load=9000, test_per_object=1000,
              continuous_samples=4096, switch_every=1024, train=TrainConfig(),
              fold_finetune_samples=(64, 250, 1000), fold_current_input=True,
-             fold_session_draws=4)
+             fold_session_draws=4, fold_draws=3)
 
 
 def _machine() -> str:
