@@ -432,8 +432,9 @@ def test_folds_of_several_training_draws_are_each_their_seeds_own_and_averaged(
     keep: dict = {}
     res = run_folds(tmp_path / "folds", small_lbipe_dir, scale, seed=5, draws=2,
                     progress=False, log=lambda m: None, real=real, keep=keep)
-    alone = run_folds(tmp_path / "alone", small_lbipe_dir, scale, seed=6, progress=False,
-                      log=lambda m: None, real=real)
+    kept: dict = {}  # (a run of its own: the folder a reproduce --seed 6 writes)
+    alone = run_folds(tmp_path / "alone" / "folds", small_lbipe_dir, scale, seed=6,
+                      progress=False, log=lambda m: None, real=real, keep=kept)
     assert res["seeds"] == [5, 6] and alone["seeds"] == [6] and "draws" not in alone
     assert [(d["seed"], d["dir"]) for d in res["draws"]] == [(5, ""), (6, "seed6")]
     assert res["draws"][0]["folds"] == res["folds"]
@@ -479,6 +480,17 @@ def test_folds_of_several_training_draws_are_each_their_seeds_own_and_averaged(
     text = reproduce_section_new_object({**made, "held_out": judged})
     assert "of 2 training draws), averaged as" in text
     assert f"**{judged['score']:.3f}**" in text
+    # models-real (app.draws) of this run of two draws and the run of seed 6 alone: the
+    # three draws' folders pooled, judged from the folders on disk as judge_draws judges
+    # the same draws from memory.
+    write_json(tmp_path / "tables.json", {"held_out": res})
+    write_json(tmp_path / "alone" / "tables.json", {"held_out": alone})
+    got = models_from_runs([tmp_path, tmp_path / "alone"], tmp_path / "runs", small_lbipe_dir)
+    assert len(got["from_folds"]["mass"]) == 6  # 3 draws x 2 folds
+    assert got["recipe"]["chosen_by"] == "held-out folds of 2 training draws"
+    want = judge_draws(res, {f: keep["estimates"][f] + kept["estimates"][f]
+                             for f in ("cube", "white")}, real, got["recipe"])
+    assert got["held_out"]["score"] == pytest.approx(want["score"], rel=1e-6)
 
 
 def test_side_by_side_keeps_the_order_and_raises_what_a_stage_raised():

@@ -14,6 +14,7 @@ each real file, the members of every run's fold that did not see it, together.""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 from types import SimpleNamespace
@@ -58,6 +59,15 @@ def _fold_dirs(run: Path, record: dict, fit: str) -> list[Path]:
     return [run / "folds" / d / f"fit_{fit}" for d, _ in fold_draws(record)]
 
 
+def _sets_seed(sets: dict[str, str]) -> int:
+    """The seed of the runs' random sets (``load_real``'s: object i's ``random (seed
+    seed + i)``), 0 where every set is golden."""
+    for i, source in enumerate(sets.values()):
+        if m := re.fullmatch(r"random \(seed (\d+)\)", source):
+            return int(m.group(1)) - i
+    return 0
+
+
 def _same_files(runs: list[Path], records: list[dict], fits: list[str], real) -> None:
     """Every run's fold was fitted on the very real file of ``real`` it is named after, as
     far as its folders record (a fine-tuning's ``data``: the file's SHA-256)."""
@@ -89,8 +99,11 @@ def models_from_runs(runs: list[str | Path], out: str | Path, lbipe_dir: str | P
         raise UsageError(f"{len(runs)} run given: models from several draws need two or more")
     records = [_held_out(r) for r in runs]
     _same_protocol(runs, records)
-    real = load_real(lbipe_dir)
+    real = load_real(lbipe_dir, seed=_sets_seed(records[0]["sets"]))
     names = [o.name for o in real.objects]
+    if dict(zip(names, real.sources)) != records[0]["sets"]:
+        raise UsageError(f"{lbipe_dir}: its sets ({dict(zip(names, real.sources))}) are not "
+                         f"those the runs' folds were judged on ({records[0]['sets']})")
     fits = list(records[0]["folds"])
     missing = sorted({*fits, *(h for f in records[0]["folds"].values() for h in f["held_out"])}
                      - set(names))
