@@ -77,7 +77,7 @@ def _install() -> None:
     for attr, name in (("fit_simulators", "calibrate"), ("simulate_files", "simulate"),
                        ("train", "train"), ("_finetuned", "finetune")):
         _labelled(F, attr, name)
-    _labelled(F._Fold, "judge", "judge")
+    _labelled(F.Fold, "judge", "judge")
 
 
 def run(argv: list[str]) -> int:

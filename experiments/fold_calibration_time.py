@@ -65,7 +65,7 @@ def main() -> None:
     print(f"device: {jax.devices()[0].device_kind}")
     with TemporaryDirectory() as tmp:
         def fold_of(fit_on: str, tag: str):
-            fold = folds._Fold(Path(tmp) / tag / f"fit_{fit_on}", fit_on,
+            fold = folds.Fold(Path(tmp) / tag / f"fit_{fit_on}", fit_on,
                                [n for n in names if n != fit_on], real, fscale, 0, False)
             fold.dir.mkdir(parents=True)
             return fold

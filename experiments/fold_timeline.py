@@ -23,7 +23,7 @@ import time
 import jax
 
 from jaxinertia import training_group
-from jaxinertia.app import cli, fit, folds, reproduce
+from jaxinertia.app import cli, fit, fold, folds, reproduce
 
 
 class Timeline:
@@ -96,7 +96,7 @@ def main() -> None:
     logger.setLevel(logging.WARNING)
     logger.propagate = False
     for owner, attr in ((folds, "fit_simulators"), (folds, "simulate_files"), (folds, "train"),
-                        (folds, "evaluate"), (folds._Fold, "judge"),
+                        (fold, "evaluate"), (folds.Fold, "judge"),
                         (fit, "train_torque_models"), (fit, "train_attention_models"),
                         (training_group, "_run_stacked")):
         timeline.wrap(owner, attr)

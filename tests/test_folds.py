@@ -563,7 +563,7 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
 
     monkeypatch.setattr(folds, "simulate_files", lambda p, wanted, **kw: [w[0] for w in wanted])
     monkeypatch.setattr(folds, "train", fake_train)
-    monkeypatch.setattr(folds._Fold, "judge", lambda self, models: {
+    monkeypatch.setattr(folds.Fold, "judge", lambda self, models: {
         "objects": {}, "torque": {}, "session_ratio": {}, "by_strength": {}})
     monkeypatch.setattr(folds, "choose_recipe", lambda f: None)
     scale = FoldScale(calibration_iterations=1, random_per_load=8, planning=False,

@@ -28,166 +28,28 @@ the recipe of ``models_real`` (which candidates, adapted or not, with the attent
 
 from __future__ import annotations
 
-import contextlib
 import os
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 
-from jaxinertia.app.ensemble import NETWORK_METHODS, judge_mean
+from jaxinertia.app.ensemble import judge_mean
 from jaxinertia.app.fit import EarlyStart
+from jaxinertia.app.fold import SESSION_STRENGTHS, Fold, FoldScale
 from jaxinertia.app.fold_calibration import fit_simulators
 from jaxinertia.app.fold_groups import FoldGroups
-from jaxinertia.app.pipeline import (
-    RealData,
-    adapt_objects,
-    evaluate_models,
-    load_real,
-    released_benchmark,
-    session_reference,
-    train,
-)
+from jaxinertia.app.pipeline import RealData, load_real, released_benchmark, train
 from jaxinertia.app.programs import folds_side_by_side, side_by_side
 from jaxinertia.app.recipe import choose_recipe, pooled_folds
 from jaxinertia.app.simdata import simulate_files
-from jaxinertia.checkpoints import load_models
-from jaxinertia.evaluation import evaluate
 from jaxinertia.lbipe import read_released_pairs
-from jaxinertia.session import ServoSession, servo_session
 from jaxinertia.sim.randomize import session_prior, spread_from_samples
-from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
 
-__all__ = ["FoldScale", "SESSION_STRENGTHS", "choose_recipe", "run_folds"]
-
-#: Session adaptation off and on: every candidate of a fold is judged both ways.
-SESSION_STRENGTHS = (0.0, 0.5, 1.0)
-
-
-@dataclass(frozen=True)
-class FoldScale:
-    calibration_iterations: int  # servo/friction fixed-point iterations (then the offsets)
-    random_per_load: int  # simulated training samples per training load
-    planning: bool  # also the planning grid per load
-    train: TrainConfig
-    finetune_samples: tuple[int, ...] = (1000,)  # real samples of fit_on per fine-tuning
-    finetune: TrainConfig = TrainConfig(**FINETUNE_DEFAULTS, trainable="servo")
-    #: > 0: also models trained on domain-randomized data (that many simulated arms drawn
-    #: around the fold's calibration with the spread measured on the fold's object).
-    randomize_draws: int = 0
-    #: > 0: after the fixed-point calibration, identify the simulator sample by sample on
-    #: the fold's object (:mod:`jaxinertia.sim.identify`, this many ES generations of
-    #: ``identify_population`` candidates); the fold then trains on the identified one.
-    identify_generations: int = 0
-    identify_population: int = 32
-    #: The identification's cost grows with the samples it replays: > 0 identifies on that
-    #: many of the fold's samples (a seeded random choice), 0 on all of them.
-    identify_samples: int = 0
-    #: The session strengths every candidate is judged at (:data:`SESSION_STRENGTHS`).
-    session_strengths: tuple[float, ...] = SESSION_STRENGTHS
-    #: Also the physical model and its fine-tunings with the servo's current torque as a
-    #: fifth input per joint (``train --current-input``): more candidates, more training.
-    current_input: bool = False
-    #: > 0 (with ``current_input``): also the current-input candidates trained on data of
-    #: that many recording sessions drawn around the fold's calibration
-    #: (:func:`jaxinertia.sim.randomize.session_prior`): each session's current and torque
-    #: per tick scaled alike, so the current, not the discrepancy, tells the torque.
-    session_draws: int = 0
-    #: The fine-tunings also see ``n`` samples of each load of their start's simulated data
-    #: (docs/results.md, "The simulator's loads beside the real one").
-    finetune_anchor: bool = True
-
-
-@dataclass(frozen=True)
-class _Fold:
-    """What one fold's stages share: where it writes, which object it fits and judges."""
-
-    dir: Path
-    fit_on: str
-    held: list[str]
-    real: RealData
-    scale: FoldScale
-    seed: int
-    progress: bool
-    groups: FoldGroups | None = None
-    #: The fold's training draw (:func:`run_folds`' ``draws``): "" for the first, else
-    #: ``seed<seed>`` (the folder its folds write under).
-    draw: str = ""
-    #: (folder name, strength) -> {method: held-out estimates (O, K, B, 4)} of every folder
-    #: judged: the members of the candidates' mean (:func:`_ensemble`).
-    estimates: dict = field(default_factory=dict)
-
-    def member(self, group: str, name: str):
-        """This thread's trainings as the member ``fit_on/name`` of the fold's ``group``
-        ("scratch" or "finetune"), when trainings are grouped."""
-        if self.groups is None:
-            return contextlib.nullcontext()
-        return getattr(self.groups, group).member(f"{self.key}/{name}")
-
-    def branch(self, fn, name: str | None = None):
-        """``fn`` as a call whose end (normal or not) releases the fold's members under
-        ``name`` (all of them when None)."""
-        def call():
-            try:
-                return fn()
-            finally:
-                if self.groups is not None:
-                    self.groups.leave(self.key if name is None else f"{self.key}/{name}")
-        return call
-
-    @property
-    def key(self) -> str:
-        """The fold's name in its training groups: ``[seed<seed>/]fit_on``."""
-        return f"{self.draw}/{self.fit_on}" if self.draw else self.fit_on
-
-    def workers(self, n_calls: int) -> int | None:
-        """Side by side for ``n_calls`` calls that hold group members: a thread each
-        (a member waiting for one not yet started would wait forever)."""
-        return None if self.groups is None else n_calls
-
-    def index(self, name: str) -> int:
-        return [o.name for o in self.real.objects].index(name)
-
-    def record(self, name: str):
-        """The real object's samples as the command read them (never read again)."""
-        return self.real.objects[self.index(name)]
-
-    @property
-    def session(self) -> ServoSession:
-        """The session of ``fit_on``'s real file: the servo state its simulator imitates,
-        the reference of every model the fold trains."""
-        return servo_session(self.record(self.fit_on))
-
-    @property
-    def held_index(self) -> list[int]:
-        return [self.index(n) for n in self.held]
-
-    def judge(self, models: Path) -> dict:
-        """The folder on the held-out objects at every strength of the scale's
-        ``session_strengths`` (``objects``, ``torque``: at the folder's own)."""
-        idx = self.held_index
-        objects = [self.real.objects[i] for i in idx]
-        sets, l_max = [self.real.sets[i] for i in idx], [self.real.l_max[i] for i in idx]
-        folder = load_models(models)
-        own = session_reference(folder.config)
-        out = {"by_strength": {}}
-        for s in self.scale.session_strengths:
-            adapted, ratios = adapt_objects(objects, session_reference(folder.config, s))
-            res = evaluate(adapted, sets, pair=folder.pair, baselines=folder.baselines,
-                           fc=folder.features, l_max=l_max)
-            out["by_strength"][str(s)] = res["objects"]
-            self.estimates[(models.name, s)] = {m: res["estimates"][m] for m in NETWORK_METHODS}
-            if own is None or own.strength == s:
-                out.update(objects=res["objects"], torque=res["torque"],
-                           session_ratio={o.name: r for o, r in zip(objects, ratios)})
-        if "objects" not in out:  # a strength outside the grid: judged once more
-            res = evaluate_models(models, objects, sets, l_max=l_max)
-            out.update(objects=res["objects"], torque=res["torque"],
-                       session_ratio=res["session_ratio"])
-        return out
+__all__ = ["SESSION_STRENGTHS", "Fold", "FoldScale", "choose_recipe", "run_folds"]
 
 
 def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldScale, *,
@@ -199,11 +61,11 @@ def run_folds(out: str | os.PathLike, lbipe_dir: str | os.PathLike, scale: FoldS
     ``seed + 1``, ...; each draw's calibrations, simulated data and trainings its own, as
     ``--seed`` would make them; the later draws' under ``out/seed<s>/``), all side by side
     (on an accelerator their trainings in the same groups) and judged on the same sets;
-    the recipe is chosen over every draw's folds
-    (:func:`jaxinertia.app.recipe.pooled_folds`). ``real``: the
-    folder's real data when already loaded. ``keep``: filled with the estimates the folds
-    judged (``estimates``: fold -> one per draw: (folder, strength) -> {method: (held
-    objects, K, B, 4)}; ``released``: the released models' {method: (objects, K, B, 4)}),
+    the recipe is chosen over every draw's folds (:func:`jaxinertia.app.recipe.pooled_folds`).
+    ``real``: the folder's real data when already loaded. ``keep``: filled with the
+    estimates the folds judged (``estimates``: fold -> one per draw: (folder, strength) ->
+    {method: (held objects, K, B, 4)}; ``released``: the released models' {method:
+    (objects, K, B, 4)}),
     for judgements made after the recipe (:func:`jaxinertia.app.with_released.judge_draws`)."""
     if draws < 1:
         raise ValueError(f"draws must be 1 or more, not {draws}")
@@ -242,18 +104,18 @@ def _draw_dir(k: int, seed: int) -> str:
 
 
 def _run_all(out, names, real, scale, seeds, progress, log, benchmark: Future
-             ) -> tuple[list[dict[str, dict]], list[_Fold], int]:
+             ) -> tuple[list[dict[str, dict]], list[Fold], int]:
     """Every draw's folds' stages: their results by name (one dict per draw), the folds,
     and how many ran side by side; ``benchmark``: the released models' on the real files,
     awaited when judged."""
-    todo = [_Fold(Path(out) / _draw_dir(k, s) / f"fit_{fit_on}", fit_on,
+    todo = [Fold(Path(out) / _draw_dir(k, s) / f"fit_{fit_on}", fit_on,
                   [n for n in names if n != fit_on], real, scale, s, progress,
                   draw=_draw_dir(k, s))
             for k, s in enumerate(seeds) for fit_on in names]
     groups = FoldGroups.of([f.key for f in todo], scale)
     todo = [replace(f, groups=groups) for f in todo]
 
-    def announce(fold: _Fold) -> None:
+    def announce(fold: Fold) -> None:
         log(f"-- fold{f' ({fold.draw})' if fold.draw else ''}: calibrate on {fold.fit_on}, "
             f"judge on {', '.join(fold.held)}")
 
@@ -268,7 +130,7 @@ def _run_all(out, names, real, scale, seeds, progress, log, benchmark: Future
         fitted = fit_simulators(todo, together=True)
         calibrated = [(*c, time.perf_counter() - t) for c in fitted]
 
-    def run(fold: _Fold, calibration) -> dict:
+    def run(fold: Fold, calibration) -> dict:
         if calibration is None:
             announce(fold)
         res = _run_fold(fold, calibration)
@@ -285,7 +147,7 @@ def _run_all(out, names, real, scale, seeds, progress, log, benchmark: Future
     return [dict(zip(names, done[k:k + n])) for k in range(0, len(done), n)], todo, workers
 
 
-def _run_fold(fold: _Fold, calibration: tuple | None = None) -> dict:
+def _run_fold(fold: Fold, calibration: tuple | None = None) -> dict:
     """One fold's stages; ``calibration``: its simulator already fitted (an item of
     :func:`~jaxinertia.app.fold_calibration.fit_simulators`' result and the seconds it
     took), else fitted here."""
@@ -349,7 +211,7 @@ def _run_fold(fold: _Fold, calibration: tuple | None = None) -> dict:
 _NOT_CANDIDATES = ("models_randomized",)
 
 
-def _ensemble(fold: _Fold) -> dict | None:
+def _ensemble(fold: Fold) -> dict | None:
     """Every candidate of the fold averaged (:func:`jaxinertia.app.ensemble.judge_mean`)
     on its held-out objects; the recipe may choose it (``models_real`` then makes every
     member on the real files)."""
@@ -359,7 +221,7 @@ def _ensemble(fold: _Fold) -> dict | None:
                       fold.scale.session_strengths)
 
 
-def _randomized(fold: _Fold, params, files: list[Path]) -> dict:
+def _randomized(fold: Fold, params, files: list[Path]) -> dict:
     """Models trained on domain-randomized data, judged like the others."""
     obj = fold.record(fold.fit_on)
     spread = spread_from_samples(obj.q_d, obj.q, obj.direction, obj.tau)
@@ -374,7 +236,7 @@ def _randomized(fold: _Fold, params, files: list[Path]) -> dict:
     return {**res, "spread": spread.to_dict(), "draws": fold.scale.randomize_draws}
 
 
-def _draw_sessions(fold: _Fold, params) -> list[Path]:
+def _draw_sessions(fold: Fold, params) -> list[Path]:
     """The random scenario simulated over ``session_draws`` recording sessions drawn around
     the fold's calibration, for the current-input candidates trained on them (with the
     planning grid as simulated)."""
@@ -384,7 +246,7 @@ def _draw_sessions(fold: _Fold, params) -> list[Path]:
         draws=fold.scale.session_draws, progress=fold.progress)
 
 
-def _finetuned(fold: _Fold, files: list[Path], current_input: bool = False,
+def _finetuned(fold: Fold, files: list[Path], current_input: bool = False,
                tag: str | None = None) -> tuple[dict | None, dict]:
     """The physical model trained on the simulated files (``current_input``: with the
     servo's current as a fifth input), then its servo part fine-tuned on each number of

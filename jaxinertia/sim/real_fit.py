@@ -1,8 +1,7 @@
 """The simulator fit: the simulated arm fitted to the real OpenMANIPULATOR-X data (lbipe).
 
-(The command line calls it ``jaxinertia calibrate``; "calibration" elsewhere in the
-package is the camera's, :mod:`jaxinertia.vision.calibration`, or LeRobot's motor files,
-:mod:`jaxinertia.lerobot_calibration`.)
+(The command line's ``jaxinertia calibrate``; "calibration" elsewhere is the camera's,
+:mod:`jaxinertia.vision.calibration`, or LeRobot's, :mod:`jaxinertia.lerobot_calibration`.)
 
 Link gravity: the real free-motion torques ``tau_g`` are a static gravity model on the
 URDF kinematics with other link masses and first moments (lbipe README). The 8
@@ -269,24 +268,20 @@ def fit_servo_friction(params, data: Sequence[Samples], *, iterations: int = 6,
 
 def fit_servo_friction_many(fits: Sequence[tuple[SimParams, Sequence[Samples]]], *,
                             iterations: int = 6, seed: int | Sequence[int] = 0,
-                            kinetic_ratio: float = 0.6,
-                            fit_offset: bool = False, sessions: bool = False,
-                            dead_band: bool = False, log=print,
+                            kinetic_ratio: float = 0.6, fit_offset: bool = False,
+                            sessions: bool = False, dead_band: bool = False, log=print,
                             programs: StreamPrograms | None = None) -> list[tuple]:
     """:func:`fit_servo_friction` of several independent fits ``[(params, data)]`` (the
-    held-out folds, each on its own real file) in lockstep: each iteration simulates every
-    fit's real plan in one program (:func:`simulate_real_plans`), instead of one fit's
-    small programs waiting behind another's. Each fit's result is what it would be alone,
-    up to the last bits of the simulated torques' statics. ``seed``: every fit's, or each
-    its own (the held-out folds of several training draws). Returns ``[(params, history)]``."""
-    seeds = [seed] * len(fits) if isinstance(seed, int) else list(seed)
-    if len(seeds) != len(fits):
-        raise ValueError(f"{len(seeds)} seeds for {len(fits)} fits")
-    return _drive([_fixed_point(p, d, iterations=iterations, seed=s,
+    held-out folds, each on its own real file; ``seed``: one for all, or each fit's) in
+    lockstep: each iteration simulates every fit's real plan in one program
+    (:func:`simulate_real_plans`), not one fit's small programs behind another's. Each
+    result is what it would be alone, up to the last bits of the simulated torques'
+    statics. Returns ``[(params, history)]``."""
+    seeds = [seed] * len(fits) if isinstance(seed, int) else seed
+    return _drive([_fixed_point(p, d, iterations=iterations, seed=s, log=log,
                                 kinetic_ratio=kinetic_ratio, fit_offset=fit_offset,
-                                sessions=sessions, dead_band=dead_band, log=log)
-                   for (p, d), s in zip(fits, seeds)],
-                  programs, together=True)
+                                sessions=sessions, dead_band=dead_band)
+                   for (p, d), s in zip(fits, seeds, strict=True)], programs, together=True)
 
 
 def _drive(fits: list, programs: StreamPrograms | None, *, progress: bool = False,
