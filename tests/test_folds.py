@@ -254,13 +254,17 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
     assert drop_with_released(tmp_path) == tmp_path / "models_real_with_released"
     assert not (tmp_path / "models_real_with_released").exists()
     assert drop_with_released(tmp_path) is None
-    _check_draws(tmp_path, res, small_lbipe_dir)
+    _check_draws(tmp_path, res, small_lbipe_dir, keep, real)
 
 
-def _check_draws(tmp_path, res, lbipe_dir):
+def _check_draws(tmp_path, res, lbipe_dir, keep, real):
     """``models-real`` from several runs' folds (app.draws), here the same run twice: the
     recipe is the run's own, every member is there twice, and its held-out score (each file
-    judged by the members that did not see it) is the run's own recipe score."""
+    judged by the members that did not see it) is the run's own recipe score; its
+    ``models_real_with_released``, judged from the folders, scores as the folds' estimates
+    averaged with the released models' (app.with_released.judge_with_released)."""
+    from jaxinertia.app.with_released import judge_with_released  # noqa: PLC0415
+
     write_json(tmp_path / "tables.json", {"held_out": res})
     twin = tmp_path / "twin"
     shutil.copytree(tmp_path / "folds", twin / "folds")
@@ -271,6 +275,11 @@ def _check_draws(tmp_path, res, lbipe_dir):
     assert {k: got["recipe"].get(k) for k in same} == {k: own.get(k) for k in same}
     assert got["held_out"]["score"] == pytest.approx(own["score"], rel=1e-9)
     assert got["each_run"] == [own["score"]] * 2
+    want = judge_with_released(res, {f: e * 2 for f, e in keep["estimates"].items()},
+                               keep["released"], real, got["recipe"])
+    assert got["with_released"]["held_out"]["score"] == pytest.approx(want["score"], rel=1e-6)
+    config = load_models(tmp_path / "draws" / "models_real_with_released").config
+    assert config["ensemble_members"][-1] == "released"
     for part, sources in got["from_folds"].items():  # each folder of the run and its twin
         theirs = [Path(s).relative_to(twin) for s in sources if Path(s).is_relative_to(twin)]
         mine = [Path(s).relative_to(tmp_path) for s in sources
@@ -488,9 +497,11 @@ def test_folds_of_several_training_draws_are_each_their_seeds_own_and_averaged(
     got = models_from_runs([tmp_path, tmp_path / "alone"], tmp_path / "runs", small_lbipe_dir)
     assert len(got["from_folds"]["mass"]) == 6  # 3 draws x 2 folds
     assert got["recipe"]["chosen_by"] == "held-out folds of 2 training draws"
-    want = judge_draws(res, {f: keep["estimates"][f] + kept["estimates"][f]
-                             for f in ("cube", "white")}, real, got["recipe"])
+    every = {f: keep["estimates"][f] + kept["estimates"][f] for f in ("cube", "white")}
+    want = judge_draws(res, every, real, got["recipe"])
     assert got["held_out"]["score"] == pytest.approx(want["score"], rel=1e-6)
+    want = judge_draws(res, every, real, got["recipe"], released=keep["released"], share=0.5)
+    assert got["with_released"]["held_out"]["score"] == pytest.approx(want["score"], rel=1e-6)
 
 
 def test_side_by_side_keeps_the_order_and_raises_what_a_stage_raised():

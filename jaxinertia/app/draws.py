@@ -9,7 +9,10 @@ training draws"). :func:`models_from_runs` chooses the recipe over every run's f
 run's fold one more fold of :func:`jaxinertia.app.recipe.choose_recipe`), writes
 ``models_real`` of every run's folders that the recipe names, each a member of its mean
 (:func:`jaxinertia.app.models_real.models_from_folds`), and judges it the folds' way: on
-each real file, the members of every run's fold that did not see it, together."""
+each real file, the members of every run's fold that did not see it, together. Beside it,
+as ``reproduce`` does, ``models_real_with_released`` (half and half with the authors'
+released models, :mod:`jaxinertia.app.with_released`), judged the same way. A run of
+several draws (``reproduce --draws``) brings every one of its draws."""
 
 from __future__ import annotations
 
@@ -93,6 +96,7 @@ def models_from_runs(runs: list[str | Path], out: str | Path, lbipe_dir: str | P
     # The work's modules (JAX), not for --help.
     from jaxinertia.app.models_real import models_from_folds, recipe_of  # (JAX)
     from jaxinertia.app.pipeline import load_real  # (JAX)
+    from jaxinertia.app.with_released import models_with_released  # (JAX)
 
     runs, out = [Path(r) for r in runs], Path(out)
     if len(runs) < 2:
@@ -120,34 +124,51 @@ def models_from_runs(runs: list[str | Path], out: str | Path, lbipe_dir: str | P
             for fit in fits}
     made = models_from_folds(out, {"folds": fits}, real, recipe,
                              fold_dirs=[d for fit in fits for d in dirs[fit]])
+    # Beside it, half and half with the authors' released models (their weights are in the
+    # lbipe folder: the runs' folds judged them), as reproduce makes it.
+    released = models_with_released(out, real)
     # Judged as the folds judge: on each real file, only the members of the folds that did
-    # not see it (every run's), averaged as models_real averages them.
-    held, ratios = {}, {"mass": [], "com": []}
+    # not see it (every run's), averaged as models_real averages them; and that average
+    # half and half with the released models.
+    judged: dict = {"ours": {}, "with_released": {}}
     judge = out / ".draws_judged"
     try:
         for fit in fits:
             part = models_from_folds(out, {"folds": [fit]}, real, recipe, fold_dirs=dirs[fit],
                                      dst=judge / f"fit_{fit}")
+            both = models_with_released(out, real, src=judge / f"fit_{fit}",
+                                        dst=judge / f"fit_{fit}_with_released")
             for name in records[0]["folds"][fit]["held_out"]:
-                ours = part["objects"][name]["T-A"]
                 ref = records[0]["folds"][fit]["released"][name]["T-A"]
-                held.setdefault(fit, {})[name] = {k: ours[k] for k in (
-                    "mass_NMAE_pct", "com_NMAE_pct", "mass_MAE_g", "com_MAE_mm")}
-                ratios["mass"].append(ours["mass_NMAE_pct"] / ref["mass_NMAE_pct"])
-                ratios["com"].append(ours["com_NMAE_pct"] / ref["com_NMAE_pct"])
+                for key, res in (("ours", part), ("with_released", both)):
+                    judged[key].setdefault(fit, {})[name] = (res["objects"][name]["T-A"], ref)
     finally:
         shutil.rmtree(judge, ignore_errors=True)
-    mass, com = (sum(v) / len(v) for v in (ratios["mass"], ratios["com"]))
     return {"runs": [str(r) for r in runs], "models": made["models"], "recipe": recipe,
-            "from_folds": made["from_folds"],
-            "held_out": {"folds": held, "mass_score": mass, "com_score": com,
-                         "score": 0.5 * (mass + com)},
+            "from_folds": made["from_folds"], "held_out": _scored(judged["ours"]),
             "each_run": [recipe_of(rec, by_part)["score"] for rec in records],
-            "objects": made["objects"]}  # (not held out: each file seen by half the members)
+            "objects": made["objects"],  # (not held out: each file seen by half the members)
+            "with_released": {"models": released["models"],
+                              "released_share": released["released_share"],
+                              "held_out": _scored(judged["with_released"]),
+                              "objects": released["objects"]}}
+
+
+def _scored(judged: dict) -> dict:
+    """Held-out metrics ``{fit: {file: (ours, the released models')}}`` (T-A) as a score:
+    NMAE over the released models', mean over the files, mass and COM apart and together."""
+    held = {fit: {name: {k: ours[k] for k in ("mass_NMAE_pct", "com_NMAE_pct", "mass_MAE_g",
+                                               "com_MAE_mm")}
+                  for name, (ours, _) in files.items()} for fit, files in judged.items()}
+    pairs = [pair for files in judged.values() for pair in files.values()]
+    mass, com = (sum(o[f"{p}_NMAE_pct"] / r[f"{p}_NMAE_pct"] for o, r in pairs) / len(pairs)
+                 for p in ("mass", "com"))
+    return {"folds": held, "mass_score": mass, "com_score": com, "score": 0.5 * (mass + com)}
 
 
 def cmd_models_real(args) -> int:
-    check_output(args.out / "models_real", overwrite=args.overwrite, folder=True)
+    for name in ("models_real", "models_real_with_released"):
+        check_output(args.out / name, overwrite=args.overwrite, folder=True)
     enable_x64()
     res = models_from_runs(args.runs, args.out, lbipe_dir_of(args))
     h = res["held_out"]
@@ -162,6 +183,10 @@ def cmd_models_real(args) -> int:
     print(f"score over the released models' T-A: {h['score']:.4f} (mass {h['mass_score']:.4f}"
           f", COM {h['com_score']:.4f}); each run's own models_real: "
           + ", ".join(f"{s:.4f}" for s in res["each_run"]))
+    w = res["with_released"]
+    print(f"{w['models']}: half and half with the authors' released models; held out "
+          f"{w['held_out']['score']:.4f} (mass {w['held_out']['mass_score']:.4f}, COM "
+          f"{w['held_out']['com_score']:.4f})")
     return write_json_option(args, res)
 
 

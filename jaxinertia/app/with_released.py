@@ -60,12 +60,15 @@ def released_folder(dst: Path, real: RealData, like) -> Path:
                                         f"({real.layout.weights_dir})", "session": None})
 
 
-def models_with_released(out: Path, real: RealData, share: float = RELEASED_SHARE) -> dict:
+def models_with_released(out: Path, real: RealData, share: float = RELEASED_SHARE, *,
+                         src: Path | None = None, dst: Path | None = None) -> dict:
     """``out/models_real_with_released``: a copy of ``out/models_real`` whose parts (the
     mass's and the COM's) each answer with ``share`` of the released models and the rest
     of their own members alike; evaluated on the real files (**not held out**: each file
-    was seen by ``models_real``'s members of its own fold)."""
-    src, dst = out / "models_real", out / "models_real_with_released"
+    was seen by ``models_real``'s members of its own fold). ``src``, ``dst``: another
+    ``models_real`` and where its average goes (:mod:`jaxinertia.app.draws`' judges)."""
+    src = src or out / "models_real"
+    dst = dst or out / "models_real_with_released"
     with replacing_dir(dst) as tmp:  # in place once complete, never half written
         shutil.copytree(src, tmp, dirs_exist_ok=True)
         like = load_models(tmp)
