@@ -431,7 +431,7 @@ def test_folds_of_several_training_draws_are_each_their_seeds_own_and_averaged(
     judgement from the folds' estimates in memory is the judgement of those folders on
     disk (each file by the members that did not see it)."""
     from jaxinertia.app.report import reproduce_section_new_object  # noqa: PLC0415
-    from jaxinertia.app.with_released import judge_draws  # noqa: PLC0415
+    from jaxinertia.app.with_released import judge_draws, judge_each_draw  # noqa: PLC0415
 
     scale = FoldScale(calibration_iterations=1, random_per_load=N_TRAIN // 4,
                       planning=False, train=TRAIN, finetune_samples=(30,),
@@ -472,6 +472,13 @@ def test_folds_of_several_training_draws_are_each_their_seeds_own_and_averaged(
                 for f in ("cube", "white")]}
     judged = judge_draws(res, keep["estimates"], real, recipe)
     assert judged["draws"] == 2
+    # Each draw alone: the second is the run of seed 6 alone, judged the same way.
+    each = judge_each_draw(res, keep["estimates"], real, recipe)
+    assert [d["seed"] for d in each] == [5, 6]
+    assert each[1]["score"] == pytest.approx(
+        judge_draws(alone, kept["estimates"], real, recipe)["score"], rel=1e-12)
+    assert each[0]["score"] != each[1]["score"]
+    judged["each_draw"] = each
     ratios = []
     for fit, other in (("cube", "white"), ("white", "cube")):
         dirs = [tmp_path / "folds" / d / f"fit_{fit}" for d in ("", "seed6")]
@@ -489,6 +496,8 @@ def test_folds_of_several_training_draws_are_each_their_seeds_own_and_averaged(
     text = reproduce_section_new_object({**made, "held_out": judged})
     assert "of 2 training draws), averaged as" in text
     assert f"**{judged['score']:.3f}**" in text
+    assert (f"each training draw alone, the same recipe: seed 5 {each[0]['score']:.3f}, "
+            f"seed 6 {each[1]['score']:.3f}") in text
     # models-real (app.draws) of this run of two draws and the run of seed 6 alone: the
     # three draws' folders pooled, judged from the folders on disk as judge_draws judges
     # the same draws from memory.

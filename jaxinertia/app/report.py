@@ -369,7 +369,17 @@ def _judged(h: dict | None, models: str) -> list[str]:
             f"(those of the folds fitted on the other file, of {h['draws']} training "
             f"draw{'s' if h['draws'] > 1 else ''}), averaged as `{models}` averages them: "
             f"score over the released models' T-A **{h['score']:.3f}** (mass "
-            f"{h['mass_score']:.3f}, COM {h['com_score']:.3f}).", "", *_held_out_rows(h)]
+            f"{h['mass_score']:.3f}, COM {h['com_score']:.3f})" + _each_draw(h) + ".", "",
+            *_held_out_rows(h)]
+
+
+def _each_draw(h: dict) -> str:
+    """Each training draw's own score beside the draws' mean (more than one draw)."""
+    each = h.get("each_draw") or []
+    if len(each) < 2:
+        return ""
+    return ("; each training draw alone, the same recipe: " + ", ".join(
+        f"seed {d['seed']} {d['score']:.3f}" for d in each))
 
 
 def _with_released(w: dict | None, models: str) -> list[str]:

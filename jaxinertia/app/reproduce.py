@@ -48,6 +48,7 @@ from jaxinertia.app.simdata import cached, params_digest, simulate_files
 from jaxinertia.app.with_released import (
     drop_with_released,
     judge_draws,
+    judge_each_draw,
     judge_with_released,
     models_with_released,
 )
@@ -272,7 +273,9 @@ def reproduce(out: str | os.PathLike, *, full: bool = False, seed: int = 0,
                        models_real(out, sim["train_files"], real, scale, recipe, seed,
                                    progress, sim["session"]))
             if folds:  # judged held out, each file by the members that did not see it
-                real_ft["held_out"] = judge_draws(folds, judged["estimates"], real, recipe)
+                real_ft["held_out"] = {
+                    **judge_draws(folds, judged["estimates"], real, recipe),
+                    "each_draw": judge_each_draw(folds, judged["estimates"], real, recipe)}
                 # (the folds judged the released models: their weights are there)
                 # Beside them, half and half with the authors' released models, judged by
                 # the same folds (app.with_released).

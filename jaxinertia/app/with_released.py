@@ -40,8 +40,8 @@ from jaxinertia.fileio import replacing_dir
 from jaxinertia.lbipe import load_released_models
 from jaxinertia.metrics import inertial_metrics
 
-__all__ = ["RELEASED", "RELEASED_SHARE", "drop_with_released", "judge_draws", "judge_with_released",
-           "models_with_released", "released_folder"]
+__all__ = ["RELEASED", "RELEASED_SHARE", "drop_with_released", "judge_draws",
+           "judge_each_draw", "judge_with_released", "models_with_released", "released_folder"]
 
 #: The released models' share of the mean (the rest: ``models_real``'s members alike).
 RELEASED_SHARE = 0.5
@@ -153,3 +153,17 @@ def judge_draws(folds: dict, estimates: dict, real: RealData, recipe: dict, *,
     mass, com = float(np.mean(ratios["mass"])), float(np.mean(ratios["com"]))
     return {"draws": len(next(iter(estimates.values()))), "folds": out, "mass_score": mass,
             "com_score": com, "score": 0.5 * (mass + com)}
+
+
+def judge_each_draw(folds: dict, estimates: dict, real: RealData, recipe: dict) -> list[dict]:
+    """Each training draw of ``folds`` alone (:func:`judge_draws` of its folds and its
+    estimates only), the same ``recipe``: what one draw would have scored beside the
+    draws' mean. ``[{"seed", "score", "mass_score", "com_score"}]``, one per draw."""
+    out = []
+    for k, draw in enumerate(folds.get("draws") or [{"seed": folds["seeds"][0],
+                                                     "folds": folds["folds"]}]):
+        alone = judge_draws({"folds": draw["folds"]}, {f: [e[k]] for f, e in estimates.items()},
+                            real, recipe)
+        out.append({"seed": draw["seed"],
+                    **{key: alone[key] for key in ("score", "mass_score", "com_score")}})
+    return out
