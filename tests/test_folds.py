@@ -495,6 +495,7 @@ def test_folds_of_several_training_draws_are_each_their_seeds_own_and_averaged(
     assert "The folds of 2 training draws (seeds 5, 6)" in format_folds(res)
     text = reproduce_section_new_object({**made, "held_out": judged})
     assert "of 2 training draws), averaged as" in text
+    assert "from every fold of every one of 2 training draws) answer with their mean" in text
     assert f"**{judged['score']:.3f}**" in text
     assert (f"each training draw alone, the same recipe: seed 5 {each[0]['score']:.3f}, "
             f"seed 6 {each[1]['score']:.3f}") in text

@@ -324,7 +324,8 @@ def _new_object_section(ft: dict | None) -> list[str]:
         made = ("the models are the held-out folds' own, the very folders they judged: each "
                 "calibrated, trained and fine-tuned on one real file and judged on the "
                 f"others; the mass's {n['mass']} folders (every candidate named, from every "
-                f"fold) answer with their mean (the first in `{ft['models']}`, the others in "
+                f"fold{_of_draws(ft)}) answer with their mean (the first in `{ft['models']}`, "
+                "the others in "
                 f"`{ft['models']}/members/`)"
                 + (f", the COM's {n['com']} likewise in `{ft['models']}/com`"
                    if "com" in n else ""))
@@ -345,6 +346,12 @@ def _new_object_section(ft: dict | None) -> list[str]:
                 else "the models saw these files") + ")"), ""] + _judged(
                     ft.get("held_out"), ft["models"]) + _with_released(
                     ft.get("with_released"), ft["models"])
+
+
+def _of_draws(ft: dict) -> str:
+    """The words that say ``models_real`` averages N training draws (none for one)."""
+    draws = (ft.get("held_out") or {}).get("draws", 1)
+    return f" of every one of {draws} training draws" if draws > 1 else ""
 
 
 def reproduce_section_new_object(ft: dict | None) -> str:
