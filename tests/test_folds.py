@@ -506,7 +506,8 @@ def test_folds_of_several_training_draws_are_each_their_seeds_own_and_averaged(
     write_json(tmp_path / "alone" / "tables.json", {"held_out": alone})
     got = models_from_runs([tmp_path, tmp_path / "alone"], tmp_path / "runs", small_lbipe_dir)
     assert len(got["from_folds"]["mass"]) == 6  # 3 draws x 2 folds
-    assert got["recipe"]["chosen_by"] == "held-out folds of 2 training draws"
+    assert got["recipe"]["chosen_by"] == "held-out folds of 3 training draws (2 runs)"
+    assert got["draws"] == 3
     every = {f: keep["estimates"][f] + kept["estimates"][f] for f in ("cube", "white")}
     want = judge_draws(res, every, real, got["recipe"])
     assert got["held_out"]["score"] == pytest.approx(want["score"], rel=1e-6)

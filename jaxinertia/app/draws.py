@@ -119,7 +119,9 @@ def models_from_runs(runs: list[str | Path], out: str | Path, lbipe_dir: str | P
               for name, fold in pooled_folds(rec)}
     by_part = SimpleNamespace(recipe_by_part=True)  # (reproduce's Scale, as every run's)
     recipe = recipe_of({"recipe": choose_recipe(pooled)}, by_part)
-    recipe = {**recipe, "chosen_by": f"held-out folds of {len(runs)} training draws"}
+    n_draws = sum(len(fold_draws(rec)) for rec in records)
+    recipe = {**recipe, "chosen_by": f"held-out folds of {n_draws} training draws "
+                                     f"({len(runs)} runs)"}
     dirs = {fit: [d for r, rec in zip(runs, records) for d in _fold_dirs(r, rec, fit)]
             for fit in fits}
     made = models_from_folds(out, {"folds": fits}, real, recipe,
@@ -144,7 +146,8 @@ def models_from_runs(runs: list[str | Path], out: str | Path, lbipe_dir: str | P
                     judged[key].setdefault(fit, {})[name] = (res["objects"][name]["T-A"], ref)
     finally:
         shutil.rmtree(judge, ignore_errors=True)
-    return {"runs": [str(r) for r in runs], "models": made["models"], "recipe": recipe,
+    return {"runs": [str(r) for r in runs], "draws": n_draws, "models": made["models"],
+            "recipe": recipe,
             "from_folds": made["from_folds"], "held_out": _scored(judged["ours"]),
             "each_run": [recipe_of(rec, by_part)["score"] for rec in records],
             "objects": made["objects"],  # (not held out: each file seen by half the members)
@@ -172,7 +175,7 @@ def cmd_models_real(args) -> int:
     enable_x64()
     res = models_from_runs(args.runs, args.out, lbipe_dir_of(args))
     h = res["held_out"]
-    print(f"{res['models']}: {len(res['runs'])} training draws; the mass: "
+    print(f"{res['models']}: {res['draws']} training draws of {len(res['runs'])} runs; the mass: "
           f"{res['recipe']['candidate']}; the COM: "
           f"{res['recipe'].get('com', res['recipe'])['candidate']}")
     print("held out (each file judged by the members that did not see it), T-A NMAE [%]:")

@@ -319,12 +319,14 @@ def _new_object_section(ft: dict | None) -> list[str]:
                 f"first in `{ft['models']}`, the others in `{ft['models']}/members/`)")
     if ft.get("from_folds"):  # the folds' own folders (models_real.models_from_folds)
         n = {part: len(v) for part, v in ft["from_folds"].items()}
+        draws = (ft.get("held_out") or {}).get("draws", 1)
         used = (f" ({'; '.join(m['candidate'] for m in recipe['members'])})"
                 if recipe.get("members") else "")
         made = ("the models are the held-out folds' own, the very folders they judged: each "
                 "calibrated, trained and fine-tuned on one real file and judged on the "
                 f"others; the mass's {n['mass']} folders (every candidate named, from every "
-                f"fold{_of_draws(ft)}) answer with their mean (the first in `{ft['models']}`, "
+                f"fold{f' of every one of {draws} training draws' if draws > 1 else ''}) "
+                f"answer with their mean (the first in `{ft['models']}`, "
                 "the others in "
                 f"`{ft['models']}/members/`)"
                 + (f", the COM's {n['com']} likewise in `{ft['models']}/com`"
@@ -348,12 +350,6 @@ def _new_object_section(ft: dict | None) -> list[str]:
                     ft.get("with_released"), ft["models"])
 
 
-def _of_draws(ft: dict) -> str:
-    """The words that say ``models_real`` averages N training draws (none for one)."""
-    draws = (ft.get("held_out") or {}).get("draws", 1)
-    return f" of every one of {draws} training draws" if draws > 1 else ""
-
-
 def reproduce_section_new_object(ft: dict | None) -> str:
     """The report's section on the models for a new real object (``real_finetuned`` of
     ``tables.json``)."""
@@ -372,21 +368,15 @@ def _judged(h: dict | None, models: str) -> list[str]:
     """``models_real`` judged held out (:func:`jaxinertia.app.with_released.judge_draws`)."""
     if h is None:
         return []
+    each = h.get("each_draw") or []  # each draw's own score, beside the draws' mean
+    alone = "" if len(each) < 2 else "; each training draw alone, the same recipe: " + \
+        ", ".join(f"seed {d['seed']} {d['score']:.3f}" for d in each)
     return [f"`{models}` judged held out: on each real file, the members that did not see it "
             f"(those of the folds fitted on the other file, of {h['draws']} training "
             f"draw{'s' if h['draws'] > 1 else ''}), averaged as `{models}` averages them: "
             f"score over the released models' T-A **{h['score']:.3f}** (mass "
-            f"{h['mass_score']:.3f}, COM {h['com_score']:.3f})" + _each_draw(h) + ".", "",
+            f"{h['mass_score']:.3f}, COM {h['com_score']:.3f}){alone}.", "",
             *_held_out_rows(h)]
-
-
-def _each_draw(h: dict) -> str:
-    """Each training draw's own score beside the draws' mean (more than one draw)."""
-    each = h.get("each_draw") or []
-    if len(each) < 2:
-        return ""
-    return ("; each training draw alone, the same recipe: " + ", ".join(
-        f"seed {d['seed']} {d['score']:.3f}" for d in each))
 
 
 def _with_released(w: dict | None, models: str) -> list[str]:
