@@ -502,9 +502,14 @@ def test_folds_of_several_training_draws_are_each_their_seeds_own_and_averaged(
     # models-real (app.draws) of this run of two draws and the run of seed 6 alone: the
     # three draws' folders pooled, judged from the folders on disk as judge_draws judges
     # the same draws from memory.
-    write_json(tmp_path / "tables.json", {"held_out": res})
+    write_json(tmp_path / "tables.json", {"held_out": res, "real_finetuned": {
+        "held_out": judged}})
     write_json(tmp_path / "alone" / "tables.json", {"held_out": alone})
     got = models_from_runs([tmp_path, tmp_path / "alone"], tmp_path / "runs", small_lbipe_dir)
+    # Each run's own models_real: as its reproduce judged it, or (a run before that
+    # judgement) its recipe's score.
+    assert got["each_run"] == [judged["score"], recipe_of(
+        alone, SimpleNamespace(recipe_by_part=True))["score"]]
     assert len(got["from_folds"]["mass"]) == 6  # 3 draws x 2 folds
     assert got["recipe"]["chosen_by"] == "held-out folds of 3 training draws (2 runs)"
     assert got["draws"] == 3

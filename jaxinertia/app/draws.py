@@ -44,6 +44,16 @@ def _held_out(run: Path) -> dict:
     return held
 
 
+def _own_score(run: Path, record: dict, scale) -> float:
+    """The run's own ``models_real``'s held-out score: as its ``reproduce`` judged it (all
+    its training draws averaged), or, in a run from before that judgement (one draw), its
+    recipe's score, the same number."""
+    from jaxinertia.app.models_real import recipe_of  # (JAX, with the work's modules)
+
+    judged = (json.loads((run / "tables.json").read_text()).get("real_finetuned") or {})
+    return float((judged.get("held_out") or recipe_of(record, scale))["score"])
+
+
 def _same_protocol(runs: list[Path], records: list[dict]) -> None:
     """Every run's folds are the same folds, judged on the same files and sets."""
     first = records[0]
@@ -149,7 +159,7 @@ def models_from_runs(runs: list[str | Path], out: str | Path, lbipe_dir: str | P
     return {"runs": [str(r) for r in runs], "draws": n_draws, "models": made["models"],
             "recipe": recipe,
             "from_folds": made["from_folds"], "held_out": _scored(judged["ours"]),
-            "each_run": [recipe_of(rec, by_part)["score"] for rec in records],
+            "each_run": [_own_score(r, rec, by_part) for r, rec in zip(runs, records)],
             "objects": made["objects"],  # (not held out: each file seen by half the members)
             "with_released": {"models": released["models"],
                               "released_share": released["released_share"],
