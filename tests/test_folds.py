@@ -588,14 +588,7 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
             early.written(None)
         return {"samples": {}, "best_epoch": {}, "data": [{"session_ratio": None}]}
 
-    simulations = []  # (folder of each request, together) of each call
-
-    def simulate_many(calls, together=True, **kw):
-        simulations.append(([c.wanted[0][0].parent.parent.relative_to(tmp_path)
-                             for c in calls], together))
-        return [[w[0] for w in c.wanted] for c in calls]
-
-    monkeypatch.setattr(folds, "simulate_many", simulate_many)
+    monkeypatch.setattr(folds, "simulate_files", lambda p, wanted, **kw: [w[0] for w in wanted])
     monkeypatch.setattr(folds, "train", fake_train)
     monkeypatch.setattr(folds.Fold, "judge", lambda self, models: {
         "objects": {}, "torque": {}, "session_ratio": {}, "by_strength": {}})
@@ -680,15 +673,11 @@ def test_on_an_accelerator_every_fold_training_meets_its_group(small_lbipe_dir, 
     made.clear()
     calls.clear()
     calibrations.clear()
-    simulations.clear()
     run_folds(tmp_path / "folds", small_lbipe_dir, scale, progress=False, log=lambda m: None,
               draws=2)
     # Side by side, the folds' calibrations run first, together (one call for every fold of
-    # both training draws), then their training files (one call: each fold's own and its
-    # drawn sessions'), and every draw's trainings meet in the same groups.
+    # both training draws), and every draw's trainings meet in the same groups.
     assert calibrations == [(["cube", "white", "cube", "white"], True)]
-    assert simulations == [([Path("folds") / d / f"fit_{n}" for d in ("", "seed1")
-                             for n in ("cube", "white") for _ in range(2)], True)]
     keys = ("cube", "white", "seed1/cube", "seed1/white")
     want = {("scratch", f"{n}/{b}", f) for n in keys for b, f in (
         ("paper", "models"), ("physical", "models_physical"),

@@ -45,7 +45,7 @@ from jaxinertia.app.fold_groups import FoldGroups
 from jaxinertia.app.pipeline import RealData, load_real, released_benchmark, train
 from jaxinertia.app.programs import folds_side_by_side, side_by_side
 from jaxinertia.app.recipe import choose_recipe, pooled_folds
-from jaxinertia.app.simdata import FilesRequest, simulate_files, simulate_many
+from jaxinertia.app.simdata import simulate_files
 from jaxinertia.lbipe import read_released_pairs
 from jaxinertia.sim.randomize import session_prior, spread_from_samples
 
@@ -129,14 +129,6 @@ def _run_all(out, names, real, scale, seeds, progress, log, benchmark: Future
         t = time.perf_counter()
         fitted = fit_simulators(todo, together=True)
         calibrated = [(*c, time.perf_counter() - t) for c in fitted]
-        # ... then their training files, together: the streams of like shapes (every
-        # fold's own files; every drawn session's) one program each, instead of a dozen
-        # small streams queueing on the device.
-        t = time.perf_counter()
-        wanted = [_simulations(f, c[0]) for f, c in zip(todo, calibrated)]
-        made = iter(simulate_many([r for w in wanted for r in w], progress=False))
-        calibrated = [(*c, [next(made) for _ in w], time.perf_counter() - t)
-                      for c, w in zip(calibrated, wanted)]
 
     def run(fold: Fold, calibration) -> dict:
         if calibration is None:
@@ -156,25 +148,32 @@ def _run_all(out, names, real, scale, seeds, progress, log, benchmark: Future
 
 
 def _run_fold(fold: Fold, calibration: tuple | None = None) -> dict:
-    """One fold's stages; ``calibration``: its simulator already fitted and its training
-    files already simulated (an item of :func:`~jaxinertia.app.fold_calibration.fit_simulators`'
-    result, the seconds it took, the files of each of :func:`_simulations`' requests and
-    the seconds they took), else fitted and simulated here."""
+    """One fold's stages; ``calibration``: its simulator already fitted (an item of
+    :func:`~jaxinertia.app.fold_calibration.fit_simulators`' result and the seconds it
+    took), else fitted here."""
     wall: dict[str, float] = {}
 
-    def timed(name, fn, *args, **kw):
+    def timed(name, fn, *args):
         t = time.perf_counter()
         try:
-            return fn(*args, **kw)
+            return fn(*args)
         finally:
             wall[name] = time.perf_counter() - t
 
     if calibration is None:
         params, replay = timed("calibrate", lambda: fit_simulators([fold])[0])
-        files, *drawn = timed("simulate", simulate_many, _simulations(fold, params),
-                              progress=fold.progress, together=False)
     else:
-        params, replay, wall["calibrate"], (files, *drawn), wall["simulate"] = calibration
+        params, replay, wall["calibrate"] = calibration
+    wanted = [(fold.dir / "data" / "train_random.npz", "random", fold.scale.random_per_load,
+               fold.seed)]
+    if fold.scale.planning:
+        wanted.append((fold.dir / "data" / "train_planning.npz", "planning", None, fold.seed))
+    # The sessions-drawn data (when the scale has them) simulate beside the fold's own: their
+    # candidates' trainings meet the others' in one group, which would wait for them.
+    sims = [partial(simulate_files, params, wanted, progress=fold.progress)]
+    if fold.scale.current_input and fold.scale.session_draws > 0:
+        sims.append(partial(_draw_sessions, fold, params))
+    files, *drawn = timed("simulate", side_by_side, sims, fold.workers(len(sims)))
 
     def paper() -> dict:
         with fold.member("scratch", "paper"):
@@ -237,22 +236,14 @@ def _randomized(fold: Fold, params, files: list[Path]) -> dict:
     return {**res, "spread": spread.to_dict(), "draws": fold.scale.randomize_draws}
 
 
-def _simulations(fold: Fold, params) -> list[FilesRequest]:
-    """The fold's training files: the random scenario (and the planning grid, when the
-    scale has it) in its calibrated simulator; with drawn sessions (``session_draws``),
-    the random scenario over that many recording sessions drawn around it, for the
-    current-input candidates trained on them (with the planning grid as simulated)."""
-    data = fold.dir / "data"
-    wanted = [(data / "train_random.npz", "random", fold.scale.random_per_load, fold.seed)]
-    if fold.scale.planning:
-        wanted.append((data / "train_planning.npz", "planning", None, fold.seed))
-    out = [FilesRequest(params, wanted)]
-    if fold.scale.current_input and fold.scale.session_draws > 0:
-        out.append(FilesRequest(params, [(data / "train_random_sessions.npz", "random",
-                                          fold.scale.random_per_load, fold.seed)],
-                                spread=session_prior(params.robot.n_joints),
-                                draws=fold.scale.session_draws))
-    return out
+def _draw_sessions(fold: Fold, params) -> list[Path]:
+    """The random scenario simulated over ``session_draws`` recording sessions drawn around
+    the fold's calibration, for the current-input candidates trained on them (with the
+    planning grid as simulated)."""
+    return simulate_files(params, [
+        (fold.dir / "data" / "train_random_sessions.npz", "random", fold.scale.random_per_load,
+         fold.seed)], spread=session_prior(params.robot.n_joints),
+        draws=fold.scale.session_draws, progress=fold.progress)
 
 
 def _finetuned(fold: Fold, files: list[Path], current_input: bool = False,

@@ -32,7 +32,7 @@ from jaxinertia.sim.stream import (
 )
 
 __all__ = ["as_float64", "native_fields", "run_jobs", "run_plan", "run_plans", "ScenarioRequest",
-           "simulate_scenario", "simulate_scenarios", "simulate_scenarios_many"]
+           "simulate_scenario", "simulate_scenarios"]
 
 
 def run_plan(params: SimParams, obj: HeldObject, q_d: np.ndarray, direction: np.ndarray,
@@ -194,50 +194,21 @@ def simulate_scenarios(params: SimParams, requests: list[ScenarioRequest], *,
     programs.precompile(params, training_object(0.0, tag_in_ee=arm.tag_in_ee),
                         lanes=lanes or (None if None in counts else stream_lanes(sum(counts))),
                         batch_last=batch_last)
-    named, plans, descs = _scenario_plans(params, requests, arm)
+    jobs, descs, plans = [], [], []
+    for r in requests:
+        named = _scenario_jobs(r.scenario, r.n, r.objects, r.seed, r.plan, arm=arm,
+                               robot=params.robot)
+        with jax.default_device(jax.devices("cpu")[0]):  # tiny: no accelerator kernels
+            key = jax.random.key(r.seed)
+            keys = [jax.random.fold_in(key, i) for i in range(len(named))]
+        for (name, obj, (q_d, d)), k in zip(named, keys):
+            plans.append((obj, q_d, d, k))
+            descs.append(f"{r.scenario}/{name}")
+        jobs.append(named)
     results = iter(run_plans(params, plans, lanes=lanes, tail_lanes=tail_lanes,
                              batch_last=batch_last, descs=descs, programs=programs,
                              desc="+".join(r.scenario for r in requests), progress=progress))
-    return [{name: (obj, next(results)) for name, obj, _ in job} for job in named]
-
-
-def simulate_scenarios_many(jobs: list[tuple[SimParams, list[ScenarioRequest]]], *,
-                            programs: StreamPrograms | None = None, arm: Arm | None = None
-                            ) -> list[list[dict[str, tuple[HeldObject, dict]]]]:
-    """Several simulators' scenarios as one program (:func:`run_jobs`): ``jobs`` is
-    ``[(params, requests)]``; returns each job's :func:`simulate_scenarios` result (the
-    same samples up to the last bits of the simulator's state). The jobs' requests must
-    make plans of the same shapes (the same scenarios and sizes, for one ``arm``)."""
-    for _, requests in jobs:
-        for r in requests:
-            _check_request(r.scenario, r.objects)
-    arm = OMX_ARM if arm is None else arm
-    built = [(params, *_scenario_plans(params, requests, arm)) for params, requests in jobs]
-    results = run_jobs([(params, plans, descs) for params, _, plans, descs in built],
-                       programs=programs)
-    out = []
-    for (_, named, _, _), res in zip(built, results):
-        it = iter(res)
-        out.append([{name: (obj, next(it)) for name, obj, _ in job} for job in named])
-    return out
-
-
-def _scenario_plans(params: SimParams, requests: list[ScenarioRequest], arm: Arm):
-    """The requests' plans: ``(named, plans, descs)``, ``named`` per request its
-    :func:`_scenario_jobs`, ``plans`` every object's ``(object, q_d, direction, key)`` in
-    order and ``descs`` their names."""
-    named, descs, plans = [], [], []
-    for r in requests:
-        jobs = _scenario_jobs(r.scenario, r.n, r.objects, r.seed, r.plan, arm=arm,
-                              robot=params.robot)
-        with jax.default_device(jax.devices("cpu")[0]):  # tiny: no accelerator kernels
-            key = jax.random.key(r.seed)
-            keys = [jax.random.fold_in(key, i) for i in range(len(jobs))]
-        for (name, obj, (q_d, d)), k in zip(jobs, keys):
-            plans.append((obj, q_d, d, k))
-            descs.append(f"{r.scenario}/{name}")
-        named.append(jobs)
-    return named, plans, descs
+    return [{name: (obj, next(results)) for name, obj, _ in named} for named in jobs]
 
 
 def _check_request(scenario: str, objects: list[str] | None) -> None:
