@@ -5,6 +5,7 @@ is judged on, its training draw and its place in the training groups, and its ju
 from __future__ import annotations
 
 import contextlib
+import functools
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -13,6 +14,8 @@ from jaxinertia.app.fold_groups import FoldGroups
 from jaxinertia.app.pipeline import RealData, adapt_objects, evaluate_models, session_reference
 from jaxinertia.checkpoints import load_models
 from jaxinertia.evaluation import evaluate
+from jaxinertia.open_manipulator_x import ARM as OMX_ARM
+from jaxinertia.plans import planning_plan
 from jaxinertia.session import ServoSession, servo_session
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig
 
@@ -55,6 +58,26 @@ class FoldScale:
     #: The fine-tunings also see ``n`` samples of each load of their start's simulated data
     #: (docs/results.md, "The simulator's loads beside the real one").
     finetune_anchor: bool = True
+
+    @property
+    def per_load(self) -> int:
+        """Simulated samples of each training load that every fold's trainings from scratch
+        keep (``train``'s ``samples_per_object``): the scale's count (the random scenario's
+        and the planning grid's) less a thousandth. The simulator drops a sample that does
+        not come to rest, a different few in each fold; trimmed alike, every fold's
+        trainings of a kind have the same shapes, and on an accelerator train as one
+        program (:mod:`jaxinertia.app.fold_groups`) instead of one per sample count
+        (docs/benchmarks.md, "Session 43")."""
+        n = self.random_per_load + (_planning_per_load() if self.planning else 0)
+        return n - -(-n // 1000)
+
+
+@functools.cache
+def _planning_per_load() -> int:
+    """Goals of the OpenMANIPULATOR-X's planning grid (each training load's)."""
+    arm = OMX_ARM
+    return len(planning_plan(arm.planning_step_deg, clearance=arm.mount_clearance_m,
+                             robot=arm.robot(), workspace=arm.workspace_deg).q_d)
 
 
 @dataclass(frozen=True)

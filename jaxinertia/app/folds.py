@@ -178,7 +178,8 @@ def _run_fold(fold: Fold, calibration: tuple | None = None) -> dict:
     def paper() -> dict:
         with fold.member("scratch", "paper"):
             timed("train", partial(train, overwrite=True, progress=fold.progress,
-                                   session=fold.session),
+                                   session=fold.session,
+                                   samples_per_object=fold.scale.per_load),
                   files, fold.dir / "models", fold.scale.train.replace(seed=fold.seed))
         return timed("evaluate", fold.judge, fold.dir / "models")
 
@@ -231,7 +232,7 @@ def _randomized(fold: Fold, params, files: list[Path]) -> dict:
         draws=fold.scale.randomize_draws, progress=fold.progress)
     train(dr_files + files[1:], fold.dir / "models_randomized",
           fold.scale.train.replace(seed=fold.seed), overwrite=True, progress=fold.progress,
-          session=fold.session)
+          session=fold.session, samples_per_object=fold.scale.per_load)
     res = fold.judge(fold.dir / "models_randomized")
     return {**res, "spread": spread.to_dict(), "draws": fold.scale.randomize_draws}
 
@@ -266,7 +267,8 @@ def _finetuned(fold: Fold, files: list[Path], current_input: bool = False,
         with fold.member("scratch", f"physical{tag}"):
             train(files, start, fold.scale.train.replace(
                 seed=fold.seed, torque_model="physical", current_input=current_input),
-                  overwrite=True, progress=fold.progress, session=fold.session, early=early)
+                  overwrite=True, progress=fold.progress, session=fold.session, early=early,
+                  samples_per_object=fold.scale.per_load)
     anchor = files[:1] if fold.scale.finetune_anchor else []
     data = [fold.real.files[fold.index(fold.fit_on)], *anchor]
 
