@@ -62,6 +62,7 @@ from jaxinertia.training_setup import (
     feature_config_from,
     per_object_subset,
     split_validation,
+    subset_per_object,
 )
 
 __all__ = [
@@ -78,6 +79,7 @@ __all__ = [
     "per_object_subset",
     "rehearse_attention",
     "split_validation",
+    "subset_per_object",
     "train_attention_models",
     "train_torque_models",
 ]

@@ -7,6 +7,7 @@ training sets. Pure NumPy on :class:`~jaxinertia.samples.Samples`; the trainers 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,7 +18,7 @@ from jaxinertia.networks import TORQUE_MODELS
 from jaxinertia.samples import Samples
 
 __all__ = ["FINETUNE_DEFAULTS", "TRAINABLE", "TrainConfig", "draw_sets", "feature_config_from",
-           "per_object_subset", "split_validation"]
+           "per_object_subset", "split_validation", "subset_per_object"]
 
 
 #: What fine-tuning may change (``TrainConfig.trainable``).
@@ -149,6 +150,19 @@ def per_object_subset(data: Samples, n: int, seed: int) -> Samples:
         idx = np.flatnonzero(data.object_id == o)
         keep.append(np.sort(rng.choice(idx, n, replace=False)) if len(idx) > n else idx)
     return data.take(np.concatenate(keep))
+
+
+def subset_per_object(parts: Sequence[Samples], n: int | Sequence[int] | None,
+                      seed: int) -> Samples:
+    """The parts concatenated, with at most ``n`` samples of each object
+    (:func:`per_object_subset`; None: all); a sequence: ``n[i]`` of each object of
+    ``parts[i]`` (the objects of different parts are different objects)."""
+    if n is None or isinstance(n, int):
+        data = Samples.concatenate(parts)
+        return data if n is None else per_object_subset(data, n, seed)
+    if len(n) != len(parts):
+        raise UsageError(f"samples per object: {len(n)} counts for {len(parts)} files")
+    return Samples.concatenate([per_object_subset(p, int(k), seed) for p, k in zip(parts, n)])
 
 
 def draw_sets(object_id: np.ndarray, per_object: int, set_size: int, seed: int) -> np.ndarray:

@@ -191,6 +191,24 @@ def test_finetuning_starts_from_the_folder_keeps_its_scaling_and_improves(folder
     np.testing.assert_allclose(floor, validation_torque_error(pair, fc, val_read), rtol=1e-5)
 
 
+def test_samples_per_object_of_each_file_keep_the_files_objects_apart(folders):
+    """A count per file (the held-out folds' trainings from scratch): each file's objects
+    keep that many samples, chosen as for the file alone, even where two files hold the
+    same object; a count missing for a file is refused."""
+    from jaxinertia.training import subset_per_object
+
+    _, _, real = folders
+    part = load_samples(real)[0]
+    got = subset_per_object([part, part], (5, 7), 3)
+    assert np.bincount(got.object_id).tolist() == [5] * part.n_objects + [7] * part.n_objects
+    want = Samples.concatenate([per_object_subset(part, 5, 3), per_object_subset(part, 7, 3)])
+    np.testing.assert_array_equal(got.q, want.q)
+    one = subset_per_object([part, part], 5, 3)  # one count: every object of every file
+    assert np.bincount(one.object_id).tolist() == [5] * (2 * part.n_objects)
+    with pytest.raises(UsageError, match="2 counts for 3 files"):
+        subset_per_object([part, part, part], (5, 7), 3)
+
+
 def sha256_of(path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 

@@ -113,8 +113,8 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
         # fold's trainings of a kind have the same shapes (one program on an accelerator).
         for folder in ("models", "models_physical", "models_randomized"):
             c = load_models(fold / folder).config
-            assert c["samples_per_object"] == scale.per_load == N_TRAIN // 4 - 1, folder
-            assert c["samples"]["train"] + c["samples"]["validation"] == 4 * scale.per_load
+            assert c["samples_per_object"] == list(scale.per_load) == [N_TRAIN // 4 - 1]
+            assert c["samples"]["train"] + c["samples"]["validation"] == 4 * (N_TRAIN // 4 - 1)
         config = load_models(fold / "models_finetuned_30").config
         assert [Path(e["file"]).name for e in config["data"]] == [f"data_test_{fit_on}.npz",
                                                                   "train_random.npz"]

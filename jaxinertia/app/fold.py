@@ -60,16 +60,16 @@ class FoldScale:
     finetune_anchor: bool = True
 
     @property
-    def per_load(self) -> int:
+    def per_load(self) -> tuple[int, ...]:
         """Simulated samples of each training load that every fold's trainings from scratch
-        keep (``train``'s ``samples_per_object``): the scale's count (the random scenario's
-        and the planning grid's) less a thousandth. The simulator drops a sample that does
-        not come to rest, a different few in each fold; trimmed alike, every fold's
-        trainings of a kind have the same shapes, and on an accelerator train as one
-        program (:mod:`jaxinertia.app.fold_groups`) instead of one per sample count
-        (docs/benchmarks.md, "Session 43")."""
-        n = self.random_per_load + (_planning_per_load() if self.planning else 0)
-        return n - -(-n // 1000)
+        keep of each of their files (``train``'s ``samples_per_object``: the random
+        scenario's, then the planning grid's when the scale has it): the file's count less
+        a thousandth. The simulator drops a sample that does not come to rest, a different
+        few in each fold; trimmed alike, every fold's trainings of a kind have the same
+        shapes, and on an accelerator train as one program (:mod:`jaxinertia.app.fold_groups`)
+        instead of one per sample count (docs/benchmarks.md, "Session 43")."""
+        counts = [self.random_per_load] + ([_planning_per_load()] if self.planning else [])
+        return tuple(n - -(-n // 1000) for n in counts)
 
 
 @functools.cache

@@ -65,8 +65,8 @@ from jaxinertia.session_terms import with_session_terms
 from jaxinertia.training import (
     TrainConfig,
     feature_config_from,
-    per_object_subset,
     split_validation,
+    subset_per_object,
 )
 from jaxinertia.uncertainty import validation_torque_error
 
@@ -77,7 +77,8 @@ __all__ = ["UNIFORM_ATTENTION", "RealData", "adapt_objects", "copy_models", "eva
 
 def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.PathLike,
           cfg: TrainConfig, *, progress: bool = True, overwrite: bool = False,
-          init: str | os.PathLike | None = None, samples_per_object: int | None = None,
+          init: str | os.PathLike | None = None,
+          samples_per_object: int | Sequence[int] | None = None,
           session: ServoSession | None = None, arm: str | None = None,
           early: EarlyStart | None = None) -> dict:
     """Trains K model pairs and fits the baselines; writes the model folder ``out``
@@ -86,10 +87,10 @@ def train(sample_files: Sequence[str | os.PathLike | SampleFile], out: str | os.
 
     ``init``: a model folder to fine-tune instead of training from scratch (e.g.
     simulator-trained models adapted on real samples of known objects): its parameters are
-    the start (they compete as epoch -1 on the validation split), its feature
-    normalisation is kept and its model count wins over ``cfg.n_models``; the baselines are
-    fitted on the new data. ``samples_per_object``: use only that many samples of each
-    object (seeded random choice; all when it has fewer), to measure how many are needed.
+    the start (they compete as epoch -1 on the validation split), its feature normalisation
+    is kept and its model count wins over ``cfg.n_models``; the baselines are fitted on the
+    new data. ``samples_per_object``: use only that many samples of each object (seeded
+    random choice; all when it has fewer; a sequence: of each file's objects, in order).
 
     ``session``: the models' reference session (:mod:`jaxinertia.session`): the real
     files a simulator was calibrated on, whose servo state the simulated data imitate;
@@ -132,9 +133,7 @@ def _train(sample_files, out, cfg: TrainConfig, *, progress, overwrite, init,
                           torque_model=torque_model_kind(start.pair.torque_model))
     parts, (reference, sim_reference), ratios = _sessions_read(
         parts, metas, float(cfg.session_strength), start and start.config, session)
-    data = Samples.concatenate(parts)
-    if samples_per_object is not None:
-        data = per_object_subset(data, samples_per_object, cfg.seed)
+    data = subset_per_object(parts, samples_per_object, cfg.seed)
     t0 = time.perf_counter()
     train_set, val_set = split_validation(data, cfg.val_fraction, cfg.seed)
     if val_set.n_samples == 0 or train_set.n_samples == 0:
@@ -154,7 +153,8 @@ def _train(sample_files, out, cfg: TrainConfig, *, progress, overwrite, init,
                   "session_ratio": r} for f, r in zip(files, ratios)],
         "session": reference.to_dict(),
         "simulator_session": None if sim_reference is None else sim_reference.to_dict(),
-        "samples_per_object": samples_per_object,
+        "samples_per_object": (samples_per_object if not isinstance(samples_per_object,
+                               Sequence) else [int(n) for n in samples_per_object]),
         "session_terms": terms,
         "simulator": metas[0].get("simulator") or (start and start.config.get("simulator")),
         "samples": {"train": train_set.n_samples, "validation": val_set.n_samples},
