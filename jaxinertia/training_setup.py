@@ -157,9 +157,9 @@ def subset_per_object(parts: Sequence[Samples], n: int | Sequence[int] | None,
     """The parts concatenated, with at most ``n`` samples of each object
     (:func:`per_object_subset`; None: all); a sequence: ``n[i]`` of each object of
     ``parts[i]`` (the objects of different parts are different objects)."""
-    if n is None or isinstance(n, int):
+    if n is None or np.ndim(n) == 0:
         data = Samples.concatenate(parts)
-        return data if n is None else per_object_subset(data, n, seed)
+        return data if n is None else per_object_subset(data, int(n), seed)
     if len(n) != len(parts):
         raise UsageError(f"samples per object: {len(n)} counts for {len(parts)} files")
     return Samples.concatenate([per_object_subset(p, int(k), seed) for p, k in zip(parts, n)])
