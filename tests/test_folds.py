@@ -108,13 +108,14 @@ def test_each_fold_fits_on_its_object_and_is_judged_on_the_other(small_lbipe_dir
         # of each simulated load of the start's own random data (FoldScale.finetune_anchor),
         # from the physical model.
         fold = tmp_path / "folds" / f"fit_{fit_on}"
-        # Every training from scratch keeps the scale's count of each load, less a
-        # thousandth (FoldScale.per_load), whatever samples the simulator dropped: every
-        # fold's trainings of a kind have the same shapes (one program on an accelerator).
+        # Every training from scratch keeps the scale's count of each load of each file,
+        # less a thousandth (FoldScale.per_load; here all 40), whatever samples the
+        # simulator dropped: every fold's trainings of a kind have the same shapes (one
+        # program on an accelerator).
         for folder in ("models", "models_physical", "models_randomized"):
             c = load_models(fold / folder).config
-            assert c["samples_per_object"] == list(scale.per_load) == [N_TRAIN // 4 - 1]
-            assert c["samples"]["train"] + c["samples"]["validation"] == 4 * (N_TRAIN // 4 - 1)
+            assert c["samples_per_object"] == list(scale.per_load) == [N_TRAIN // 4], folder
+            assert c["samples"]["train"] + c["samples"]["validation"] == N_TRAIN
         config = load_models(fold / "models_finetuned_30").config
         assert [Path(e["file"]).name for e in config["data"]] == [f"data_test_{fit_on}.npz",
                                                                   "train_random.npz"]

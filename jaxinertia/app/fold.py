@@ -64,12 +64,13 @@ class FoldScale:
         """Simulated samples of each training load that every fold's trainings from scratch
         keep of each of their files (``train``'s ``samples_per_object``: the random
         scenario's, then the planning grid's when the scale has it): the file's count less
-        a thousandth. The simulator drops a sample that does not come to rest, a different
-        few in each fold; trimmed alike, every fold's trainings of a kind have the same
-        shapes, and on an accelerator train as one program (:mod:`jaxinertia.app.fold_groups`)
-        instead of one per sample count (docs/benchmarks.md, "Session 43")."""
+        a thousandth (all of fewer than a thousand). The simulator drops a sample that does
+        not come to rest, a different few in each fold; trimmed alike, every fold's
+        trainings of a kind have the same shapes, and on an accelerator train as one program
+        (:mod:`jaxinertia.app.fold_groups`) instead of one per sample count
+        (docs/benchmarks.md, "Session 43")."""
         counts = [self.random_per_load] + ([_planning_per_load()] if self.planning else [])
-        return tuple(n - -(-n // 1000) for n in counts)
+        return tuple(n - n // 1000 for n in counts)
 
 
 @functools.cache
