@@ -123,6 +123,43 @@ def test_a_group_trains_its_members_as_alone_in_one_program_per_shape(
     _assert_same(got["d"], alone["d"], "d")  # alone in the group: the same programs
 
 
+def test_training_sets_trimmed_alike_train_as_one_program(monkeypatch):
+    """Two held-out folds' training sets that differ by a sample the simulator dropped
+    (one object one sample short) have other shapes: their torque models train in two
+    programs. Trimmed to the same count of each object of each file
+    (``subset_per_object``, what ``FoldScale.per_load`` asks ``train`` for), in one."""
+    from jaxinertia.training import subset_per_object
+
+    full = synthetic_samples(np.random.default_rng(5), n=N, n_obj=4)  # 40 of each object
+    short = full.take(np.arange(1, N))  # object 0: 39
+    sizes = []
+    stacked = training_group._run_stacked
+
+    def spy(trainings):
+        sizes.append(len(trainings))
+        return stacked(trainings)
+
+    monkeypatch.setattr(training_group, "_run_stacked", spy)
+
+    def two_folds(per_object):
+        group = TrainingGroup(["a", "b"])
+
+        def member(name, data, seed):
+            with group.member(name):
+                tr, va = split_validation(subset_per_object([data], per_object, seed),
+                                          CFG.val_fraction, seed)
+                cfg = CFG.replace(seed=seed)
+                return train_torque_models(cfg, feature_config_from(tr), tr, va,
+                                           jax.random.key(seed), progress=False)
+
+        sizes.clear()
+        side_by_side([lambda: member("a", full, 1), lambda: member("b", short, 2)], workers=2)
+        return sorted(sizes)
+
+    assert two_folds(None) == [1, 1]
+    assert two_folds([39]) == [2]
+
+
 def test_a_member_that_leaves_or_fails_holds_no_one_up():
     want = _torque(_job(5))
     group = TrainingGroup(["fails", "trains", "never", "nan"])
