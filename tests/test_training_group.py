@@ -92,11 +92,9 @@ def _assert_attention_close(got, want, job, what):
                                err_msg=f"{what}: T-A mass of the validation sets")
 
 
-def test_a_group_trains_its_members_as_alone_in_one_program_per_shape(
-        monkeypatch):
-    jobs = {"a": _job(1), "b": _job(2), "c": _job(3, physical=True),
-            "d": _job(4, n=200)}  # d: other shapes, so another program
-    alone = {name: _pair(job) for name, job in jobs.items()}
+def _program_sizes(monkeypatch) -> list[int]:
+    """The member count of every program the groups run from now on, appended as each
+    starts."""
     sizes = []
     stacked = training_group._run_stacked
 
@@ -105,6 +103,15 @@ def test_a_group_trains_its_members_as_alone_in_one_program_per_shape(
         return stacked(trainings)
 
     monkeypatch.setattr(training_group, "_run_stacked", spy)
+    return sizes
+
+
+def test_a_group_trains_its_members_as_alone_in_one_program_per_shape(
+        monkeypatch):
+    jobs = {"a": _job(1), "b": _job(2), "c": _job(3, physical=True),
+            "d": _job(4, n=200)}  # d: other shapes, so another program
+    alone = {name: _pair(job) for name, job in jobs.items()}
+    sizes = _program_sizes(monkeypatch)
     group = TrainingGroup(jobs)
 
     def member(name):
@@ -132,14 +139,7 @@ def test_training_sets_trimmed_alike_train_as_one_program(monkeypatch):
 
     full = synthetic_samples(np.random.default_rng(5), n=N, n_obj=4)  # 40 of each object
     short = full.take(np.arange(1, N))  # object 0: 39
-    sizes = []
-    stacked = training_group._run_stacked
-
-    def spy(trainings):
-        sizes.append(len(trainings))
-        return stacked(trainings)
-
-    monkeypatch.setattr(training_group, "_run_stacked", spy)
+    sizes = _program_sizes(monkeypatch)
 
     def two_folds(per_object):
         group = TrainingGroup(["a", "b"])
