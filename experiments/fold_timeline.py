@@ -8,6 +8,7 @@ How sessions 30 and 31 found what a GPU fold waits for (docs/benchmarks.md, "Ses
     python experiments/fold_timeline.py --timeline tl.txt -- --full --out DIR --lbipe-dir DIR
 
 Everything after ``--`` is ``reproduce``'s. Cold on a GPU: ``JAXINERTIA_CACHE_DIR=off``.
+``experiments/timeline_stages.py`` sums a timeline up, stage by stage.
 """
 
 from __future__ import annotations
@@ -55,6 +56,24 @@ class Timeline:
         setattr(owner, attr, timed)
 
 
+def _programs(timeline: Timeline) -> None:
+    """Each group program (``training_group._run_stacked``) with what it trains and how
+    many members: ``_run_stacked torque model x6``."""
+    fn = training_group._run_stacked
+
+    @functools.wraps(fn)
+    def timed(trainings):
+        what = f"_run_stacked {trainings[0].desc} x{len(trainings)}"
+        timeline.emit("start", what)
+        t = time.time()
+        try:
+            return fn(trainings)
+        finally:
+            timeline.emit("end", what, time.time() - t)
+
+    training_group._run_stacked = timed
+
+
 def _stages(timeline: Timeline) -> None:
     """``reproduce``'s own stages (simulate, train, ..., the held-out folds) on the timeline
     too: what runs beside the folds."""
@@ -97,9 +116,9 @@ def main() -> None:
     logger.propagate = False
     for owner, attr in ((folds, "fit_simulators"), (folds, "simulate_files"), (folds, "train"),
                         (fold, "evaluate"), (folds.Fold, "judge"),
-                        (fit, "train_torque_models"), (fit, "train_attention_models"),
-                        (training_group, "_run_stacked")):
+                        (fit, "train_torque_models"), (fit, "train_attention_models")):
         timeline.wrap(owner, attr)
+    _programs(timeline)
     _stages(timeline)
     args = [x for x in a.reproduce if x != "--"]
     t = time.time()
