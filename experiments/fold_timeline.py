@@ -18,12 +18,13 @@ import contextlib
 import functools
 import logging
 import os
+import sys
 import threading
 import time
 
 import jax
 
-from jaxinertia import training_group
+from jaxinertia import training, training_group
 from jaxinertia.app import cli, fit, fold, folds, reproduce
 
 
@@ -97,15 +98,75 @@ class _Compiles(logging.Handler):
         super().__init__(logging.DEBUG)
         self.timeline = timeline
 
+    #: JAX's messages under ``jax_log_compiles``: a compile's start, its tracing, its
+    #: lowering (to MLIR) and its XLA compilation (``comp``, the only kind before session
+    #: 44). Tracing and lowering are Python under the GIL: the threads of the folds wait for
+    #: each other's there, which the compiles' seconds alone do not show.
+    _KINDS = (("Finished XLA compilation of ", "comp"), ("Finished tracing ", "trace"),
+              ("Finished jaxpr to MLIR module conversion ", "lower"))
+    #: Tracing and lowering shorter than this are left out (every eager op is traced).
+    MIN_S = 0.05
+
     def emit(self, record: logging.LogRecord) -> None:
         message = record.getMessage()
-        if message.startswith("Finished XLA compilation of "):
-            self.timeline.emit("comp", message.removeprefix("Finished XLA compilation of "))
+        if message.startswith("Compiling ") and " with global shapes" in message:
+            self.timeline.emit("cstart", message.split()[1])
+            return
+        for prefix, kind in self._KINDS:
+            if message.startswith(prefix):
+                what = message.removeprefix(prefix)
+                if kind != "comp":
+                    try:
+                        if float(what.split(" in ")[-1].split()[0]) < self.MIN_S:
+                            return
+                    except ValueError:
+                        pass
+                self.timeline.emit(kind, what)
+                return
+
+
+def _sample_stacks(timeline: Timeline, every: float) -> None:
+    """Every ``every`` seconds, where the folds' threads are (session 44: a training's
+    threads waited 18-21 s at a place no event showed): each thread's innermost frame in
+    jaxinertia, with the innermost frame below it (the call it waits in), one ``stack``
+    line per place and its count of threads, written when the places changed."""
+    package = os.path.dirname(os.path.abspath(training.__file__))
+    root = os.path.dirname(package)
+
+    def place(frame) -> str:
+        inner = frame
+        while frame is not None and not frame.f_code.co_filename.startswith(package):
+            frame = frame.f_back
+        if frame is None:
+            return ""
+        own = f"{os.path.relpath(frame.f_code.co_filename, root)}:{frame.f_lineno}"
+        return f"{own} {frame.f_code.co_name} <- {os.path.basename(inner.f_code.co_filename)}:" \
+               f"{inner.f_lineno} {inner.f_code.co_name}"
+
+    def run() -> None:
+        last = None
+        while True:
+            time.sleep(every)
+            names = {t.ident: t.name for t in threading.enumerate()}
+            counts: dict[str, int] = {}
+            for ident, frame in sys._current_frames().items():
+                if names.get(ident, "").startswith(("jaxinertia-", "rehearse-")):
+                    where = place(frame)
+                    if where:
+                        counts[where] = counts.get(where, 0) + 1
+            if counts != last:
+                for where, n in sorted(counts.items(), key=lambda kv: -kv[1]):
+                    timeline.emit("stack", f"x{n} {where}")
+                last = counts
+
+    threading.Thread(target=run, name="stack-sampler", daemon=True).start()
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--timeline", required=True, help="the text file to write")
+    p.add_argument("--sample-stacks", type=float, default=0.0, metavar="SECONDS",
+                   help="also where the folds' threads are, every SECONDS (0: never)")
     p.add_argument("reproduce", nargs=argparse.REMAINDER, help="-- then reproduce's arguments")
     a = p.parse_args()
     timeline = Timeline(a.timeline)
@@ -116,10 +177,17 @@ def main() -> None:
     logger.propagate = False
     for owner, attr in ((folds, "fit_simulators"), (folds, "simulate_files"), (folds, "train"),
                         (fold, "evaluate"), (folds.Fold, "judge"),
-                        (fit, "train_torque_models"), (fit, "train_attention_models")):
+                        (fit, "train_torque_models"), (fit, "train_attention_models"),
+                        # inside a training, before its epochs (session 44): the attention's
+                        # inputs, its epoch object, and when the member hands its epochs in
+                        (training, "torque_predictions"), (training, "_features"),
+                        (training, "_attention_epoch"), (training, "_torque_epoch"),
+                        (training, "run_epochs")):
         timeline.wrap(owner, attr)
     _programs(timeline)
     _stages(timeline)
+    if a.sample_stacks > 0:
+        _sample_stacks(timeline, a.sample_stacks)
     args = [x for x in a.reproduce if x != "--"]
     t = time.time()
     try:
