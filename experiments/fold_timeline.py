@@ -8,6 +8,8 @@ How sessions 30 and 31 found what a GPU fold waits for (docs/benchmarks.md, "Ses
     python experiments/fold_timeline.py --timeline tl.txt -- --full --out DIR --lbipe-dir DIR
 
 Everything after ``--`` is ``reproduce``'s. Cold on a GPU: ``JAXINERTIA_CACHE_DIR=off``.
+``--sample-stacks 0.5`` also writes where the folds' threads are every half second (a wait
+that no event shows: docs/benchmarks.md, "Session 44").
 ``experiments/timeline_stages.py`` sums a timeline up, stage by stage.
 """
 
