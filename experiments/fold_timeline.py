@@ -9,7 +9,8 @@ How sessions 30 and 31 found what a GPU fold waits for (docs/benchmarks.md, "Ses
 
 Everything after ``--`` is ``reproduce``'s. Cold on a GPU: ``JAXINERTIA_CACHE_DIR=off``.
 ``--sample-stacks 0.5`` also writes where the folds' threads are every half second (a wait
-that no event shows: docs/benchmarks.md, "Session 44").
+that no event shows: docs/benchmarks.md, "Session 44"); ``--side-by-side 4`` runs the
+stages side by side and groups the folds' trainings as a GPU does, on a CPU too.
 ``experiments/timeline_stages.py`` sums a timeline up, stage by stage.
 """
 
@@ -27,7 +28,7 @@ import time
 import jax
 
 from jaxinertia import training, training_group
-from jaxinertia.app import cli, fit, fold, folds, reproduce
+from jaxinertia.app import cli, fit, fold, fold_groups, folds, programs, reproduce
 
 
 class Timeline:
@@ -169,6 +170,9 @@ def main() -> None:
     p.add_argument("--timeline", required=True, help="the text file to write")
     p.add_argument("--sample-stacks", type=float, default=0.0, metavar="SECONDS",
                    help="also where the folds' threads are, every SECONDS (0: never)")
+    p.add_argument("--side-by-side", type=int, default=0, metavar="N",
+                   help="N stages side by side and the folds' trainings grouped, as on a GPU, "
+                        "whatever the device (0: the device's own way)")
     p.add_argument("reproduce", nargs=argparse.REMAINDER, help="-- then reproduce's arguments")
     a = p.parse_args()
     timeline = Timeline(a.timeline)
@@ -188,6 +192,9 @@ def main() -> None:
         timeline.wrap(owner, attr)
     _programs(timeline)
     _stages(timeline)
+    if a.side_by_side > 0:  # a GPU's threads and groups on a CPU (session 44)
+        programs.side_by_side_workers = fold_groups.side_by_side_workers = \
+            lambda: a.side_by_side
     if a.sample_stacks > 0:
         _sample_stacks(timeline, a.sample_stacks)
     args = [x for x in a.reproduce if x != "--"]
