@@ -29,15 +29,12 @@ from jaxinertia.app.pipeline import adapt_objects, load_real, session_reference 
 from jaxinertia.checkpoints import load_models  # noqa: E402
 from jaxinertia.evaluation import evaluate  # noqa: E402
 
-#: The session adaptation's strength the folders are judged at (``--strength``; 0: the
-#: recipe's mass part).
-STRENGTH = 0.0
 
-
-def _judge(folder_dir: Path, real) -> np.ndarray:
-    """T estimates (O, K, B, 4) of one folder on every real file, at :data:`STRENGTH`."""
+def _judge(folder_dir: Path, real, strength: float = 0.0) -> np.ndarray:
+    """T estimates (O, K, B, 4) of one folder on every real file, at session adaptation's
+    ``strength`` (0: the recipe's mass part)."""
     folder = load_models(folder_dir)
-    adapted, _ = adapt_objects(real.objects, session_reference(folder.config, STRENGTH))
+    adapted, _ = adapt_objects(real.objects, session_reference(folder.config, strength))
     return np.asarray(evaluate(adapted, real.sets, pair=folder.pair, fc=folder.features,
                                l_max=real.l_max)["estimates"]["T"])
 
@@ -59,14 +56,12 @@ def main() -> None:
     p.add_argument("--strength", type=float, default=0.0,
                    help="session adaptation's strength (0: off, the recipe's mass part)")
     a = p.parse_args()
-    global STRENGTH
-    STRENGTH = a.strength
     run, real = Path(a.run), load_real(a.lbipe_dir, seed=a.seed)
     names = {o.name for o in real.objects}
     dst = run / "models_real"
     if (dst / "config.json").is_file():
         folders = [dst, *members_of(dst, load_models(dst).config)]
-        xs = [_judge(f, real) for f in folders]
+        xs = [_judge(f, real, a.strength) for f in folders]
         for f, x in zip(folders, xs):
             src = Path(load_models(f).config.get("copied_from", f)).name
             print(_row(f"models_real {f.relative_to(run)} ({src})", x, real, names))
@@ -79,7 +74,7 @@ def main() -> None:
         xs = []
         for f in sorted(fold.glob("models*")):
             if (f / "config.json").is_file() and "randomized" not in f.name:
-                xs.append(_judge(f, real))
+                xs.append(_judge(f, real, a.strength))
                 print(_row(f"{name}/{f.name}", xs[-1], real, {fit}))
         print(_row(f"{name}: the candidates' mean", np.mean(xs, axis=0), real, {fit}))
         pooled.setdefault(fit, []).extend(xs)
