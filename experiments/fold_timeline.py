@@ -173,6 +173,10 @@ def main() -> None:
     p.add_argument("--side-by-side", type=int, default=0, metavar="N",
                    help="N stages side by side and the folds' trainings grouped, as on a GPU, "
                         "whatever the device (0: the device's own way)")
+    p.add_argument("--switch-interval", type=float, default=0.0, metavar="SECONDS",
+                   help="the interpreter's GIL switch interval (sys.setswitchinterval; 0: "
+                        "Python's own, 5 ms): how long a thread that gave the GIL up for C "
+                        "work may wait to get it back from a busy one (session 45)")
     p.add_argument("reproduce", nargs=argparse.REMAINDER, help="-- then reproduce's arguments")
     a = p.parse_args()
     timeline = Timeline(a.timeline)
@@ -197,6 +201,8 @@ def main() -> None:
             lambda: a.side_by_side
     if a.sample_stacks > 0:
         _sample_stacks(timeline, a.sample_stacks)
+    if a.switch_interval > 0:
+        sys.setswitchinterval(a.switch_interval)
     args = [x for x in a.reproduce if x != "--"]
     t = time.time()
     try:

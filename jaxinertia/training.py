@@ -190,9 +190,14 @@ class Epoch(NamedTuple):
 
 
 #: A training of fewer minibatch steps than this (epochs x minibatches per epoch: a
-#: fine-tuning's 200 epochs of a few minibatches) compiles its epoch without XLA's GPU
-#: autotuner (:func:`epoch_compiler_options`).
-AUTOTUNE_MIN_STEPS = 2_000
+#: fine-tuning's 200 epochs of up to 70 minibatches, 14,000 steps in the folds) compiles
+#: its epoch without XLA's GPU autotuner (:func:`epoch_compiler_options`); a training from
+#: scratch at the paper's scale (300 epochs of 289) with it. Session 45: at 2,000 the
+#: folds' fine-tunings of 250 and 1,000 real samples (3,500 and 14,000 steps) autotuned;
+#: once the attentions ran beside them on the GPU (no longer held up drawing their sets)
+#: those compiles took 44-47 s; without the autotuner 3-5 s (docs/benchmarks.md,
+#: "Session 45").
+AUTOTUNE_MIN_STEPS = 20_000
 
 
 def epoch_compiler_options(steps: int, backend: str | None = None) -> tuple:

@@ -167,11 +167,35 @@ def subset_per_object(parts: Sequence[Samples], n: int | Sequence[int] | None,
 
 def draw_sets(object_id: np.ndarray, per_object: int, set_size: int, seed: int) -> np.ndarray:
     """(per_object * O, set_size) index sets, each of one object's samples (without
-    replacement within a set; with replacement only if the object has too few samples)."""
+    replacement within a set; with replacement only if the object has too few samples).
+
+    Each set is a uniformly random ordered choice, drawn for all of an object's sets at
+    once (:func:`_choices`). Drawn a set at a time (``Generator.choice`` per set) each draw
+    gave the GIL up and waited to get it back from the busy threads beside it: in the GPU
+    folds the 24 attention trainings drew their sets for 15 s before their first epoch
+    (docs/benchmarks.md, "Session 45")."""
     rng = np.random.default_rng(seed)
     out = []
     for o in np.unique(object_id):
         idx = np.flatnonzero(object_id == o)
-        replace = len(idx) < set_size
-        out += [rng.choice(idx, set_size, replace=replace) for _ in range(per_object)]
-    return np.stack(out)
+        out.append(idx[_choices(rng, len(idx), per_object, set_size)])
+    return np.concatenate(out)
+
+
+def _choices(rng: np.random.Generator, n: int, count: int, k: int) -> np.ndarray:
+    """(count, k) positions in ``range(n)``, each row a uniformly random ordered choice of
+    k distinct positions (k of n with replacement where n < k)."""
+    if n < k:
+        return rng.integers(n, size=(count, k))
+    if k * (k - 1) > 2 * n:  # dense: a row of k draws repeats a position more often than not
+        return np.argsort(rng.random((count, n)), axis=1)[:, :k]
+    # Sparse: draw with replacement and redraw every row that repeats a position. Kept
+    # rows are uniform among the rows without repeats: exactly the ordered choices; at
+    # most e - 1 redraws per row are expected (k (k - 1) <= 2 n).
+    rows = rng.integers(n, size=(count, k))
+    while True:
+        ordered = np.sort(rows, axis=1)
+        again = np.flatnonzero((ordered[:, 1:] == ordered[:, :-1]).any(axis=1))
+        if again.size == 0:
+            return rows
+        rows[again] = rng.integers(n, size=(again.size, k))

@@ -27,6 +27,7 @@ from jaxinertia.samples import Samples, load_samples, save_native
 from jaxinertia.training import (
     TrainConfig,
     attention_loss,
+    draw_sets,
     feature_config_from,
     split_validation,
     torque_predictions,
@@ -129,6 +130,33 @@ def test_the_attentions_torque_spread_scales_the_predicted_torques_not_the_objec
                            x_obj[vsets[:, 0]], w_mass=1.0, w_com=0.3)[0]
     np.testing.assert_allclose(got[0], want, rtol=1e-9)
     assert abs(float(want) / float(plain) - 1) > 0.1  # the factors matter here
+
+
+def test_attention_sets_are_uniform_ordered_choices_of_one_objects_samples():
+    """Every ordered choice of k distinct samples equally likely, on both of draw_sets'
+    paths (redrawn repeats where k is small against n, random keys where it is not):
+    a chi-square over all ordered k-tuples within 6 standard deviations of its mean."""
+    for n, k in ((12, 3), (5, 4)):  # 6 <= 2 n: redrawn repeats; 12 > 2 n: random keys
+        object_id = np.repeat([7, 2], [n, n + 3])  # two objects, not sorted by id
+        per_tuple = 100
+        n_tuples = int(np.prod(np.arange(n - k + 1, n + 1)))
+        sets = draw_sets(object_id, per_tuple * n_tuples, k, seed=0)
+        assert sets.shape == (2 * per_tuple * n_tuples, k)
+        first, second = sets[: per_tuple * n_tuples], sets[per_tuple * n_tuples:]
+        assert (object_id[first] == 2).all() and (object_id[second] == 7).all()
+        for part in (first, second):
+            assert (np.sort(part, axis=1)[:, 1:] != np.sort(part, axis=1)[:, :-1]).all()
+        pos = np.searchsorted(np.flatnonzero(object_id == 7), second)  # 0..n-1
+        counts = np.unique(np.ravel_multi_index(pos.T, (n,) * k), return_counts=True)[1]
+        assert len(counts) == n_tuples
+        expected = per_tuple
+        chi2 = ((counts - expected) ** 2 / expected).sum()
+        dof = n_tuples - 1
+        assert abs(chi2 - dof) < 6 * np.sqrt(2 * dof), (n, k, chi2, dof)
+    few = draw_sets(np.zeros(3, int), 50, 4, seed=1)  # 3 samples, sets of 4: replaced
+    assert few.shape == (50, 4) and set(np.unique(few)) == {0, 1, 2}
+    np.testing.assert_array_equal(draw_sets(object_id, 5, 3, seed=3),
+                                  draw_sets(object_id, 5, 3, seed=3))
 
 
 def test_attention_alone_needs_torque_models_to_keep():

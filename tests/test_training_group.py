@@ -207,6 +207,11 @@ def test_short_trainings_compile_their_epochs_without_the_gpu_autotuner(monkeypa
         ("xla_gpu_autotune_level", 0),)
     assert options(training.AUTOTUNE_MIN_STEPS, backend="gpu") == ()
     assert options(1, backend="cpu") == ()
+    # The folds' largest fine-tuning (1,000 real samples and as many of each of the four
+    # simulated loads, 90 % of them trained on in minibatches of 64, 200 epochs) is short;
+    # a training from scratch of the paper's scale (300 epochs of 289 minibatches) is long.
+    assert options(200 * (5 * 1000 * 9 // 10 // 64), backend="gpu") != ()
+    assert options(300 * 289, backend="gpu") == ()
     want = {name: _torque(_job(seed)) for name, seed in (("a", 1), ("b", 2))}
     # The options reach the epoch's programs alone and in a group: a misspelt one fails
     # to compile there (the CPU's compiler checks every option's name, the GPU's too).
