@@ -190,12 +190,12 @@ def _choices(rng: np.random.Generator, n: int, count: int, k: int) -> np.ndarray
     if k * (k - 1) > 2 * n:  # dense: a row of k draws repeats a position more often than not
         return np.argsort(rng.random((count, n)), axis=1)[:, :k]
     # Sparse: draw with replacement and redraw every row that repeats a position. Kept
-    # rows are uniform among the rows without repeats: exactly the ordered choices; at
-    # most e - 1 redraws per row are expected (k (k - 1) <= 2 n).
+    # rows are uniform among the rows without repeats: exactly the ordered choices; about
+    # e - 1 redraws per row are expected at most (k (k - 1) <= 2 n).
     rows = rng.integers(n, size=(count, k))
-    while True:
-        ordered = np.sort(rows, axis=1)
-        again = np.flatnonzero((ordered[:, 1:] == ordered[:, :-1]).any(axis=1))
-        if again.size == 0:
-            return rows
-        rows[again] = rng.integers(n, size=(again.size, k))
+    pending = np.arange(count)
+    while pending.size:
+        ordered = np.sort(rows[pending], axis=1)
+        pending = pending[(ordered[:, 1:] == ordered[:, :-1]).any(axis=1)]
+        rows[pending] = rng.integers(n, size=(pending.size, k))
+    return rows
