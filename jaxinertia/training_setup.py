@@ -188,7 +188,10 @@ def _choices(rng: np.random.Generator, n: int, count: int, k: int) -> np.ndarray
     if n < k:
         return rng.integers(n, size=(count, k))
     if k * (k - 1) > 2 * n:  # dense: a row of k draws repeats a position more often than not
-        return np.argsort(rng.random((count, n)), axis=1)[:, :k]
+        # Random keys, the k smallest; at most 2**22 keys (32 MB) at a time.
+        step = max(1, (1 << 22) // n)
+        return np.concatenate([np.argsort(rng.random((min(step, count - i), n)), axis=1)[:, :k]
+                               for i in range(0, count, step)])
     # Sparse: draw with replacement and redraw every row that repeats a position. Kept
     # rows are uniform among the rows without repeats: exactly the ordered choices; about
     # e - 1 redraws per row are expected at most (k (k - 1) <= 2 n).

@@ -153,6 +153,9 @@ def test_attention_sets_are_uniform_ordered_choices_of_one_objects_samples():
         chi2 = ((counts - expected) ** 2 / expected).sum()
         dof = n_tuples - 1
         assert abs(chi2 - dof) < 6 * np.sqrt(2 * dof), (n, k, chi2, dof)
+    large = draw_sets(np.zeros(3000, int), 2000, 100, seed=2)  # random keys, in pieces
+    assert large.shape == (2000, 100) and large.max() < 3000
+    assert (np.sort(large, axis=1)[:, 1:] != np.sort(large, axis=1)[:, :-1]).all()
     few = draw_sets(np.zeros(3, int), 50, 4, seed=1)  # 3 samples, sets of 4: replaced
     assert few.shape == (50, 4) and set(np.unique(few)) == {0, 1, 2}
     np.testing.assert_array_equal(draw_sets(object_id, 5, 3, seed=3),
