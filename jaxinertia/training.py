@@ -124,17 +124,23 @@ def _is_trainable(path, trainable: str) -> bool:
     keys = [str(getattr(k, "key", "")) for k in path]
     if trainable == "head":
         return not any(k.startswith("joint") for k in keys)
+    servo = keys[-1] in SERVO_PARAMS and "residual" not in keys
     if trainable == "servo":
-        return keys[-1] in SERVO_PARAMS and "residual" not in keys
+        return servo
+    if trainable == "servo+input":  # and the residual's per-joint input layers
+        return servo or ("residual" in keys and keys[-2:-1] == ["hidden"]
+                         and any(k.startswith("joint") for k in keys))
     return True
 
 
 def _part_trainable(trainable: str, part: str) -> str:
     """What ``trainable`` (:class:`TrainConfig`) leaves trainable in the torque model
     (``part="torque"``) or the attention model (``"attention"``), as one of "all",
-    "head", "servo", "none"."""
+    "head", "servo", "servo+input", "none"."""
     if trainable == "servo+attention":
         return "servo" if part == "torque" else "all"
+    if trainable == "servo+input":
+        return trainable if part == "torque" else "none"
     if trainable == "attention":
         return "none" if part == "torque" else "all"
     return trainable
@@ -328,7 +334,7 @@ def train_torque_models(
     ``on_epoch(e, (train_loss, val_loss))`` after each epoch if given."""
     model = model or TORQUE_MODELS[cfg.torque_model](n_joints=train.q.shape[1])
     trainable = _part_trainable(cfg.trainable, "torque")
-    if trainable == "servo" and not isinstance(model, PhysicalTorqueModel):
+    if trainable.startswith("servo") and not isinstance(model, PhysicalTorqueModel):
         raise UsageError(f"trainable {cfg.trainable!r} needs the physical torque model (the "
                          "paper's network has no servo parameters)")
     if trainable == "none" and init is None:

@@ -22,7 +22,7 @@ __all__ = ["FINETUNE_DEFAULTS", "TRAINABLE", "TrainConfig", "draw_sets", "featur
 
 
 #: What fine-tuning may change (``TrainConfig.trainable``).
-TRAINABLE = ("all", "head", "servo", "servo+attention", "attention")
+TRAINABLE = ("all", "head", "servo", "servo+input", "servo+attention", "attention")
 
 
 @dataclass(frozen=True)
@@ -47,6 +47,8 @@ class TrainConfig:
     val_fraction: float = 0.1
     #: What training may change (fine-tuning): "all"; "head" (the per-joint encoders
     #: fixed); "servo" (only the physical model's servo parameters; the attention fixed);
+    #: "servo+input" (those and the first layer of the residual's per-joint encoders: how
+    #: the residual reads its inputs, the current torque among them; the attention fixed);
     #: "servo+attention" (the servo parameters and every attention parameter); "attention"
     #: (every attention parameter; the torque models fixed).
     trainable: str = "all"

@@ -486,9 +486,11 @@ def test_drawn_sessions_scale_the_supply_by_the_prior_and_nothing_else():
 
 
 
-def _servo_law_folder(path, k, f, K=2):
+def _servo_law_folder(path, k, f, K=2, residual=False):
     """A physical model folder whose servo part is the synthetic law (stiffness ``k``,
-    friction ``f``, offset 0.01 N m; support.synthetic) and whose residual is zero."""
+    friction ``f``, offset 0.01 N m; support.synthetic) and whose residual is zero (its
+    output layer; ``residual``: the random one, through which gradients reach its
+    encoders)."""
     feats = jnp.zeros((1, 4, 4), jnp.float32)
     tm, am = PhysicalTorqueModel(), AttentionModel()
     keys = jax.random.split(jax.random.key(3), K)
@@ -500,7 +502,9 @@ def _servo_law_folder(path, k, f, K=2):
              "offset": 0.01 / tau_scale, "friction": -np.asarray(f) / tau_scale,
              "load_friction": np.zeros(4)}
     p.update({n: jnp.asarray(np.tile(v, (K, 1)), jnp.float32) for n, v in servo.items()})
-    p["residual"] = {**p["residual"], "out": jax.tree.map(jnp.zeros_like, p["residual"]["out"])}
+    if not residual:
+        p["residual"] = {**p["residual"],
+                         "out": jax.tree.map(jnp.zeros_like, p["residual"]["out"])}
     d = synthetic_samples(np.random.default_rng(4))
     b = fit_baselines(d.q_d, d.q, d.direction, d.current_tau, d.tau)
     save_models(path, ModelPair({"params": p}, av, jnp.asarray(tau_scale, jnp.float32), tm, am),
@@ -604,6 +608,36 @@ def test_servo_and_attention_finetuning_moves_both_and_nothing_else(folders):
         assert history.shape == plain.shape == (3, 2, 2)
         gap = np.abs(history / plain - 1).max()
         assert gap < 1e-6 if same else gap > 1e-3, (spread, gap)
+
+
+def test_servo_and_input_finetuning_moves_the_residuals_input_layers_and_nothing_else(
+        folders):
+    """``--trainable servo+input``: the servo parameters and the first layer of each of the
+    residual's per-joint encoders train; the encoders' second layers, the residual's head
+    and the whole attention stay the start's, bit for bit, and no attention epoch runs."""
+    tmp, _, real = folders
+    k, f = np.array([16.0, 18.0, 17.0, 10.0]), np.array([0.02, 0.05, 0.03, 0.01])
+    _servo_law_folder(tmp / "law_in", k * 1.1, f, residual=True)
+    start = load_models(tmp / "law_in").pair
+    out = tmp / "ft_servo_input"
+    assert main(["train", "--data", str(real), "--out", str(out), "--trainable", "servo+input",
+                 "--init", str(tmp / "law_in"), "--torque-epochs", "3", "--torque-lr", "1e-3",
+                 "--attention-epochs", "3", "--attention-sets", "6", "--attention-val-sets",
+                 "3", "--set-size", "16", "--session-strength", "0"]) == 0
+    folder = load_models(out)
+    assert folder.config["training"]["trainable"] == "servo+input"
+    assert min(folder.config["best_epoch"]["torque"]) >= 0  # the stiffer start moved
+    assert folder.config["history"]["attention"] == []
+    assert_tree_equal(folder.pair.attention_vars, start.attention_vars, what="attention kept")
+    new, old = folder.pair.torque_vars["params"], start.torque_vars["params"]
+    assert not np.allclose(new["stiffness"], old["stiffness"])
+    for name, tree in new["residual"].items():
+        if name.startswith("joint"):  # the input layer moved, the embedding's layer not
+            assert not np.allclose(tree["hidden"]["kernel"],
+                                   old["residual"][name]["hidden"]["kernel"]), name
+            assert_tree_equal(tree["embed"], old["residual"][name]["embed"], what=name)
+        else:
+            assert_tree_equal(tree, old["residual"][name], what=name)
 
 
 def test_a_finetuning_from_a_start_still_training_is_the_one_from_its_folder(folders,

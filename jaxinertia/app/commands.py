@@ -338,12 +338,15 @@ def _register_train(sub) -> None:
                                for k, v in defaults.FINETUNE.items()))
     t.add_argument("--samples-per-object", type=positive_int, metavar="N",
                    help="use at most N samples of each object (seeded random choice)")
-    t.add_argument("--trainable", choices=["all", "head", "servo", "servo+attention",
-                                           "attention"],
+    # training_setup.TRAINABLE (not imported: --help imports no flax)
+    t.add_argument("--trainable", choices=["all", "head", "servo", "servo+input",
+                                           "servo+attention", "attention"],
                    default=None,
                    help="what fine-tuning may change: all (default), head (the per-joint "
                    "encoders fixed), servo (only the physical torque model's stiffness, "
-                   "offset and friction; the attention model fixed), servo+attention "
+                   "offset and friction; the attention model fixed), servo+input (those "
+                   "and the first layer of the residual's per-joint encoders, how it reads "
+                   "its inputs, the current among them), servo+attention "
                    "(those and the attention model) or attention (the attention model "
                    "alone; the torque models fixed)")
     t.add_argument("--attention-torque-spread", type=nonnegative_float, default=None,
