@@ -61,6 +61,14 @@ def _sim_data(fold: Path, start: str, per_load: int | None, out: Path) -> Path:
                           progress=False, **spread)[0]
 
 
+def real_and_released(lbipe_dir: str, prefix: str):
+    """The real files, their names, the released models' benchmark on them and a scratch
+    folder: what every fine-tuning experiment on a run's folds starts from."""
+    real = load_real(lbipe_dir)
+    released = released_benchmark(lbipe_dir, real=real)["objects"]
+    return real, [o.name for o in real.objects], released, Path(tempfile.mkdtemp(prefix=prefix))
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--run", required=True, help="a reproduce output folder (with folds/)")
@@ -68,10 +76,7 @@ def main() -> None:
     p.add_argument("--simulate", type=int, default=None,
                    help="samples per load to simulate where the run's data were not kept")
     a = p.parse_args()
-    real = load_real(a.lbipe_dir)
-    names = [o.name for o in real.objects]
-    released = released_benchmark(a.lbipe_dir, real=real)["objects"]
-    tmp = Path(tempfile.mkdtemp(prefix="finetune-anchor-"))
+    real, names, released, tmp = real_and_released(a.lbipe_dir, "finetune-anchor-")
     ratios: dict[str, list[float]] = {"alone": [], "anchored": []}
     for fit_on in names:
         fold = Path(a.run) / "folds" / f"fit_{fit_on}"

@@ -21,7 +21,6 @@ its mass score over the released models' T-A is the recipe's measure.
 from __future__ import annotations
 
 import argparse
-import tempfile
 from pathlib import Path
 
 import jax
@@ -30,9 +29,9 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 from candidate_ensemble import _metrics  # noqa: E402
-from finetune_anchor_folds import _sim_data  # noqa: E402
+from finetune_anchor_folds import _sim_data, real_and_released  # noqa: E402
 
-from jaxinertia.app.pipeline import evaluate_models, load_real, released_benchmark, train  # noqa: E402,E501
+from jaxinertia.app.pipeline import evaluate_models, train  # noqa: E402
 from jaxinertia.training import FINETUNE_DEFAULTS, TrainConfig  # noqa: E402
 
 STARTS = ("physical_current", "physical_current_sessions")
@@ -41,9 +40,29 @@ SIM_ONLY = ("models", "models_physical", "models_physical_current",
 SIZES = (64, 250, 1000)
 
 
+#: The candidates' kinds (the folders' mean within each, and of some together, is printed).
+KINDS = {"without the current": ("models", "models_physical", "models_finetuned_"),
+         "current input": ("models_physical_current", "models_finetuned_current_"),
+         "sessions drawn": ("models_physical_current_sessions",
+                            "models_finetuned_current_sessions_")}
+MEANS = (("every kind",), ("current input",), ("without the current", "current input"),
+         ("current input", "sessions drawn"))
+
+
+def _kind(folder: str) -> str:
+    """The kind of a candidate folder's name (the longest matching prefix of KINDS')."""
+    best = max(((p, k) for k, ps in KINDS.items() for p in ps
+                if folder == p or (p.endswith("_") and folder.startswith(p)
+                                   and folder[len(p):].isdigit())), key=lambda pk: len(pk[0]))
+    return best[1]
+
+
 def _fold_dirs(run: Path, fit_on: str, draws: int) -> list[Path]:
-    dirs = [run / "folds" / f"fit_{fit_on}"]
-    dirs += sorted(run.glob(f"folds/seed*/fit_{fit_on}"))
+    """A run's folds of ``fit_on`` (``run/folds/...``; or ``run`` is the folds' folder, as
+    ``experiments/folds_alone.py --out`` writes it)."""
+    folds = run / "folds" if (run / "folds").is_dir() else run
+    dirs = [folds / f"fit_{fit_on}"]
+    dirs += sorted(folds.glob(f"seed*/fit_{fit_on}"))
     return [d for d in dirs if d.is_dir()][:draws]
 
 
@@ -57,10 +76,7 @@ def main() -> None:
     p.add_argument("--simulate", type=int, default=None,
                    help="samples per load to simulate where the run's data were not kept")
     a = p.parse_args()
-    real = load_real(a.lbipe_dir)
-    names = [o.name for o in real.objects]
-    released = released_benchmark(a.lbipe_dir, real=real)["objects"]
-    tmp = Path(tempfile.mkdtemp(prefix="finetune-input-"))
+    real, names, released, tmp = real_and_released(a.lbipe_dir, "finetune-input-")
 
     def judge(folder: Path, i: int, strength: float, method: str) -> np.ndarray:
         r = evaluate_models(folder, [real.objects[i]], [real.sets[i]], l_max=[real.l_max[i]],
@@ -71,15 +87,15 @@ def main() -> None:
         mass, com, bias = _metrics(x, real.objects[i], real.l_max[i])
         return f"{label} {mass:6.2f} ({bias:+6.2f}) / {com:6.2f}"
 
-    scores: dict[str, list[float]] = {t: [] for t in a.trainable}
+    scores: dict[tuple, list[float]] = {}
     for fit_on in names:
         f = names.index(fit_on)
         for held in (n for n in names if n != fit_on):
             h = names.index(held)
-            ours: dict[str, list[np.ndarray]] = {t: [] for t in a.trainable}
+            ours: dict[str, list[tuple[str, np.ndarray]]] = {t: [] for t in a.trainable}
             for fold in _fold_dirs(Path(a.run), fit_on, a.draws):
-                fixed = [judge(fold / c, h, 0.0, "T") for c in SIM_ONLY]
-                fixed += [judge(fold / f"models_finetuned_{n}", h, 0.0, "T") for n in SIZES]
+                names_fixed = [*SIM_ONLY, *(f"models_finetuned_{n}" for n in SIZES)]
+                fixed = [(_kind(c), judge(fold / c, h, 0.0, "T")) for c in names_fixed]
                 seed = int(fold.parent.name.removeprefix("seed")) if (
                     fold.parent.name.startswith("seed")) else 0
                 for t in a.trainable:
@@ -99,21 +115,24 @@ def main() -> None:
                                   overwrite=True, progress=False, init=fold / f"models_{start}",
                                   samples_per_object=n)
                             x = judge(dst, h, 0.0, "T")
-                            ours[t].append(x)
+                            ours[t].append((_kind(own.name), x))
                             print(f"{fold.parent.name}/{fit_on} -> {held} {start:26s} {n:5d} "
                                   f"{t:12s}" + line(" held T0 mass (bias) / COM", x, h)
                                   + line(" | seen T0", judge(dst, f, 0.0, "T"), f)
                                   + line(" | held T-A1", judge(dst, h, 1.0, "T-A"), h),
                                   flush=True)
             ref = released[held]["T-A"]["mass_NMAE_pct"]
-            for t, xs in ours.items():
-                mean = np.nanmean(np.stack(xs), axis=0)
-                mass, _, _ = _metrics(mean, real.objects[h], real.l_max[h])
-                scores[t].append(mass / ref)
-                print(line(f"{fit_on} -> {held} mean of {len(xs)} candidates, {t}: T0", mean, h)
-                      + f"; released T-A {ref:.2f}", flush=True)
-    for t, r in scores.items():
-        print(f"mass score of the candidates' mean, fine-tuned {t}: {np.mean(r):.3f}")
+            for t, tagged in ours.items():
+                for kinds in MEANS:
+                    xs = [x for k, x in tagged if kinds == ("every kind",) or k in kinds]
+                    mean = np.nanmean(np.stack(xs), axis=0)
+                    mass, _, _ = _metrics(mean, real.objects[h], real.l_max[h])
+                    scores.setdefault((t, kinds), []).append(mass / ref)
+                    print(line(f"{fit_on} -> {held} mean of {len(xs)} ({' + '.join(kinds)}), "
+                               f"{t}: T0", mean, h) + f"; released T-A {ref:.2f}", flush=True)
+    for (t, kinds), r in scores.items():
+        print(f"mass score of the mean of {' + '.join(kinds)}, fine-tuned {t}: "
+              f"{np.mean(r):.3f}")
 
 
 if __name__ == "__main__":
