@@ -73,6 +73,8 @@ def main() -> None:
     p.add_argument("--draws", type=int, default=1, help="training draws' folds to redo")
     p.add_argument("--trainable", nargs="+", default=["servo", "servo+input"])
     p.add_argument("--sizes", type=int, nargs="+", default=list(SIZES))
+    p.add_argument("--seed", type=int, default=0, help="the fine-tunings' seed where the "
+                   "fold's folder does not name it (seed<s>/): the run's --seed")
     p.add_argument("--simulate", type=int, default=None,
                    help="samples per load to simulate where the run's data were not kept")
     a = p.parse_args()
@@ -97,7 +99,7 @@ def main() -> None:
                 names_fixed = [*SIM_ONLY, *(f"models_finetuned_{n}" for n in SIZES)]
                 fixed = [(_kind(c), judge(fold / c, h, 0.0, "T")) for c in names_fixed]
                 seed = int(fold.parent.name.removeprefix("seed")) if (
-                    fold.parent.name.startswith("seed")) else 0
+                    fold.parent.name.startswith("seed")) else a.seed
                 for t in a.trainable:
                     ours[t].extend(fixed)
                 for start in STARTS:
