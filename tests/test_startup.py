@@ -59,11 +59,12 @@ def test_the_command_table_is_what_the_modules_register():
 
 
 def test_the_parsers_defaults_are_the_librarys():
-    from jaxinertia import arms, design, objects, open_manipulator_x, training
+    from jaxinertia import arms, design, objects, open_manipulator_x, training, training_setup
     from jaxinertia.hardware.driver import ArmConfig
 
     assert defaults.TRAIN == training.TrainConfig().to_dict()
     assert defaults.FINETUNE == training.FINETUNE_DEFAULTS
+    assert defaults.TRAINABLE == training_setup.TRAINABLE
     assert defaults.MARGIN_DEG == design.DEFAULT_MARGIN_DEG
     assert defaults.MOUNT_CLEARANCE_M == open_manipulator_x.MOUNT_CLEARANCE_M
     assert defaults.JOINT_IDS == open_manipulator_x.JOINT_IDS

@@ -338,9 +338,7 @@ def _register_train(sub) -> None:
                                for k, v in defaults.FINETUNE.items()))
     t.add_argument("--samples-per-object", type=positive_int, metavar="N",
                    help="use at most N samples of each object (seeded random choice)")
-    # training_setup.TRAINABLE (not imported: --help imports no flax)
-    t.add_argument("--trainable", choices=["all", "head", "servo", "servo+input",
-                                           "servo+attention", "attention"],
+    t.add_argument("--trainable", choices=list(defaults.TRAINABLE),
                    default=None,
                    help="what fine-tuning may change: all (default), head (the per-joint "
                    "encoders fixed), servo (only the physical torque model's stiffness, "

@@ -9,7 +9,7 @@ change there that is not made here fails the tests.
 from __future__ import annotations
 
 __all__ = ["ARM_NAMES", "BUS_RETRIES", "DEFAULT_ARM", "FINETUNE", "GRIPPER_ID", "JOINT_IDS",
-           "MARGIN_DEG", "MOUNT_CLEARANCE_M", "OBJECT_NAMES", "TRAIN"]
+           "MARGIN_DEG", "MOUNT_CLEARANCE_M", "OBJECT_NAMES", "TRAIN", "TRAINABLE"]
 
 #: ``training.TrainConfig()`` (the paper's hyperparameters).
 TRAIN = {"n_models": 10, "seed": 0, "torque_epochs": 300, "torque_batch": 256,
@@ -18,6 +18,9 @@ TRAIN = {"n_models": 10, "seed": 0, "torque_epochs": 300, "torque_batch": 256,
          "attention_val_sets": 200, "w_mass": 1.0, "w_com": 0.3, "val_fraction": 0.1,
          "trainable": "all", "torque_model": "paper", "session_strength": 1.0,
          "current_input": False, "session_terms": False, "attention_torque_spread": 0.0}
+
+#: ``training_setup.TRAINABLE`` (``train --trainable``).
+TRAINABLE = ("all", "head", "servo", "servo+input", "servo+attention", "attention")
 
 #: ``training.FINETUNE_DEFAULTS`` (``train --init``).
 FINETUNE = {"torque_epochs": 200, "torque_batch": 64, "torque_lr": 1e-4,
