@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 RUNS := runs
 
-.PHONY: all venv test demo lbipe-benchmark export-lbipe lint bench bench-sim bench-train bench-help clean
+.PHONY: all venv test demo lbipe-benchmark export-lbipe lint bench bench-sim bench-train bench-help device-bundle clean
 
 all: test
 
@@ -81,5 +81,10 @@ bench-train: $(STAMP)
 bench-help: $(STAMP)
 	$(BIN)/python experiments/bench_help.py
 
+# What the lent GPU machine needs beside the working tree (the `device` tool, carry
+# [".device"]): experiments/device/run_full.sh says how it is used.
+device-bundle: $(STAMP)
+	@bash experiments/device/bundle.sh $(BIN)/python
+
 clean:
-	rm -rf $(VENV) $(RUNS) .pytest_cache .ruff_cache
+	rm -rf $(VENV) $(RUNS) .pytest_cache .ruff_cache .device
