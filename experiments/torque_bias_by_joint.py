@@ -42,15 +42,14 @@ from jaxinertia.training import torque_predictions  # noqa: E402
 
 
 def kind_of(name: str) -> str:
-    """The candidate's kind from its folder name (``current_sessions_ft250`` ->
-    ``current, sessions drawn``)."""
+    """The candidate's kind from its folder name (``models_current_sessions_finetuned_250``
+    -> ``current input, sessions drawn``; the paper network and the physical model, from
+    scratch or fine-tuned, are the kind without the current)."""
     if "sessions" in name:
         return "current input, sessions drawn"
     if "current" in name:
         return "current input"
-    if name.startswith("paper"):
-        return "paper network"
-    return "physical"
+    return "without the current"
 
 
 def mass_shares(obj, tau_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
