@@ -37,6 +37,7 @@ import numpy as np  # noqa: E402
 
 from jaxinertia.app.pipeline import load_real  # noqa: E402
 from jaxinertia.checkpoints import load_models, read_config  # noqa: E402
+from jaxinertia.samples import load_samples  # noqa: E402
 from jaxinertia.session import adapt_objects, session_reference  # noqa: E402
 from jaxinertia.training import torque_predictions  # noqa: E402
 
@@ -99,7 +100,6 @@ def main() -> None:
         models = load_models(folder)
         adapted, _ = adapt_objects(real.objects, session_reference(cfg, 0.0))
         if a.current_map and fit_on not in laws:
-            from jaxinertia.samples import load_samples
             sim = load_samples(folder.parent / "data" / "train_random.npz")
             sim = sim[0] if isinstance(sim, (list, tuple)) else sim
             seen_file = next(o for o in real.objects if o.name == fit_on)
